@@ -1,0 +1,140 @@
+"""The audit: concrete transitions drawn at random, each checked against the abstraction.
+
+Soundness (METHOD, "the one rule"): for a concrete state ``x`` in ``cell(x̂)``, an input ``û`` and an
+internal input ``w`` in ``cell(ŵ)``, either ``û`` is blocking at ``(x̂, ŵ)`` or the cell of ``f(x, û, w)`` is
+among the abstract successors (Theorem 4.2 / Definition 4.2). For the interconnection, the cell of ``M(x)``
+is in ``M̂(x̂)`` (Theorem 4.7). A violation is a bug that makes every controller built on the abstraction
+wrong, so the audit draws a share of its points exactly on cell boundaries and box edges, where off-by-one
+errors live.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .grid import UniformGrid
+from .network import Network, Subsystem
+from .subsystem import SubsystemRelation
+
+#: Points per batch of black-box evaluations.
+BATCH = 250_000
+
+
+@dataclass(frozen=True)
+class AuditResult:
+    transitions_checked: int
+    violations: int
+    skipped_blocking: int
+    first_violation: str | None
+
+    def as_dict(self) -> dict:
+        return {
+            "transitions_checked": self.transitions_checked,
+            "violations": self.violations,
+            "skipped_blocking": self.skipped_blocking,
+            "first_violation": self.first_violation,
+        }
+
+
+def draw_in_box(grid: UniformGrid, count: int, rng: np.random.Generator, boundary_share: float = 0.2) -> np.ndarray:
+    """Random concrete points of the grid's box, shape (count, d); some exactly on cell boundaries/box edges."""
+    lb, ub = np.asarray(grid.lb), np.asarray(grid.ub)
+    pts = rng.uniform(lb, ub, (count, grid.dim))
+    k = int(count * boundary_share)
+    if k:
+        # Snap some coordinates to a cell boundary (point ± eta/2) or a box edge.
+        rows = rng.integers(0, count, k)
+        cols = rng.integers(0, grid.dim, k)
+        idx = np.asarray(grid.cell_of(pts[rows])[0])[np.arange(k), cols]
+        centre = np.asarray(grid.origin)[cols] + (idx + np.asarray(grid.k_lo)[cols]) * np.asarray(grid.eta)[cols]
+        edge = centre + rng.choice([-0.5, 0.5], k) * np.asarray(grid.eta)[cols]
+        edge = np.where(rng.random(k) < 0.1, np.where(rng.random(k) < 0.5, lb[cols], ub[cols]), edge)
+        pts[rows, cols] = np.clip(edge, lb[cols], ub[cols])
+    return pts
+
+
+def _either_cell(grid: UniformGrid, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Cell indices of points, shape (B, d), taking at random the upper or lower cell on a boundary.
+
+    A point on a boundary is related to both cells, so over many draws both assignments get checked.
+    """
+    up, inside = grid.cell_of(x, "upper")
+    low, inside_low = grid.cell_of(x, "lower")
+    pick = rng.random(x.shape[0]) < 0.5
+    idx = np.where(pick[:, None], up, low)
+    ok = np.where(pick, inside, inside_low)
+    # On the box edge the outer cell may be off the grid: use the other one, which holds the point.
+    idx = np.where(ok[:, None], idx, np.where(pick[:, None], low, up))
+    return idx
+
+
+def audit_subsystem(sub: Subsystem, rel: SubsystemRelation, count: int, rng: np.random.Generator) -> AuditResult:
+    """Check ``count`` random concrete transitions of one subsystem against its relation."""
+    xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
+    checked = violations = skipped = 0
+    first: str | None = None
+    done = 0
+    while done < count:
+        b = min(BATCH, count - done)
+        done += b
+        x = draw_in_box(xg, b, rng)
+        ui = rng.integers(0, ug.size, b)
+        u = ug.points(ug.unravel(ui))
+        if wg is None:
+            w = np.zeros((b, 0))
+            wi = np.zeros(b, dtype=np.int64)
+        else:
+            w = draw_in_box(wg, b, rng)
+            wi = wg.ravel(_either_cell(wg, w, rng))
+        xi = xg.ravel(_either_cell(xg, x, rng))
+        xn = sub.dynamics(x, u, w)
+        lo, hi, block = rel.successor_ranges(xi, ui, wi)
+        skipped += int(block.sum())
+        live = ~block
+        # A successor on a cell boundary lies in both cells: both must be successors.
+        n_up, in_up = xg.cell_of(xn, "upper")
+        n_low, in_low = xg.cell_of(xn, "lower")
+        inside_box = np.all((xn >= np.asarray(xg.lb)) & (xn <= np.asarray(xg.ub)), axis=1)
+        ok = in_up & in_low & inside_box
+        ok &= np.all((n_up >= lo) & (n_up <= hi) & (n_low >= lo) & (n_low <= hi), axis=1)
+        n_idx = n_up
+        bad = live & ~ok
+        checked += int(live.sum())
+        violations += int(bad.sum())
+        if bad.any() and first is None:
+            k = int(np.argmax(bad))
+            first = (
+                f"{sub.name}: x={x[k].tolist()} u={u[k].tolist()} w={w[k].tolist()} -> x'={xn[k].tolist()} "
+                f"in cell {n_idx[k].tolist()}, abstraction allows {lo[k].tolist()}..{hi[k].tolist()}"
+            )
+    return AuditResult(checked, violations, skipped, first)
+
+
+def audit_interconnection(network: Network, ia, count: int, rng: np.random.Generator) -> AuditResult:
+    """Check ``count`` random concrete states: the cell of ``M(x)`` must be in ``M̂(cell(x))`` (Thm 4.7)."""
+    grid = network.composed_state_grid()
+    checked = violations = 0
+    first: str | None = None
+    done = 0
+    while done < count:
+        b = min(BATCH, count - done)
+        done += b
+        x = draw_in_box(grid, b, rng)
+        x_idx = _either_cell(grid, x, rng)
+        w = network.interconnection_map(x)
+        w_idx = np.empty(w.shape, dtype=np.int64)
+        ok = np.ones(b, dtype=bool)
+        for j, g in enumerate(network.internal_grids):
+            inside = (w[:, j] >= g.lb[0]) & (w[:, j] <= g.ub[0])
+            w_idx[:, j] = np.where(inside, _either_cell(g, np.clip(w[:, j : j + 1], g.lb[0], g.ub[0]), rng)[:, 0], 0)
+            ok &= inside
+        safe_idx = np.where(ok[:, None], w_idx, 0)
+        ok &= ia.contains(x_idx, safe_idx)
+        checked += b
+        violations += int((~ok).sum())
+        if (~ok).any() and first is None:
+            k = int(np.argmax(~ok))
+            first = f"interconnection: x={x[k].tolist()} M(x)={w[k].tolist()} cells {w_idx[k].tolist()} not allowed"
+    return AuditResult(checked, violations, 0, first)

@@ -1,0 +1,163 @@
+"""Black boxes: the only access the method has to the dynamics ``f_i`` and the interconnection map ``M``.
+
+A :class:`BlackBox` evaluates a map on a batch of points and checks what comes back: the shape, and that
+every value is finite. A NaN, an inf, a wrong shape or an exception becomes a :class:`BlackBoxError` naming
+the black box and the offending input, never a silently wrong abstraction.
+
+Expression black boxes travel as text (they pickle as their source) and compile where they run.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .errors import BlackBoxError, SpecError
+from .spec import is_module_function
+
+
+class BlackBox:
+    """A vectorised map ``(arrays of shape (B, d_k)) -> array of shape (B, out_dim)``.
+
+    Parameters
+    ----------
+    name : str
+        Used in error messages (e.g. ``"subsystem 'tank[3]' dynamics"``).
+    source : str
+        A safe expression, or ``module:function`` (only where ``allowed_modules`` permits).
+    inputs : dict of str to int
+        Argument names and dimensions, in call order (``{"x": 1, "u": 1, "w": 1}``).
+    out_dim : int or None
+        Expected output dimension; ``None`` infers it from the expression.
+    constants : dict of str to float
+        Named numbers usable in expressions.
+    allowed_modules : sequence of str or None
+        Modules a ``module:function`` may come from; ``None`` allows any (local command line), ``()`` none.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        source: str,
+        inputs: dict[str, int],
+        out_dim: int | None = None,
+        constants: dict[str, float] | None = None,
+        allowed_modules: Sequence[str] | None = (),
+    ) -> None:
+        self._name = name
+        self._source = source.strip()
+        self._inputs = dict(inputs)
+        self._constants = dict(constants or {})
+        self._allowed = None if allowed_modules is None else tuple(allowed_modules)
+        self._fn: Callable[..., np.ndarray] | None = None
+        self._is_module = is_module_function(self._source)
+        self._compile()
+        self._out_dim = out_dim if out_dim is not None else self._infer_out_dim()
+        if out_dim is not None:
+            got = self._infer_out_dim()
+            if got != out_dim:
+                raise SpecError(f"{name}: returns {got} components, expected {out_dim}")
+
+    # -------------------------------------------------------------- construction
+    def _compile(self) -> None:
+        if self._is_module:
+            module_name, func = self._source.split(":")
+            if self._allowed is not None and not any(
+                module_name == m or module_name.startswith(m + ".") for m in self._allowed
+            ):
+                raise SpecError(
+                    f"{self._name}: module '{module_name}' is not on this server's allowlist; "
+                    "use a safe expression instead"
+                )
+            try:
+                mod = importlib.import_module(module_name)
+                fn = getattr(mod, func)
+            except (ImportError, AttributeError) as exc:
+                raise SpecError(f"{self._name}: cannot load {self._source}: {exc}") from None
+            if not callable(fn):
+                raise SpecError(f"{self._name}: {self._source} is not callable")
+            self._fn = fn
+        else:
+            from .expr import compile_expression
+
+            expr = compile_expression(self._source, self._inputs, self._constants)
+
+            def run(*arrays: np.ndarray) -> np.ndarray:
+                out = expr(**{k: a.T for k, a in zip(self._inputs, arrays)})
+                return np.asarray(out, dtype=float).T
+
+            self._fn = run
+
+    def _infer_out_dim(self) -> int:
+        probe = [np.ones((1, d)) for d in self._inputs.values()]
+        try:
+            with np.errstate(all="ignore"):
+                out = np.asarray(self._fn(*probe))
+        except Exception as exc:  # a user function may raise anything
+            raise BlackBoxError(f"{self._name}: raised {type(exc).__name__}: {exc}") from None
+        if out.ndim != 2 or out.shape[0] != 1:
+            raise BlackBoxError(f"{self._name}: returned shape {out.shape} for a batch of 1, expected (1, d)")
+        return int(out.shape[1])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_fn"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._compile()
+
+    # -------------------------------------------------------------- properties
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def source(self) -> str:
+        return self._source
+
+    @property
+    def out_dim(self) -> int:
+        return self._out_dim
+
+    @property
+    def inputs(self) -> dict[str, int]:
+        return dict(self._inputs)
+
+    # -------------------------------------------------------------- evaluation
+    def __call__(self, *arrays: np.ndarray, describe: Callable[[int], str] | None = None) -> np.ndarray:
+        """Evaluate on a batch.
+
+        Parameters
+        ----------
+        *arrays : ndarray, shape (B, d_k)
+            One per input, in the order of ``inputs``.
+        describe : callable, optional
+            Maps a batch row to a description (e.g. the cell it was sampled in) for error messages.
+
+        Returns
+        -------
+        ndarray, shape (B, out_dim), float64, all finite.
+        """
+        B = arrays[0].shape[0] if arrays else 0
+        try:
+            with np.errstate(all="ignore"):
+                out = self._fn(*arrays)
+            out = np.asarray(out, dtype=float)
+        except BlackBoxError:
+            raise
+        except Exception as exc:
+            raise BlackBoxError(f"{self._name}: raised {type(exc).__name__}: {exc}") from None
+        if out.shape != (B, self._out_dim):
+            raise BlackBoxError(f"{self._name}: returned shape {out.shape}, expected {(B, self._out_dim)}")
+        finite = np.isfinite(out)
+        if not finite.all():
+            row = int(np.argmin(finite.all(axis=1)))
+            bad = out[row]
+            point = ", ".join(f"{k}={np.array2string(a[row], precision=6)}" for k, a in zip(self._inputs, arrays))
+            where = f" ({describe(row)})" if describe is not None else ""
+            raise BlackBoxError(f"{self._name}: returned {bad.tolist()} (not finite) at {point}{where}")
+        return out

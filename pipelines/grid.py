@@ -1,0 +1,279 @@
+"""Uniform grids of cells (METHOD §1), the quantizer ``[X]_eta`` of the paper.
+
+Grid points are ``origin + k * eta`` for integer ``k``; the cell of a point is the closed box
+``point ± eta / 2``. A grid keeps the concrete box it was made for, because cells are only ever sampled
+where they meet that box (a black box may be undefined outside it, and the concrete system never leaves it).
+
+Indices are zero-based per dimension (``i = k - k_lo``) and flat indices are row-major, like SCOTS's
+``UniformGrid``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .errors import SpecError
+
+#: Relative tolerance used to snap ratios such as ``(lb - origin) / eta`` to an integer or half-integer.
+#: It is relative to the ratio's magnitude, never an absolute ``1e-10``: SCOTS's absolute ``eta/1e10``
+#: mis-sizes grids whose bounds are not multiples of ``eta``.
+SNAP_RTOL = 1e-9
+
+
+def _snap(r: np.ndarray) -> np.ndarray:
+    """Round ``r`` to the nearest integer where it is within a relative ``SNAP_RTOL`` of it."""
+    r = np.asarray(r, dtype=float)
+    nearest = np.round(r)
+    close = np.abs(r - nearest) <= SNAP_RTOL * np.maximum(1.0, np.abs(r))
+    return np.where(close, nearest, r)
+
+
+def _as_vector(value: float | Sequence[float], dim: int, name: str) -> np.ndarray:
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if arr.shape == (1,) and dim > 1:
+        arr = np.repeat(arr, dim)
+    if arr.shape != (dim,):
+        raise SpecError(f"{name} has {arr.size} components, expected {dim}")
+    if not np.all(np.isfinite(arr)):
+        raise SpecError(f"{name} must be finite, got {arr.tolist()}")
+    return arr
+
+
+@dataclass(frozen=True)
+class UniformGrid:
+    """A product of uniform 1-D grids, restricted to the cells that matter for a concrete box.
+
+    Parameters
+    ----------
+    origin, eta : tuple of float, shape (d,)
+        Grid points are ``origin + k * eta``; ``eta > 0`` is the spacing (cell width).
+    k_lo, k_hi : tuple of int, shape (d,)
+        Inclusive range of the integer coordinates ``k`` per dimension.
+    lb, ub : tuple of float, shape (d,)
+        The concrete box this grid discretizes; cells are clipped to it for sampling.
+    """
+
+    origin: tuple[float, ...]
+    eta: tuple[float, ...]
+    k_lo: tuple[int, ...]
+    k_hi: tuple[int, ...]
+    lb: tuple[float, ...]
+    ub: tuple[float, ...]
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def covering(
+        cls,
+        lb: float | Sequence[float],
+        ub: float | Sequence[float],
+        eta: float | Sequence[float],
+        origin: float | Sequence[float] | None = None,
+        name: str = "grid",
+    ) -> "UniformGrid":
+        """Grid of every point whose cell meets ``[lb, ub]`` in a set of positive measure (state grids).
+
+        The cells then cover the box, so every concrete state lies in some cell (METHOD §1). A box that is a
+        single point in some dimension gets the one cell containing it.
+        """
+        lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)
+        # cell k = [o + (k - 1/2) eta, o + (k + 1/2) eta] meets (lb, ub) iff k > (lb-o)/eta - 1/2 and
+        # k < (ub-o)/eta + 1/2; a bound exactly on a cell boundary belongs to the inner cell only.
+        lo_r = _snap((lb_ - o_) / eta_ + 0.5)
+        hi_r = _snap((ub_ - o_) / eta_ - 0.5)
+        k_lo = np.floor(lo_r)
+        k_hi = np.ceil(hi_r)
+        point = lb_ == ub_
+        k_lo = np.where(point, np.floor(_snap((lb_ - o_) / eta_ + 0.5)), k_lo)
+        k_hi = np.where(point, k_lo, k_hi)
+        return cls._make(o_, eta_, k_lo, k_hi, lb_, ub_, name)
+
+    @classmethod
+    def inside(
+        cls,
+        lb: float | Sequence[float],
+        ub: float | Sequence[float],
+        eta: float | Sequence[float],
+        origin: float | Sequence[float] | None = None,
+        name: str = "grid",
+    ) -> "UniformGrid":
+        """Grid of the points that lie in ``[lb, ub]`` (external-input grids: inputs are points, not cells)."""
+        lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)
+        k_lo = np.ceil(_snap((lb_ - o_) / eta_))
+        k_hi = np.floor(_snap((ub_ - o_) / eta_))
+        return cls._make(o_, eta_, k_lo, k_hi, lb_, ub_, name)
+
+    @staticmethod
+    def _check(lb, ub, eta, origin, name):
+        lb_arr = np.atleast_1d(np.asarray(lb, dtype=float))
+        dim = lb_arr.size
+        if dim == 0:
+            raise SpecError(f"{name}: a grid needs at least one dimension")
+        lb_ = _as_vector(lb, dim, f"{name}.lb")
+        ub_ = _as_vector(ub, dim, f"{name}.ub")
+        eta_ = _as_vector(eta, dim, f"{name}.eta")
+        o_ = _as_vector(0.0 if origin is None else origin, dim, f"{name}.origin")
+        if np.any(eta_ <= 0):
+            raise SpecError(f"{name}.eta must be positive, got {eta_.tolist()}")
+        if np.any(lb_ > ub_):
+            raise SpecError(f"{name}: empty box, lb {lb_.tolist()} exceeds ub {ub_.tolist()}")
+        return lb_, ub_, eta_, o_
+
+    @classmethod
+    def _make(cls, o_, eta_, k_lo, k_hi, lb_, ub_, name) -> "UniformGrid":
+        if np.any(k_hi < k_lo):
+            raise SpecError(
+                f"{name}: empty grid, no point of spacing {eta_.tolist()} lies in [{lb_.tolist()}, {ub_.tolist()}]"
+            )
+        return cls(
+            origin=tuple(float(v) for v in o_),
+            eta=tuple(float(v) for v in eta_),
+            k_lo=tuple(int(v) for v in k_lo),
+            k_hi=tuple(int(v) for v in k_hi),
+            lb=tuple(float(v) for v in lb_),
+            ub=tuple(float(v) for v in ub_),
+        )
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def dim(self) -> int:
+        return len(self.eta)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Number of points per dimension."""
+        return tuple(h - l + 1 for l, h in zip(self.k_lo, self.k_hi))
+
+    @property
+    def size(self) -> int:
+        """Number of points (an exact Python integer; it can exceed 2**63 for product grids)."""
+        return math.prod(self.shape)
+
+    @property
+    def eta_array(self) -> np.ndarray:
+        return np.asarray(self.eta)
+
+    # ------------------------------------------------------------------ indices and points
+    def unravel(self, flat: np.ndarray) -> np.ndarray:
+        """Flat (row-major) indices, shape (B,), to per-dimension indices, shape (B, d)."""
+        return np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), self.shape), axis=-1)
+
+    def ravel(self, idx: np.ndarray) -> np.ndarray:
+        """Per-dimension indices, shape (B, d), to flat row-major indices, shape (B,)."""
+        idx = np.asarray(idx, dtype=np.int64)
+        return np.ravel_multi_index(tuple(idx.T), self.shape)
+
+    def points(self, idx: np.ndarray) -> np.ndarray:
+        """Grid points (cell centres) of per-dimension indices, shape (B, d) -> (B, d)."""
+        k = np.asarray(idx, dtype=float) + np.asarray(self.k_lo, dtype=float)
+        return np.asarray(self.origin) + k * self.eta_array
+
+    def all_points(self) -> np.ndarray:
+        """Every grid point, shape (size, d), row-major. Only for small grids."""
+        return self.points(self.unravel(np.arange(self.size)))
+
+    def axis_points(self, axis: int) -> np.ndarray:
+        """Points of one dimension, shape (shape[axis],)."""
+        k = np.arange(self.k_lo[axis], self.k_hi[axis] + 1, dtype=float)
+        return self.origin[axis] + k * self.eta[axis]
+
+    # ------------------------------------------------------------------ cells
+    def clipped_cells(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The part of each cell inside the concrete box, ``cell(idx) ∩ [lb, ub]``.
+
+        Returns
+        -------
+        lo, hi : ndarray, shape (B, d)
+            Bounds of the clipped cells; ``lo <= hi`` for every cell of a ``covering`` grid.
+        """
+        c = self.points(idx)
+        half = self.eta_array / 2
+        lo = np.maximum(c - half, np.asarray(self.lb))
+        hi = np.minimum(c + half, np.asarray(self.ub))
+        return lo, hi
+
+    def cell_of(self, x: np.ndarray, tie: str = "upper") -> tuple[np.ndarray, np.ndarray]:
+        """Index of the cell containing each concrete point.
+
+        A point on the boundary of two cells belongs to both (cells are closed); ``tie`` picks the upper or
+        the lower one. The feedback refinement relation relates the point to both, so checks of soundness
+        must look at both.
+
+        Returns
+        -------
+        idx : ndarray of int64, shape (B, d)
+        inside : ndarray of bool, shape (B,)
+            Whether the cell is on this grid.
+        """
+        r = _snap((np.asarray(x, dtype=float) - np.asarray(self.origin)) / self.eta_array + 0.5)
+        k = (np.floor(r) if tie == "upper" else np.ceil(r) - 1).astype(np.int64)
+        idx = k - np.asarray(self.k_lo, dtype=np.int64)
+        inside = np.all((idx >= 0) & (idx < np.asarray(self.shape)), axis=-1)
+        return idx, inside
+
+    def cells_touching(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Index range of the cells that meet the closed boxes ``[lo, hi]`` (successor sets, Def. 4.2).
+
+        The range is rounded outwards: a box touching a cell boundary within floating-point error gets both
+        neighbours, which can only add transitions. Indices are not clipped to the grid; a range reaching
+        outside it means the box leaves the grid.
+
+        Returns
+        -------
+        first, last : ndarray of int64, shape (B, d)
+        """
+        o = np.asarray(self.origin)
+        eta = self.eta_array
+        a = (np.asarray(lo, dtype=float) - o) / eta - 0.5
+        b = (np.asarray(hi, dtype=float) - o) / eta + 0.5
+        # Outward rounding: a relative SNAP_RTOL widening cannot lose a cell that meets the box.
+        a = a - SNAP_RTOL * np.maximum(1.0, np.abs(a))
+        b = b + SNAP_RTOL * np.maximum(1.0, np.abs(b))
+        first = np.ceil(a).astype(np.int64) - np.asarray(self.k_lo, dtype=np.int64)
+        last = np.floor(b).astype(np.int64) - np.asarray(self.k_lo, dtype=np.int64)
+        return first, last
+
+    def inner_range(self, lb: Sequence[float], ub: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Index range of the grid cells lying wholly inside the box ``[lb, ub]`` (inner approximation).
+
+        Returns ``(first, last)``, shape (d,), clipped to the grid; the range is empty where
+        ``first > last``.
+        """
+        o = np.asarray(self.origin)
+        eta = self.eta_array
+        first = np.ceil(_snap((np.asarray(lb, dtype=float) - o) / eta + 0.5)).astype(np.int64)
+        last = np.floor(_snap((np.asarray(ub, dtype=float) - o) / eta - 0.5)).astype(np.int64)
+        first = np.maximum(first - np.asarray(self.k_lo), 0)
+        last = np.minimum(last - np.asarray(self.k_lo), np.asarray(self.shape) - 1)
+        return first, last
+
+    def describe(self) -> dict:
+        """A JSON-ready description (for reports, Zarr attributes and controller headers)."""
+        return {
+            "origin": list(self.origin),
+            "eta": list(self.eta),
+            "k_lo": list(self.k_lo),
+            "k_hi": list(self.k_hi),
+            "lb": list(self.lb),
+            "ub": list(self.ub),
+            "shape": list(self.shape),
+        }
+
+    @classmethod
+    def from_description(cls, d: dict) -> "UniformGrid":
+        return cls(
+            origin=tuple(d["origin"]),
+            eta=tuple(d["eta"]),
+            k_lo=tuple(d["k_lo"]),
+            k_hi=tuple(d["k_hi"]),
+            lb=tuple(d["lb"]),
+            ub=tuple(d["ub"]),
+        )
+
+
+def product_size(grids: Sequence[UniformGrid]) -> int:
+    """Number of points of the product of grids (exact integer)."""
+    return math.prod(g.size for g in grids)

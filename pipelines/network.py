@@ -1,0 +1,199 @@
+"""The interconnected system of a spec, resolved: grids, black boxes, who reads which internal variable.
+
+``build_network`` turns a validated :class:`~pipelines.spec.JobSpec` into a :class:`Network` of
+:class:`Subsystem` objects (``replicate`` expanded), the internal-variable grids and the interconnection
+map ``M``. Everything a later stage needs comes from here, so there is one place where the spec is read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+from .blackbox import BlackBox
+from .errors import SpecError
+from .grid import UniformGrid
+from .spec import GridSpec, JobSpec, SubsystemSpec
+
+
+@dataclass(frozen=True)
+class Subsystem:
+    """One subsystem ``Xi_i = (X_i, U_i, W_i, f_i)`` of the network.
+
+    ``internal_grid`` is the product of the grids of the internal variables it reads (``None`` when it reads
+    none). ``key`` identifies its abstraction: subsystems with equal keys share one (they are identical).
+    """
+
+    name: str
+    index: int
+    spec: SubsystemSpec
+    state_grid: UniformGrid
+    input_grid: UniformGrid
+    internal_grid: UniformGrid | None
+    reads: tuple[int, ...]
+    dynamics: BlackBox
+    state_offset: int
+    key: str
+
+    @property
+    def n(self) -> int:
+        return self.state_grid.dim
+
+    @property
+    def m(self) -> int:
+        return self.input_grid.dim
+
+    @property
+    def p(self) -> int:
+        return 0 if self.internal_grid is None else self.internal_grid.dim
+
+    @property
+    def n_w_cells(self) -> int:
+        return 1 if self.internal_grid is None else self.internal_grid.size
+
+    @property
+    def triples(self) -> int:
+        """Number of ``(x̂, û, ŵ)`` triples the abstraction ranges over."""
+        return self.state_grid.size * self.input_grid.size * self.n_w_cells
+
+
+@dataclass(frozen=True)
+class Network:
+    spec: JobSpec
+    subsystems: tuple[Subsystem, ...]
+    internal_grids: tuple[UniformGrid, ...]
+    interconnection_map: BlackBox
+    constants: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def state_dim(self) -> int:
+        return sum(s.n for s in self.subsystems)
+
+    @property
+    def abstract_states(self) -> int:
+        """Number of abstract states of the composed system (exact)."""
+        return math.prod(s.state_grid.size for s in self.subsystems)
+
+    @property
+    def state_grids(self) -> list[UniformGrid]:
+        return [s.state_grid for s in self.subsystems]
+
+    def composed_state_grid(self) -> UniformGrid:
+        """The product of the subsystems' state grids as one grid (for region approximation)."""
+        gs = self.state_grids
+        return UniformGrid(
+            origin=sum((g.origin for g in gs), ()),
+            eta=sum((g.eta for g in gs), ()),
+            k_lo=sum((g.k_lo for g in gs), ()),
+            k_hi=sum((g.k_hi for g in gs), ()),
+            lb=sum((g.lb for g in gs), ()),
+            ub=sum((g.ub for g in gs), ()),
+        )
+
+    def unique_subsystems(self) -> dict[str, list[Subsystem]]:
+        """Subsystems grouped by identity: each group is abstracted once."""
+        groups: dict[str, list[Subsystem]] = {}
+        for s in self.subsystems:
+            groups.setdefault(s.key, []).append(s)
+        return groups
+
+
+def _grid(g: GridSpec, name: str, kind: str) -> UniformGrid:
+    dim = g.dim
+    make = UniformGrid.covering if kind == "cover" else UniformGrid.inside
+    return make(g.lb, g.ub, g.eta, g.origin, name=name)
+
+
+def _replicas(s: SubsystemSpec, params: dict[str, float]) -> int:
+    r = s.replicate
+    if isinstance(r, str):
+        if r not in params:
+            raise SpecError(f"subsystem '{s.name}': replicate names parameter '{r}', which is not defined")
+        r = params[r]
+    if r != int(r) or int(r) < 1:
+        raise SpecError(f"subsystem '{s.name}': replicate must be a positive integer, got {r}")
+    return int(r)
+
+
+def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> Network:
+    """Resolve a spec into grids and black boxes.
+
+    Parameters
+    ----------
+    allowed_modules
+        Modules a ``module:function`` may name; ``None`` allows any (the local command line), the default
+        ``()`` allows none (the service passes its allowlist).
+
+    Raises
+    ------
+    SpecError
+        For an empty grid, an unknown internal variable, a dimension mismatch, a bad expression.
+    """
+    params = dict(spec.parameters)
+    ic = spec.interconnection
+    internal_specs = ic.internal if isinstance(ic.internal, list) else None
+    subsystems: list[Subsystem] = []
+    offset = 0
+    # Internal grids are known once the map's output dimension is; the map needs the state dimension.
+    state_dims = []
+    for s in spec.subsystems:
+        state_dims += [s.state.dim] * _replicas(s, params)
+    n_total = sum(state_dims)
+    imap = BlackBox("interconnection map", ic.map, {"x": n_total}, None, params, allowed_modules)
+    p = imap.out_dim
+    if internal_specs is None:
+        internal_specs = [ic.internal] * p
+    if len(internal_specs) != p:
+        raise SpecError(f"interconnection.internal: {len(internal_specs)} grids given, the map has {p} outputs")
+    internal_grids = []
+    for j, g in enumerate(internal_specs):
+        if g.dim != 1:
+            raise SpecError(f"interconnection.internal[{j}]: each internal variable is scalar, got dimension {g.dim}")
+        internal_grids.append(_grid(g, f"interconnection.internal[{j}]", "cover"))
+
+    index = 0
+    for si, s in enumerate(spec.subsystems):
+        for r in range(_replicas(s, params)):
+            name = s.name if s.replicate == 1 else f"{s.name}[{r}]"
+            where = f"subsystems[{si}] ('{name}')"
+            xg = _grid(s.state, f"{where}.state", "cover")
+            ug = _grid(s.input, f"{where}.input", "inside")
+            for j in s.reads:
+                if not 0 <= j < p:
+                    raise SpecError(f"{where}.reads: internal variable {j} does not exist (the map has {p} outputs)")
+            if len(set(s.reads)) != len(s.reads):
+                raise SpecError(f"{where}.reads: repeated internal variable in {s.reads}")
+            wg = None
+            if s.reads:
+                gs = [internal_grids[j] for j in s.reads]
+                wg = UniformGrid(
+                    origin=sum((g.origin for g in gs), ()),
+                    eta=sum((g.eta for g in gs), ()),
+                    k_lo=sum((g.k_lo for g in gs), ()),
+                    k_hi=sum((g.k_hi for g in gs), ()),
+                    lb=sum((g.lb for g in gs), ()),
+                    ub=sum((g.ub for g in gs), ()),
+                )
+            dyn = BlackBox(
+                f"subsystem '{name}' dynamics",
+                s.dynamics,
+                {"x": xg.dim, "u": ug.dim, "w": len(s.reads)},
+                xg.dim,
+                params,
+                allowed_modules,
+            )
+            ident = {
+                "spec": s.model_dump(mode="json", exclude={"name", "replicate", "reads"}),
+                "w": None if wg is None else wg.describe(),
+                "params": params,
+            }
+            key = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
+            subsystems.append(
+                Subsystem(name, index, s, xg, ug, wg, tuple(s.reads), dyn, offset, key)
+            )
+            offset += xg.dim
+            index += 1
+    return Network(spec, tuple(subsystems), tuple(internal_grids), imap, params)

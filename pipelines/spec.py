@@ -1,0 +1,242 @@
+"""The job spec: one pydantic model, loaded from YAML or JSON, with a published JSON Schema.
+
+A spec describes an interconnected system the way the paper does (Section 3): subsystems
+``Xi_i = (X_i, U_i, W_i, f_i)`` given as black boxes, an interconnection map ``M`` that can only be sampled,
+and a specification over the composed state. Dynamics and maps are safe expressions (:mod:`pipelines.expr`)
+or, for local runs, a ``module:function`` name.
+
+Numbers that may vary between runs (the network size ``N``) are ``parameters``; they can be used in
+expressions and as ``replicate`` counts, and overridden from the command line (``--set N=16``).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import SpecError
+
+Vector = Union[float, list[float]]
+MODULE_FUNCTION = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GridSpec(_Model):
+    """A box ``[lb, ub]`` and its grid spacing ``eta`` (scalars broadcast over dimensions)."""
+
+    lb: Vector = Field(description="lower bounds of the box")
+    ub: Vector = Field(description="upper bounds of the box")
+    eta: Vector = Field(description="grid spacing (cell width), > 0")
+    origin: Vector | None = Field(default=None, description="grid origin, 0 by default (points are origin + k*eta)")
+
+    @property
+    def dim(self) -> int:
+        sizes = {len(v) for v in (self.lb, self.ub, self.eta) if isinstance(v, list)}
+        if len(sizes) > 1:
+            raise SpecError(f"lb, ub and eta have different lengths {sorted(sizes)}")
+        return sizes.pop() if sizes else 1
+
+
+class LipschitzSpec(_Model):
+    """Lipschitz constants of a map in the infinity norm (Assumptions 1-2), given or estimated."""
+
+    x: float | Literal["estimate"] = Field(description="L_x, constant in the state, or 'estimate' (Algorithm 4)")
+    w: float | Literal["estimate"] = Field(default=0.0, description="L_w, constant in the internal input")
+    on_violation: Literal["fail", "raise"] = Field(
+        default="fail",
+        description="when the sampled data contradict a given constant: fail the job, or raise the constant "
+        "to what the data show (and say so in the report)",
+    )
+    safety_factor: float = Field(default=1.1, ge=1.0, description="multiplies estimated constants")
+    batches: int = Field(default=40, ge=3, description="J of Algorithm 4")
+    pairs: int = Field(default=200, ge=2, description="L of Algorithm 4")
+    delta: float | None = Field(default=None, gt=0, description="pair distance of Algorithm 4 (default: eta/10)")
+
+    @field_validator("x", "w")
+    @classmethod
+    def _nonneg(cls, v):
+        if isinstance(v, float) and not (v >= 0 and v < float("inf")):
+            raise ValueError("a Lipschitz constant must be finite and >= 0")
+        return v
+
+
+class SubsystemSpec(_Model):
+    """One subsystem ``Xi_i``, or ``replicate`` identical copies of it."""
+
+    name: str = Field(min_length=1, max_length=64)
+    replicate: int | str = Field(default=1, description="number of copies, or the name of an integer parameter")
+    state: GridSpec
+    input: GridSpec
+    reads: list[int] = Field(default_factory=list, description="indices of the internal variables w it reads")
+    dynamics: str = Field(min_length=1, description="safe expression in x, u, w (vectors) or module:function")
+    lipschitz: LipschitzSpec
+    samples: int = Field(default=100, ge=1, le=100_000, description="N_C, samples per cell (x and w jointly)")
+    growth_bound: Literal["lipschitz", "scp", "hull"] = "scp"
+    scp_objective: Literal["paper", "radius"] = Field(
+        default="paper", description="'paper' minimises 1'theta (Eq. 4.5); 'radius' the radius actually used"
+    )
+
+
+class InterconnectionSpec(_Model):
+    """The interconnection ``M`` (Section 4.2): sampled, learned by lasso, decomposed, certified."""
+
+    map: str = Field(min_length=1, description="safe expression in x (all states, concatenated) or module:function")
+    internal: GridSpec | list[GridSpec] = Field(description="grid of each internal variable w_j (one for all or a list)")
+    samples: int = Field(default=100, ge=2, le=1_000_000, description="N_I, input-output samples for the lasso")
+    alpha: float | Literal["cv"] = Field(default="cv", description="lasso penalty, or 'cv' for cross-validation")
+    sigma: int = Field(default=4, ge=1, le=8, description="largest in-degree after MDec (Algorithm 2)")
+    error: Literal["linear", "certify", "direct"] = Field(
+        default="certify",
+        description="linear: the map is declared linear; certify: Lipschitz margin on the support grid; "
+        "direct: abstract each output straight from the black box on its support",
+    )
+    lipschitz: float | None = Field(default=None, ge=0, description="L_M in the infinity norm (certify, direct)")
+    intermediate_eta: float | None = Field(default=None, gt=0, description="spacing of intermediate variables z")
+    samples_per_cell: int = Field(default=16, ge=1, le=10_000, description="direct mode: samples per support cell")
+    holdout: int = Field(default=1000, ge=10, le=1_000_000, description="held-out samples for error bounds")
+
+    @field_validator("alpha")
+    @classmethod
+    def _alpha(cls, v):
+        if isinstance(v, float) and not v > 0:
+            raise ValueError("alpha must be > 0 (or 'cv')")
+        return v
+
+
+class BoxRegion(_Model):
+    lb: Vector
+    ub: Vector
+
+
+class ConsensusRegion(_Model):
+    """``OR_{phi in centers} AND_i |x_i - phi| <= radius`` (the paper's consensus region, Sec. 5.2)."""
+
+    centers: tuple[float, float, float] = Field(description="(first, last, step) of the common values phi")
+    radius: float = Field(gt=0)
+
+
+class Region(_Model):
+    """A union of boxes over the composed state, approximated from inside by whole cells."""
+
+    boxes: list[BoxRegion] = Field(default_factory=list, description="boxes over the composed state (scalars broadcast)")
+    consensus: ConsensusRegion | None = None
+
+
+class SpecificationSpec(_Model):
+    kind: Literal["safe", "reach", "reach_avoid", "reach_and_stay"]
+    target: Region | None = Field(default=None, description="T for reach, reach_avoid; phi for reach_and_stay")
+    safe: Region | None = Field(default=None, description="S for safe")
+    avoid: Region | None = Field(default=None, description="A for reach_avoid")
+
+    @model_validator(mode="after")
+    def _regions(self):
+        need = {"safe": "safe", "reach": "target", "reach_avoid": "target", "reach_and_stay": "target"}[self.kind]
+        if getattr(self, need) is None:
+            raise ValueError(f"a '{self.kind}' specification needs '{need}'")
+        if self.kind == "reach_avoid" and self.avoid is None:
+            raise ValueError("a 'reach_avoid' specification needs 'avoid'")
+        return self
+
+
+class OptionsSpec(_Model):
+    seed: int = Field(default=0, ge=0)
+    audit_transitions: int = Field(default=1_000_000, ge=0, le=100_000_000)
+    chunk_cells: int | None = Field(default=None, ge=1, description="cells per task (default: chosen from the work)")
+    max_cells: int = Field(default=50_000_000, ge=1, description="cap on (x, u, w) triples per subsystem")
+
+
+class JobSpec(_Model):
+    """A compabs job: an interconnected system, its interconnection, a specification and options."""
+
+    name: str = Field(default="job", min_length=1, max_length=128)
+    description: str = ""
+    parameters: dict[str, float] = Field(default_factory=dict, description="named numbers (N, tau, ...)")
+    subsystems: list[SubsystemSpec] = Field(min_length=1)
+    interconnection: InterconnectionSpec
+    specification: SpecificationSpec
+    options: OptionsSpec = OptionsSpec()
+
+    @field_validator("parameters")
+    @classmethod
+    def _param_names(cls, v):
+        for name in v:
+            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+                raise ValueError(f"parameter name {name!r} is not an identifier")
+        return v
+
+
+def json_schema() -> dict[str, Any]:
+    """The JSON Schema of a job spec."""
+    return JobSpec.model_json_schema()
+
+
+def _format_validation_error(err: ValidationError) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(spec)"
+        lines.append(f"{loc}: {e['msg']}")
+    return "invalid spec:\n  " + "\n  ".join(lines)
+
+
+def parse_spec(data: dict[str, Any] | str, overrides: dict[str, float] | None = None) -> JobSpec:
+    """Validate a spec given as a dict, or as YAML/JSON text.
+
+    Parameters
+    ----------
+    overrides
+        Parameter values that replace those of the spec (``--set N=16``).
+
+    Raises
+    ------
+    SpecError
+        Naming every offending field.
+    """
+    if isinstance(data, str):
+        try:
+            data = yaml.safe_load(data)
+        except yaml.YAMLError as exc:
+            raise SpecError(f"spec is neither valid YAML nor JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise SpecError(f"a spec is a mapping of fields, got {type(data).__name__}")
+    if overrides:
+        params = dict(data.get("parameters") or {})
+        if not isinstance(params, dict):
+            raise SpecError("parameters: must be a mapping of names to numbers")
+        params.update(overrides)
+        data = {**data, "parameters": params}
+    try:
+        return JobSpec.model_validate(data)
+    except ValidationError as err:
+        raise SpecError(_format_validation_error(err)) from None
+
+
+def load_spec(path: str | Path, overrides: dict[str, float] | None = None) -> JobSpec:
+    """Read and validate a YAML or JSON spec file."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise SpecError(f"cannot read spec {p}: {exc.strerror}") from None
+    return parse_spec(text, overrides)
+
+
+def spec_hash(spec: JobSpec) -> str:
+    """A stable hash of everything that determines the abstraction (used to refuse stale stores)."""
+    import hashlib
+
+    canonical = json.dumps(spec.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+
+def is_module_function(text: str) -> bool:
+    """Whether a dynamics/map field names a Python ``module:function`` instead of an expression."""
+    return bool(MODULE_FUNCTION.match(text.strip()))
+
