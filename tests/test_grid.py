@@ -1,0 +1,87 @@
+"""Grids and regions reproduce the paper's counts exactly (METHOD §1)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipelines.errors import SpecError
+from pipelines.grid import UniformGrid
+from pipelines.region import abstract_region, union_count
+from pipelines.spec import Region
+
+
+def test_paper_state_counts():
+    assert UniformGrid.covering([0] * 8, [32] * 8, 1).size == 33**8 == 1_406_408_618_241
+    assert UniformGrid.covering([1] * 10, [100] * 10, 2.5).size == 41**10 == 13_422_659_310_152_401
+
+
+def test_paper_region_counts():
+    g8 = UniformGrid.covering([0] * 8, [32] * 8, 1)
+    consensus = Region(consensus={"centers": (0, 31, 1), "radius": 2.5})
+    assert abstract_region(consensus, g8, "target").states == 9_493_117
+    g10 = UniformGrid.covering([1] * 10, [100] * 10, 2.5)
+    tanks = Region(boxes=[{"lb": 8.75, "ub": 51.25}])
+    assert abstract_region(tanks, g10, "target").states == 17**10 == 2_015_993_900_449
+
+
+def test_bounds_not_multiple_of_eta_are_snapped_relatively():
+    # 0.3 / 0.1 is 2.9999999999999996 in floating point; an absolute or no tolerance mis-sizes the grid.
+    g = UniformGrid.inside(0.0, 0.3, 0.1)
+    assert g.shape == (4,)
+    g = UniformGrid.covering(0.05, 0.35, 0.1)  # bounds exactly on cell boundaries
+    assert g.shape == (3,)
+    assert g.k_lo == (1,) and g.k_hi == (3,)
+
+
+def test_input_grid_holds_points_inside():
+    g = UniformGrid.inside(0, 10, 1.5)
+    assert np.allclose(g.axis_points(0), [0, 1.5, 3, 4.5, 6, 7.5, 9])
+
+
+@pytest.mark.parametrize("lb,ub,eta,msg", [(1, 0, 1, "empty box"), (0, 1, 0, "positive"), (0.2, 0.3, 1, "empty grid")])
+def test_bad_grids_are_rejected(lb, ub, eta, msg):
+    make = UniformGrid.inside if msg == "empty grid" else UniformGrid.covering
+    with pytest.raises(SpecError, match=msg):
+        make(lb, ub, eta)
+
+
+def test_empty_region_is_rejected():
+    g = UniformGrid.covering([0, 0], [10, 10], 1)
+    with pytest.raises(SpecError, match="no whole grid cell"):
+        abstract_region(Region(boxes=[{"lb": 0.6, "ub": 1.4}]), g, "specification.target")
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    lb=st.floats(-50, 50, allow_nan=False),
+    width=st.floats(0.0, 30, allow_nan=False),
+    eta=st.floats(0.05, 5, allow_nan=False),
+    xs=st.lists(st.floats(0, 1), min_size=1, max_size=20),
+)
+def test_covering_cells_cover_the_box(lb, width, eta, xs):
+    """Every concrete point of the box lies in a cell of the grid; no cell misses the box."""
+    ub = lb + width
+    g = UniformGrid.covering(lb, ub, eta)
+    x = lb + np.asarray(xs)[:, None] * width
+    for tie in ("upper", "lower"):
+        idx, inside = g.cell_of(np.clip(x, lb, ub), tie)
+        lo, hi = g.clipped_cells(np.clip(idx, 0, g.size - 1))
+        covered = inside & (lo[:, 0] <= x[:, 0]) & (x[:, 0] <= hi[:, 0])
+        # a point is covered by its tie-broken cell, or (on a boundary) by the other one
+        other, other_in = g.cell_of(np.clip(x, lb, ub), "lower" if tie == "upper" else "upper")
+        assert np.all(covered | other_in)
+    lo, hi = g.clipped_cells(g.unravel(np.arange(g.size)))
+    assert np.all(lo <= hi)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 6), st.integers(0, 6), st.integers(0, 6), st.integers(0, 6)), min_size=1, max_size=6))
+def test_union_count_matches_enumeration(raw):
+    boxes = []
+    for a, b, c, d in raw:
+        boxes.append((np.array([min(a, b), min(c, d)]), np.array([max(a, b), max(c, d)])))
+    grid = np.zeros((7, 7), dtype=bool)
+    for lo, hi in boxes:
+        grid[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1] = True
+    assert union_count(boxes) == int(grid.sum())
