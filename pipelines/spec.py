@@ -167,9 +167,17 @@ class JobSpec(_Model):
     @field_validator("parameters")
     @classmethod
     def _param_names(cls, v):
+        import keyword
+
+        from .expr import FUNCTIONS
+
+        reserved = {"x", "u", "w", "pi", "e"} | set(FUNCTIONS)
         for name in v:
-            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name) or name.startswith("__") or keyword.iskeyword(name):
                 raise ValueError(f"parameter name {name!r} is not an identifier")
+            if name in reserved:
+                raise ValueError(f"parameter name {name!r} is reserved in expressions (variables x, u, w; "
+                                 "constants pi, e; function names)")
         return v
 
 
