@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -47,41 +48,36 @@ def _volume(box: IndexBox) -> int:
     return math.prod(int(h - l + 1) for l, h in zip(lo, hi)) if np.all(hi >= lo) else 0
 
 
-def _subtract(p: IndexBox, d: IndexBox) -> list[IndexBox]:
-    """``p \\ d`` as at most ``2n`` disjoint boxes."""
-    plo, phi = p
-    dlo, dhi = d
-    if np.any(dhi < plo) or np.any(dlo > phi):
-        return [p]
-    pieces = []
-    lo, hi = plo.copy(), phi.copy()
-    for i in range(len(lo)):
-        if lo[i] < dlo[i]:
-            a, b = lo.copy(), hi.copy()
-            b[i] = dlo[i] - 1
-            pieces.append((a, b))
-            lo[i] = dlo[i]
-        if hi[i] > dhi[i]:
-            a, b = lo.copy(), hi.copy()
-            a[i] = dhi[i] + 1
-            pieces.append((a, b))
-            hi[i] = dhi[i]
-    return pieces
-
-
 def union_count(boxes: list[IndexBox]) -> int:
-    """Exact number of integer points in a union of index boxes (incremental disjoint decomposition)."""
-    disjoint: list[IndexBox] = []
-    for b in boxes:
-        if _volume(b) == 0:
-            continue
-        pieces = [b]
-        for d in disjoint:
-            pieces = [q for piece in pieces for q in _subtract(piece, d)]
-            if not pieces:
-                break
-        disjoint.extend(pieces)
-    return sum(_volume(b) for b in disjoint)
+    """Exact number of integer points in a union of index boxes.
+
+    A sweep over one coordinate at a time: the union's count is the sum, over the slabs between
+    consecutive box boundaries of the first coordinate, of the slab width times the count of the union of
+    the boxes covering that slab in the remaining coordinates. Sub-problems are memoised by the set of
+    covering boxes, which repeats a lot for structured regions (the consensus windows: 32 boxes in 8-D in
+    milliseconds, where a disjoint decomposition took seconds).
+    """
+    boxes = [b for b in boxes if _volume(b) > 0]
+    if not boxes:
+        return 0
+    los = np.array([b[0] for b in boxes], dtype=np.int64)
+    his = np.array([b[1] for b in boxes], dtype=np.int64)
+    n = los.shape[1]
+
+    @lru_cache(maxsize=None)
+    def count(d: int, active: frozenset[int]) -> int:
+        if d == n:
+            return 1
+        idx = np.fromiter(active, dtype=np.int64)
+        cuts = np.unique(np.concatenate([los[idx, d], his[idx, d] + 1]))
+        total = 0
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            cover = idx[(los[idx, d] <= a) & (his[idx, d] >= b - 1)]
+            if cover.size:
+                total += int(b - a) * count(d + 1, frozenset(cover.tolist()))
+        return total
+
+    return count(0, frozenset(range(len(boxes))))
 
 
 def _broadcast(v, n: int, name: str) -> np.ndarray:
