@@ -82,10 +82,12 @@ class BlackBox:
         else:
             from .expr import compile_expression
 
-            expr = compile_expression(self._source, self._inputs, self._constants)
+            # An argument of dimension 0 (a subsystem that reads no internal variable) is not a variable.
+            used = {k: d for k, d in self._inputs.items() if d > 0}
+            expr = compile_expression(self._source, used, self._constants)
 
             def run(*arrays: np.ndarray) -> np.ndarray:
-                out = expr(**{k: a.T for k, a in zip(self._inputs, arrays)})
+                out = expr(**{k: a.T for k, a in zip(self._inputs, arrays) if k in used})
                 return np.asarray(out, dtype=float).T
 
             self._fn = run

@@ -144,9 +144,10 @@ def abstract_cells(
     xs = x_lo[:, None, :] + off_x[None] * (x_hi - x_lo)[:, None, :]  # (c, Sx, n)
     ws = w_lo[:, None, :] + off_w[None] * (w_hi - w_lo)[:, None, :]  # (n_w, Sw, p)
     shape = (c, n_u, n_w, Sx, Sw)
-    X = np.broadcast_to(xs[:, None, None, :, None, :], shape + (n,)).reshape(-1, n)
-    U = np.broadcast_to(u_pts[None, :, None, None, None, :], shape + (u_pts.shape[1],)).reshape(-1, u_pts.shape[1])
-    W = np.broadcast_to(ws[None, None, :, None, :, :], shape + (p,)).reshape(-1, p)
+    total = int(np.prod(shape))
+    X = np.broadcast_to(xs[:, None, None, :, None, :], shape + (n,)).reshape(total, n)
+    U = np.broadcast_to(u_pts[None, :, None, None, None, :], shape + (u_pts.shape[1],)).reshape(total, u_pts.shape[1])
+    W = np.broadcast_to(ws[None, None, :, None, :, :], shape + (p,)).reshape(total, p)
 
     def where_sample(row: int) -> str:
         ci, ui, wi, _, _ = np.unravel_index(row, shape)
@@ -158,9 +159,10 @@ def abstract_cells(
     xc, wc = (x_lo + x_hi) / 2, (w_lo + w_hi) / 2
     rx, rw = (x_hi - x_lo) / 2, (w_hi - w_lo) / 2
     cshape = (c, n_u, n_w)
-    XC = np.broadcast_to(xc[:, None, None, :], cshape + (n,)).reshape(-1, n)
-    UC = np.broadcast_to(u_pts[None, :, None, :], cshape + (u_pts.shape[1],)).reshape(-1, u_pts.shape[1])
-    WC = np.broadcast_to(wc[None, None, :, :], cshape + (p,)).reshape(-1, p)
+    B = c * n_u * n_w
+    XC = np.broadcast_to(xc[:, None, None, :], cshape + (n,)).reshape(B, n)
+    UC = np.broadcast_to(u_pts[None, :, None, :], cshape + (u_pts.shape[1],)).reshape(B, u_pts.shape[1])
+    WC = np.broadcast_to(wc[None, None, :, :], cshape + (p,)).reshape(B, p)
 
     def where_centre(row: int) -> str:
         ci, ui, wi = np.unravel_index(row, cshape)
@@ -168,7 +170,6 @@ def abstract_cells(
 
     C = sub.dynamics(XC, UC, WC, describe=where_centre)  # (B, n)
 
-    B = c * n_u * n_w
     RX = np.broadcast_to(rx[:, None, None, :], cshape + (n,)).reshape(B, n)
     RW = np.broadcast_to(rw[None, None, :, :], cshape + (p,)).reshape(B, p)
     HX = 2 * RX / np.asarray(cx, dtype=float) if n else RX

@@ -77,3 +77,21 @@ def test_blocking_means_the_box_leaves_the_state_set():
     w0 = 0  # internal cell of w = 0 (no inflow)
     assert rel.blocking[0, 0, w0]
     assert not rel.blocking[20, 0, 10]
+
+
+def test_a_subsystem_without_internal_inputs():
+    """reads: [] gives a relation with one (empty) internal cell, sound like the others."""
+    from pipelines.spec import parse_spec
+
+    spec = parse_spec({
+        "subsystems": [{"name": "leaky", "state": {"lb": 0, "ub": 10, "eta": 0.5}, "input": {"lb": 0, "ub": 1, "eta": 0.5},
+                        "dynamics": "0.9 * x[0] + u[0]", "lipschitz": {"x": 0.9}, "samples": 20}],
+        "interconnection": {"map": "[x[0]]", "internal": {"lb": 0, "ub": 10, "eta": 1}, "error": "linear"},
+        "specification": {"kind": "safe", "safe": {"boxes": [{"lb": 0, "ub": 10}]}},
+    })
+    sub = build_network(spec, None).subsystems[0]
+    assert sub.internal_grid is None and sub.n_w_cells == 1
+    for method in ("lipschitz", "scp", "hull"):
+        rel, _ = _relation(sub, method)
+        assert rel.blocking.shape == (21, 3, 1)
+        assert audit_subsystem(sub, rel, 50_000, np.random.default_rng(0)).violations == 0
