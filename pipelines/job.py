@@ -89,13 +89,17 @@ def _resolve_constant(sub: Subsystem, arg: str, rng: np.random.Generator) -> Con
     return ConstantRecord(float(given), "given", given=float(given))
 
 
+def _box(lo: np.ndarray, hi: np.ndarray) -> str:
+    return " x ".join(f"[{a:g}, {b:g}]" for a, b in zip(lo, hi))
+
+
 def _describe_cell(sub: Subsystem, rec) -> str:
     x_lo, x_hi = sub.state_grid.clipped_cells(sub.state_grid.unravel(np.array([rec.x_cell])))
     u = sub.input_grid.points(sub.input_grid.unravel(np.array([rec.u_index])))[0]
-    where = f"state cell {rec.x_cell} (x in [{x_lo[0].tolist()}, {x_hi[0].tolist()}]), input u={u.tolist()}"
+    where = f"state cell {rec.x_cell} (x in {_box(x_lo[0], x_hi[0])}), input u={u.tolist()}"
     if sub.internal_grid is not None:
         w_lo, w_hi = sub.internal_grid.clipped_cells(sub.internal_grid.unravel(np.array([rec.w_cell])))
-        where += f", internal cell {rec.w_cell} (w in [{w_lo[0].tolist()}, {w_hi[0].tolist()}])"
+        where += f", internal cell {rec.w_cell} (w in {_box(w_lo[0], w_hi[0])})"
     return where
 
 
