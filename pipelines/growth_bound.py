@@ -195,7 +195,8 @@ def scp_reference(
     from scipy.optimize import linprog
 
     S, n = x.shape
-    il, jl = np.triu_indices(S, k=1)
+    # Pairs (l, l) count: two points of the cell may share their nearest sample, so theta2 >= rho is needed.
+    il, jl = np.triu_indices(S, k=0)
     D = np.abs(x[il] - x[jl])  # (P, n)
     theta1 = np.zeros((n, n))
     theta2 = np.zeros(n)

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipelines.audit import audit_interconnection
 from pipelines.errors import CertificationError, LipschitzError, SpecError
 from pipelines.interconnection import InterconnectionAbstraction, abstract_interconnection
 from pipelines.mdec import decompose_row, mdec
@@ -334,11 +335,22 @@ def test_lasso_cv_recovers_the_tank_supports_from_80_samples(tanks_certify):
         assert set(true) <= set(cand)
 
 
-def test_a_coordinate_lasso_missed_is_an_error():
+def test_a_coordinate_lasso_missed_is_added_by_the_dependence_test():
     net = network(2, 0, 32, 1, map="x[0] + 1e-3*x[1]", internal={"lb": 0, "ub": 40, "eta": 1}, samples=50,
                   alpha=5.0, error="linear")
-    with pytest.raises(CertificationError, match=r"w0 depends on coordinate x1.*lower alpha"):
-        abstract_interconnection(net, np.random.default_rng(0))
+    ia = abstract_interconnection(net, np.random.default_rng(0))
+    assert ia.details["lasso_supports"] == [[0]]
+    assert ia.supports == ((0, 1),)
+    assert ia.details["support_added_by_dependence_test"] == [[1]]
+    assert audit_interconnection(net, ia, 50_000, np.random.default_rng(1)).violations == 0
+
+
+def test_an_even_function_lasso_cannot_see_is_in_the_support():
+    net = network(3, -2, 2, 0.5, map="[0.3 * x[2]**2 / 4 + 0.1 * x[0]]", internal={"lb": -1, "ub": 1, "eta": 0.25},
+                  samples=50, error="certify", lipschitz=0.5)
+    ia = abstract_interconnection(net, np.random.default_rng(0))
+    assert ia.supports == ((0, 2),)
+    assert audit_interconnection(net, ia, 50_000, np.random.default_rng(1)).violations == 0
 
 
 # ============================================================================ errors
