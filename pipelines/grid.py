@@ -137,6 +137,18 @@ class UniformGrid:
             ub=tuple(float(v) for v in ub_),
         )
 
+    @classmethod
+    def product(cls, grids: Sequence["UniformGrid"]) -> "UniformGrid":
+        """The product of grids as one grid (dimensions concatenated in order)."""
+        return cls(
+            origin=sum((g.origin for g in grids), ()),
+            eta=sum((g.eta for g in grids), ()),
+            k_lo=sum((g.k_lo for g in grids), ()),
+            k_hi=sum((g.k_hi for g in grids), ()),
+            lb=sum((g.lb for g in grids), ()),
+            ub=sum((g.ub for g in grids), ()),
+        )
+
     # ------------------------------------------------------------------ sizes
     @property
     def dim(self) -> int:

@@ -83,15 +83,7 @@ class Network:
 
     def composed_state_grid(self) -> UniformGrid:
         """The product of the subsystems' state grids as one grid (for region approximation)."""
-        gs = self.state_grids
-        return UniformGrid(
-            origin=sum((g.origin for g in gs), ()),
-            eta=sum((g.eta for g in gs), ()),
-            k_lo=sum((g.k_lo for g in gs), ()),
-            k_hi=sum((g.k_hi for g in gs), ()),
-            lb=sum((g.lb for g in gs), ()),
-            ub=sum((g.ub for g in gs), ()),
-        )
+        return UniformGrid.product(self.state_grids)
 
     def unique_subsystems(self) -> dict[str, list[Subsystem]]:
         """Subsystems grouped by identity: each group is abstracted once."""
@@ -102,7 +94,6 @@ class Network:
 
 
 def _grid(g: GridSpec, name: str, kind: str) -> UniformGrid:
-    dim = g.dim
     make = UniformGrid.covering if kind == "cover" else UniformGrid.inside
     return make(g.lb, g.ub, g.eta, g.origin, name=name)
 
@@ -168,15 +159,7 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
                 raise SpecError(f"{where}.reads: repeated internal variable in {s.reads}")
             wg = None
             if s.reads:
-                gs = [internal_grids[j] for j in s.reads]
-                wg = UniformGrid(
-                    origin=sum((g.origin for g in gs), ()),
-                    eta=sum((g.eta for g in gs), ()),
-                    k_lo=sum((g.k_lo for g in gs), ()),
-                    k_hi=sum((g.k_hi for g in gs), ()),
-                    lb=sum((g.lb for g in gs), ()),
-                    ub=sum((g.ub for g in gs), ()),
-                )
+                wg = UniformGrid.product([internal_grids[j] for j in s.reads])
             dyn = BlackBox(
                 f"subsystem '{name}' dynamics",
                 s.dynamics,
