@@ -223,7 +223,7 @@ def run_abstraction(
     for name in ("target", "safe", "avoid"):
         region = getattr(spec_regions, name)
         if region is not None:
-            regions[name] = abstract_region(region, composed, f"specification.{name}")
+            regions[name] = abstract_region(region, composed, f"specification.{name}", outer=(name == "avoid"))
     groups = network.unique_subsystems()
     progress("plan", 1, 1, f"{len(network.subsystems)} subsystems, {len(groups)} distinct")
     seconds["plan"] = time.perf_counter() - t0

@@ -89,8 +89,12 @@ def _broadcast(v, n: int, name: str) -> np.ndarray:
     return arr
 
 
-def abstract_region(region: Region, grid: UniformGrid, name: str) -> AbstractRegion:
-    """Inner approximation of a region on the composed state grid.
+def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = False) -> AbstractRegion:
+    """Inner (default) or outer approximation of a region on the composed state grid.
+
+    Targets and safe sets are approximated from inside, so an abstract cell in them is wholly in the concrete
+    region; sets to avoid from outside (every cell that meets them), so avoiding the abstract set avoids the
+    concrete one.
 
     Raises
     ------
@@ -117,9 +121,16 @@ def abstract_region(region: Region, grid: UniformGrid, name: str) -> AbstractReg
             concrete.append((np.full(n, phi - r), np.full(n, phi + r)))
     boxes = []
     for lb, ub in concrete:
-        lo, hi = grid.inner_range(lb, ub)
+        if outer:
+            lo, hi = grid.cells_touching(lb[None, :], ub[None, :])
+            lo = np.maximum(lo[0], 0)
+            hi = np.minimum(hi[0], np.asarray(grid.shape) - 1)
+        else:
+            lo, hi = grid.inner_range(lb, ub)
         if np.all(hi >= lo):
             boxes.append((lo.astype(np.int64), hi.astype(np.int64)))
     if not boxes:
+        if outer:
+            raise SpecError(f"{name}: the region meets no grid cell")
         raise SpecError(f"{name}: the region contains no whole grid cell (it is empty after inner approximation)")
     return AbstractRegion(tuple(boxes))

@@ -85,3 +85,11 @@ def test_union_count_matches_enumeration(raw):
     for lo, hi in boxes:
         grid[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1] = True
     assert union_count(boxes) == int(grid.sum())
+
+
+def test_avoid_sets_are_approximated_from_outside():
+    g = UniformGrid.covering([0, 0], [10, 10], 1)
+    region = Region(boxes=[{"lb": 0.6, "ub": 1.4}])
+    outer = abstract_region(region, g, "specification.avoid", outer=True)
+    assert outer.states == 4  # cells 0..1 in each dimension meet [0.6, 1.4]
+    assert outer.contains(np.array([[1, 1], [0, 1], [2, 2]])).tolist() == [True, True, False]
