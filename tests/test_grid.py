@@ -89,7 +89,9 @@ def test_union_count_matches_enumeration(raw):
 
 def test_avoid_sets_are_approximated_from_outside():
     g = UniformGrid.covering([0, 0], [10, 10], 1)
-    region = Region(boxes=[{"lb": 0.6, "ub": 1.4}])
+    region = Region(boxes=[{"lb": 0.4, "ub": 1.4}])
     outer = abstract_region(region, g, "specification.avoid", outer=True)
-    assert outer.states == 4  # cells 0..1 in each dimension meet [0.6, 1.4]
+    assert outer.states == 4  # cells 0..1 in each dimension meet [0.4, 1.4]
+    with pytest.raises(SpecError):
+        abstract_region(region, g, "specification.target")  # no whole cell inside
     assert outer.contains(np.array([[1, 1], [0, 1], [2, 2]])).tolist() == [True, True, False]
