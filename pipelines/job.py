@@ -8,6 +8,7 @@ argument tuple, in-process by default; the distributed runner passes one backed 
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Sequence
@@ -289,3 +290,146 @@ def run_abstraction(
         "audit": audit_report,
     }
     return AbstractionResult(spec, network, relations, ia, target, report)
+
+
+# ====================================================================================== synthesis stages
+def _random_domain_states(controller, count: int, rng: np.random.Generator, tries: int = 200) -> list[np.ndarray]:
+    """Concrete states drawn uniformly in the state box whose cells are in the controller's domain."""
+    grid = controller.state_grid
+    found: list[np.ndarray] = []
+    for _ in range(tries):
+        if len(found) >= count:
+            break
+        x = rng.uniform(np.asarray(grid.lb), np.asarray(grid.ub), (max(64, 4 * count), grid.dim))
+        idx, _ = grid.cell_of(x)
+        keep = controller.in_domain(idx)
+        found.extend(x[keep][: count - len(found)])
+    return found
+
+
+def run_synthesis(
+    abstraction: AbstractionResult,
+    out_dir: "Path | None" = None,
+    *,
+    progress: Progress = _no_progress,
+    runs: int | None = None,
+) -> dict[str, Any]:
+    """Synthesize, save the controller, run the closed loop and draw the figures (METHOD §5-6).
+
+    Returns the report entries: ``domain_states``, ``domain_states_by_fixed_point``, ``controller``,
+    ``synthesis``, ``closed_loop`` and ``figures``.
+    """
+    from pathlib import Path
+
+    from .closed_loop import simulate
+    from .controller import Controller
+    from .figures import domain_slice_figure, trajectory_figure
+    from .synthesis import synthesize
+
+    spec = abstraction.spec
+    opts = spec.options
+    kind = spec.specification.kind
+    t0 = time.perf_counter()
+    progress("synthesis", 0, 1, "building BDDs and solving")
+    game, results, syn_report = synthesize(abstraction)
+    progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
+    seconds = {"synthesis": time.perf_counter() - t0}
+    main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))
+    main = results[main_key]
+
+    network = abstraction.network
+    meta = {
+        "kind": kind,
+        "fixed_point": main_key,
+        "state_grid": network.composed_state_grid().describe(),
+        "input_grids": [s.input_grid.describe() for s in network.subsystems],
+        "spec": spec.model_dump(mode="json"),
+        "domain_states": main.domain_states,
+    }
+    controller = Controller(game.model, main.controller, meta)
+    files = {}
+    if out_dir is not None:
+        out = Path(out_dir)
+        files["controller"] = [str(p.name) for p in controller.save(out)]
+        for key, r in results.items():
+            if key != main_key:
+                Controller(game.model, r.controller, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
+                    out, f"controller_{key}"
+                )
+
+    # Closed loop (Theorem 4.2): from the spec's initial states in the domain, and from random domain states.
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(opts.seed + 1)
+    n_runs = opts.closed_loop_runs if runs is None else runs
+    steps = opts.closed_loop_steps or (2 * (main.iterations + main.inner_iterations) + 30)
+    regions = {}
+    grid = network.composed_state_grid()
+    for name in ("target", "safe", "avoid"):
+        region = getattr(spec.specification, name)
+        if region is not None:
+            regions[name] = abstract_region(region, grid, f"specification.{name}", outer=(name == "avoid"))
+    target = regions.get("target") or regions.get("safe")
+    avoid = regions.get("avoid")
+    starts: list[tuple[str, np.ndarray]] = []
+    paper = []
+    for x0 in opts.initial_states:
+        x0 = np.asarray(x0, dtype=float)
+        idx = controller.cell(x0)
+        inside = idx is not None and bool(controller.in_domain(idx[None, :])[0])
+        paper.append({"x0": x0.tolist(), "in_domain": inside})
+        if inside:
+            starts.append(("initial", x0))
+    starts += [("random", x) for x in _random_domain_states(controller, n_runs, rng)]
+    run_records = []
+    violations = 0
+    first_violation = None
+    for i, (origin, x0) in enumerate(starts):
+        run = simulate(network, controller.inputs, x0, steps, rng, kind, target, avoid)
+        if run.violation:
+            violations += 1
+            first_violation = first_violation or f"from {x0.tolist()}: {run.violation}"
+        run_records.append((origin, x0, run))
+        progress("closed_loop", i + 1, len(starts), origin)
+    for rec in paper:
+        for origin, x0, run in run_records:
+            if origin == "initial" and np.allclose(x0, rec["x0"]):
+                rec.update(violation=run.violation, settled_at=run.settled_at, steps=int(run.inputs.shape[0]))
+    settled = [r.settled_at for _, _, r in run_records if r.settled_at is not None]
+    closed = {
+        "runs": len(run_records),
+        "violations": violations,
+        "first_violation": first_violation,
+        "steps": steps,
+        "steps_to_reach": {"min": min(settled), "mean": float(np.mean(settled)), "max": max(settled)} if settled else None,
+        "initial_states": paper,
+    }
+    seconds["closed_loop"] = time.perf_counter() - t0
+
+    figures = []
+    if out_dir is not None and run_records:
+        out = Path(out_dir)
+        origin, x0, run = run_records[0]
+        free = simulate(network, None, x0, run.inputs.shape[0] or steps, rng, kind, target, avoid)
+        band = None
+        if kind in ("reach_and_stay", "reach", "reach_avoid") and spec.specification.target.boxes:
+            b = spec.specification.target.boxes[0]
+            lb, ub = np.atleast_1d(b.lb), np.atleast_1d(b.ub)
+            band = (float(lb.min()), float(ub.max()))
+        figures.append(trajectory_figure(run, free, out / "trajectory.png", f"{spec.name} from {np.round(x0, 2).tolist()}", band).name)
+        idx = controller.cell(x0)
+        if grid.dim >= 2 and idx is not None:
+            figures.append(domain_slice_figure(
+                controller.in_domain, grid.axis_points(0), grid.axis_points(1), idx, 0, 1,
+                out / "domain_slice.png", f"{spec.name}: domain on (x1, x2), others at the cell of x0",
+            ).name)
+        (out / "closed_loop_example.json").write_text(json.dumps({"controlled": run.as_dict(), "free": free.as_dict()}))
+
+    return {
+        "domain_states": main.domain_states,
+        "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
+        "controller": {"fixed_point": main_key, "nodes": main.controller.dag_size, "files": files.get("controller", [])},
+        "synthesis": syn_report,
+        "closed_loop": closed,
+        "figures": figures,
+        "stage_seconds": seconds,
+    }

@@ -151,6 +151,15 @@ class OptionsSpec(_Model):
     audit_transitions: int = Field(default=1_000_000, ge=0, le=100_000_000)
     chunk_cells: int | None = Field(default=None, ge=1, description="cells per task (default: chosen from the work)")
     max_cells: int = Field(default=50_000_000, ge=1, description="cap on (x, u, w) triples per subsystem")
+    synthesis: bool = Field(default=True, description="synthesize a controller after the abstraction")
+    controller: Literal["cobuchi", "reach_safe"] = Field(
+        default="cobuchi", description="reach_and_stay: which fixed point's controller is saved as 'controller'"
+    )
+    initial_states: list[list[float]] = Field(
+        default_factory=list, max_length=100, description="concrete initial states for closed-loop runs and figures"
+    )
+    closed_loop_runs: int = Field(default=100, ge=0, le=100_000, description="runs from random domain states")
+    closed_loop_steps: int | None = Field(default=None, ge=1, le=100_000, description="steps per run (default: auto)")
 
 
 class JobSpec(_Model):
