@@ -37,7 +37,7 @@ class Controller:
         self._meta = dict(meta)
         self._state_grid = UniformGrid.from_description(meta["state_grid"])
         self._input_grids = [UniformGrid.from_description(g) for g in meta["input_grids"]]
-        self._domain = model.bdd.exist(model.u_bits(), bdd)
+        self._domain = model.bdd.exist(model.u_bits, bdd)
 
     @property
     def meta(self) -> dict:
@@ -81,11 +81,21 @@ class Controller:
         m = self._model
         out = np.zeros(idx.shape[0], dtype=bool)
         for r, row in enumerate(np.asarray(idx)):
-            out[r] = m.bdd.let(m.state_assignment(row), self._domain) == m.bdd.true
+            out[r] = m.bdd.let(_state_assignment(m, row), self._domain) == m.bdd.true
         return out
 
     def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, Path]:
         return self._model.dump(Path(directory) / name, self._bdd, self._meta)
+
+
+def _state_assignment(model, idx: np.ndarray) -> dict[str, bool]:
+    """Bit values of the current-state digits for composed cell indices ``idx`` (most significant bit first)."""
+    assign: dict[str, bool] = {}
+    for i, v in enumerate(idx):
+        bits = model.bits[f"x{i}"]
+        for k, b in enumerate(bits):
+            assign[b] = bool((int(v) >> (len(bits) - 1 - k)) & 1)
+    return assign
 
 
 def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Controller:

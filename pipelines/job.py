@@ -113,10 +113,11 @@ def _abstract_one(
     done_before: int,
     total: int,
     chunk_cells: int | None,
+    chunk_points: int | None = None,
 ) -> tuple[SubsystemRelation, dict]:
     """Abstract one (group of identical) subsystem(s), validating the Lipschitz constants on its data."""
     spec = sub.spec
-    chunks = chunk_ranges(sub, chunk_cells)
+    chunks = chunk_ranges(sub, chunk_cells, chunk_points)
     for attempt in range(2):
         L_x, L_w = constants["x"].value, constants["w"].value
         args = [(sub, a, b, L_x, L_w, spec.growth_bound, spec.scp_objective) for a, b in chunks]
@@ -124,6 +125,9 @@ def _abstract_one(
         for i, r in enumerate(mapper(abstract_cells, args)):
             results.append(r)
             progress("subsystems", done_before + i + 1, total, f"{sub.name}: chunk {i + 1}/{len(chunks)}")
+        # A mapper may yield in any order (a cluster: completion order); merging in cell order makes the
+        # reported location of a tied largest slope independent of it.
+        results.sort(key=lambda r: r.start)
         slope_x, slope_w = results[0].slope_x, results[0].slope_w
         for r in results[1:]:
             slope_x, slope_w = slope_x.merge(r.slope_x), slope_w.merge(r.slope_w)
@@ -176,6 +180,18 @@ def _abstract_one(
     return rel, info
 
 
+def spec_regions(spec: JobSpec, network: Network) -> dict[str, AbstractRegion]:
+    """The specification's regions on the composed grid: targets and safe sets from inside, avoid sets from
+    outside (METHOD §1)."""
+    grid = network.composed_state_grid()
+    regions: dict[str, AbstractRegion] = {}
+    for name in ("target", "safe", "avoid"):
+        region = getattr(spec.specification, name)
+        if region is not None:
+            regions[name] = abstract_region(region, grid, f"specification.{name}", outer=(name == "avoid"))
+    return regions
+
+
 def run_abstraction(
     spec: JobSpec,
     *,
@@ -183,6 +199,7 @@ def run_abstraction(
     progress: Progress = _no_progress,
     allowed_modules: Sequence[str] | None = None,
     audit: bool = True,
+    chunk_points: int | None = None,
 ) -> AbstractionResult:
     """Run the abstraction stages of a job and build its report.
 
@@ -195,6 +212,9 @@ def run_abstraction(
         ``progress(stage, done, total, message)``, called as work completes.
     allowed_modules
         Modules a ``module:function`` may name (``None``: any, the local command line).
+    chunk_points : int, optional
+        Black-box evaluations per chunk task when ``options.chunk_cells`` is not set (``None``: the default of
+        :func:`~pipelines.subsystem.chunk_ranges`). A runner picks it from its per-task overhead.
 
     Raises
     ------
@@ -218,13 +238,7 @@ def run_abstraction(
                 f"subsystem '{s.name}': {s.triples} (x, u, w) triples exceed options.max_cells = "
                 f"{spec.options.max_cells}; coarsen its grids or raise the cap"
             )
-    composed = network.composed_state_grid()
-    spec_regions = spec.specification
-    regions: dict[str, AbstractRegion] = {}
-    for name in ("target", "safe", "avoid"):
-        region = getattr(spec_regions, name)
-        if region is not None:
-            regions[name] = abstract_region(region, composed, f"specification.{name}", outer=(name == "avoid"))
+    regions = spec_regions(spec, network)
     groups = network.unique_subsystems()
     progress("plan", 1, 1, f"{len(network.subsystems)} subsystems, {len(groups)} distinct")
     seconds["plan"] = time.perf_counter() - t0
@@ -241,11 +255,11 @@ def run_abstraction(
     relations: dict[str, SubsystemRelation] = {}
     infos = []
     chunk_cells = spec.options.chunk_cells
-    total_chunks = sum(len(chunk_ranges(m[0], chunk_cells)) for m in groups.values())
+    total_chunks = sum(len(chunk_ranges(m[0], chunk_cells, chunk_points)) for m in groups.values())
     done = 0
     for key, members in groups.items():
         rel, info = _abstract_one(
-            members[0], members, constants[key], mapper, progress, done, total_chunks, chunk_cells
+            members[0], members, constants[key], mapper, progress, done, total_chunks, chunk_cells, chunk_points
         )
         done += info["chunks"]
         relations[key] = rel
@@ -362,12 +376,8 @@ def run_synthesis(
     rng = np.random.default_rng(opts.seed + 1)
     n_runs = opts.closed_loop_runs if runs is None else runs
     steps = opts.closed_loop_steps or (2 * (main.iterations + main.inner_iterations) + 30)
-    regions = {}
     grid = network.composed_state_grid()
-    for name in ("target", "safe", "avoid"):
-        region = getattr(spec.specification, name)
-        if region is not None:
-            regions[name] = abstract_region(region, grid, f"specification.{name}", outer=(name == "avoid"))
+    regions = spec_regions(spec, network)
     target = regions.get("target") or regions.get("safe")
     avoid = regions.get("avoid")
     starts: list[tuple[str, np.ndarray]] = []

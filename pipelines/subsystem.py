@@ -32,6 +32,8 @@ METHODS = ("lipschitz", "scp", "scp_radius", "hull")
 #: Relative slack when comparing an observed slope with a given Lipschitz constant: slopes are differences
 #: of float64 values, and an excess below this is rounding, not evidence.
 SLOPE_RTOL = 1e-9
+#: Black-box evaluations per chunk when neither the spec nor the caller says: a few tenths of a second.
+DEFAULT_CHUNK_POINTS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -272,7 +274,7 @@ def assemble(results: list[CellsResult], n_x: int, method: str, L_x: float, L_w:
     )
 
 
-def chunk_ranges(sub: Subsystem, chunk_cells: int | None, target_points: int = 2_000_000) -> list[tuple[int, int]]:
+def chunk_ranges(sub: Subsystem, chunk_cells: int | None, target_points: int | None = None) -> list[tuple[int, int]]:
     """Split the state cells of a subsystem into chunks.
 
     By default a chunk holds as many state cells as keep its black-box evaluations near ``target_points``
@@ -280,6 +282,8 @@ def chunk_ranges(sub: Subsystem, chunk_cells: int | None, target_points: int = 2
     bound memory).
     """
     n_x = sub.state_grid.size
+    if target_points is None:
+        target_points = DEFAULT_CHUNK_POINTS
     if chunk_cells is None:
         per_cell = sub.input_grid.size * sub.n_w_cells * max(1, sub.spec.samples)
         chunk_cells = max(1, target_points // per_cell)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -80,21 +81,68 @@ def cmd_run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise SpecError(f"--out {out}: cannot create the directory: {exc.strerror}") from None
     bars = _Bars(not args.quiet)
+    scheduler = args.scheduler or os.environ.get("COMPABS_SCHEDULER")
     try:
-        result = run_abstraction(spec, progress=bars, allowed_modules=None, audit=not args.no_audit)
+        if args.in_process:
+            result = run_abstraction(spec, progress=bars, allowed_modules=None, audit=not args.no_audit)
+        else:
+            from workers.runner import run_job
+
+            result, runner = run_job(
+                spec, out, scheduler=scheduler, workers=args.workers, progress=bars, allowed_modules=None,
+                audit=not args.no_audit, overwrite=args.overwrite,
+            )
+            result.report["runner"] = runner
+        if spec.options.synthesis and not args.no_synthesis:
+            from pipelines.job import run_synthesis
+
+            extra = run_synthesis(result, out, progress=bars)
+            result.report["stage_seconds"].update(extra.pop("stage_seconds"))
+            result.report.update(extra)
     finally:
         bars.close()
-    save_relations(result, out)
+    if args.in_process:
+        save_relations(result, out)
+    (out / "spec.json").write_text(json.dumps(spec.model_dump(mode="json"), indent=1))
     (out / "report.json").write_text(json.dumps(result.report, indent=2, default=_json_default))
-    summary = {
-        k: result.report[k] for k in ("abstract_states", "region_states", "stage_seconds") if k in result.report
-    }
+    keys = ("abstract_states", "region_states", "domain_states", "domain_states_by_fixed_point", "stage_seconds")
+    summary = {k: result.report[k] for k in keys if k in result.report}
     summary["audit"] = {k: result.report["audit"][k] for k in ("transitions_checked", "violations")}
+    if "closed_loop" in result.report:
+        summary["closed_loop"] = {k: result.report["closed_loop"][k] for k in ("runs", "violations")}
     print(json.dumps(summary, indent=2, default=_json_default))
     if result.report["audit"]["violations"]:
         print("error: the audit found transitions missing from the abstraction (a soundness bug)", file=sys.stderr)
         return 3
+    if result.report.get("closed_loop", {}).get("violations"):
+        print(f"error: closed-loop runs violated the specification: {result.report['closed_loop']['first_violation']}",
+              file=sys.stderr)
+        return 3
     return 0
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from pipelines.closed_loop import simulate
+    from pipelines.controller import load_controller
+    from pipelines.job import spec_regions
+    from pipelines.network import build_network
+    from pipelines.spec import parse_spec
+
+    controller = load_controller(args.dir)
+    spec = parse_spec(controller.meta["spec"])
+    network = build_network(spec, None)
+    try:
+        x0 = np.array([float(v) for v in args.x0.split(",")])
+    except ValueError:
+        raise SpecError(f"--x0 expects comma-separated numbers, got {args.x0!r}") from None
+    if x0.size != network.state_dim:
+        raise SpecError(f"--x0 has {x0.size} components; the system has {network.state_dim}")
+    regions = spec_regions(spec, network)
+    run = simulate(network, None if args.free else controller.inputs, x0, args.steps,
+                   np.random.default_rng(args.seed), spec.specification.kind,
+                   target=regions.get("target") or regions.get("safe"), avoid=regions.get("avoid"), choose=args.choose)
+    print(json.dumps(run.as_dict()))
+    return 0 if run.violation is None or args.free else 4
 
 
 def _json_default(o):
@@ -124,7 +172,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--audit-transitions", type=int, default=None, help="override options.audit_transitions")
     r.add_argument("--no-audit", action="store_true", help="skip the audit")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--no-synthesis", action="store_true", help="stop after the abstraction and its audit")
+    r.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER)")
+    r.add_argument("--workers", type=int, default=2, help="worker processes of the embedded local cluster")
+    r.add_argument("--in-process", action="store_true", help="no cluster: run the per-cell stage in this process")
+    r.add_argument("--overwrite", action="store_true", help="if --out holds relations of another spec, delete them")
     r.set_defaults(func=cmd_run)
+    m = sub.add_parser("simulate", help="run the concrete system under a saved controller; prints JSON")
+    m.add_argument("dir", help="output directory of 'compabs run'")
+    m.add_argument("--x0", required=True, help="initial state, comma-separated")
+    m.add_argument("--steps", type=int, default=50)
+    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--choose", choices=["random", "first"], default="random", help="which admissible input")
+    m.add_argument("--free", action="store_true", help="all inputs 0 instead of the controller")
+    m.set_defaults(func=cmd_simulate)
     s = sub.add_parser("schema", help="print the JSON Schema of job specs")
     s.set_defaults(func=cmd_schema)
     return p

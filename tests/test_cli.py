@@ -43,7 +43,7 @@ BAD = [
 @pytest.mark.parametrize("label,mutate,match", BAD, ids=[b[0] for b in BAD])
 def test_bad_input_fails_with_a_specific_message(tmp_path, capsys, label, mutate, match):
     spec = _write(tmp_path, mutate)
-    code = main(["run", str(spec), "--out", str(tmp_path / "out"), "--quiet"])
+    code = main(["run", str(spec), "--out", str(tmp_path / "out"), "--quiet", "--in-process"])
     err = capsys.readouterr().err
     assert code == 2, err
     assert err.startswith("error: ")

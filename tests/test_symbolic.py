@@ -1,0 +1,304 @@
+"""The symbolic encoding (Algorithm 5, METHOD §5): bulk construction against naive per-point construction,
+enumeration, regions, exact counting, variable order, DDDMP round trip, out-of-memory errors."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from pipelines.grid import UniformGrid
+from pipelines.interconnection import NodeRelation
+from pipelines.region import AbstractRegion
+from pipelines.subsystem import SubsystemRelation
+from pipelines.symbolic import (
+    BDDMemoryError,
+    SubsystemLayout,
+    SymbolicModel,
+    bit_width,
+    unique_rows,
+)
+
+
+# ------------------------------------------------------------------------------------------- helpers
+def grid(k: int) -> UniformGrid:
+    """A 1-D grid with ``k`` cells (only its size matters to the symbolic layer)."""
+    return UniformGrid(origin=(0.0,), eta=(1.0,), k_lo=(0,), k_hi=(k - 1,), lb=(0.0,), ub=(float(k - 1),))
+
+
+def cube(m: SymbolicModel, digit: str, value: int):
+    """``code(digit) == value``, one bit at a time: the naive construction the bulk one must equal."""
+    bits = m.bits[digit]
+    f = m.bdd.true
+    for k, b in enumerate(bits):
+        v = m.var(b)
+        f &= v if (value >> (len(bits) - 1 - k)) & 1 else ~v
+    return f
+
+
+def random_relation(rng, state_shape, n_u, n_w, p_block=0.2) -> SubsystemRelation:
+    n_x, n = math.prod(state_shape), len(state_shape)
+    size = np.asarray(state_shape)
+    lo = rng.integers(0, size, size=(n_x, n_u, n_w, n))
+    hi = np.minimum(lo + rng.integers(0, 3, size=lo.shape), size - 1)
+    blocking = rng.random((n_x, n_u, n_w)) < p_block
+    lo[blocking], hi[blocking] = 0, -1
+    return SubsystemRelation("test", lo.astype(np.int32), hi.astype(np.int32), blocking, 1.0, 1.0)
+
+
+def naive_relation(m: SymbolicModel, s: SubsystemLayout, rel: SubsystemRelation):
+    """``T`` and ``NB`` by OR-ing one cube per (triple, successor): slow, obviously right."""
+    dg = m.subsystem_digits(s)
+    w_shape = tuple(m.w_sizes[j] for j in s.reads) or (1,)
+    T = NB = m.bdd.false
+    rows = []
+    n_x, n_u, n_w = rel.blocking.shape
+    for xi, u, wi in itertools.product(range(n_x), range(n_u), range(n_w)):
+        xs = np.unravel_index(xi, s.state_shape)
+        ws = np.unravel_index(wi, w_shape) if s.reads else ()
+        pre = cube(m, dg["u"][0], u)
+        for d, v in zip(dg["x"], xs):
+            pre &= cube(m, d, int(v))
+        for d, v in zip(dg["w"], ws):
+            pre &= cube(m, d, int(v))
+        if rel.blocking[xi, u, wi]:
+            continue
+        NB |= pre
+        ranges = [range(rel.lo[xi, u, wi, d], rel.hi[xi, u, wi, d] + 1) for d in range(len(s.state_shape))]
+        for succ in itertools.product(*ranges):
+            post = pre
+            for d, v in zip(dg["xn"], succ):
+                post &= cube(m, d, v)
+            T |= post
+            rows.append([*map(int, xs), u, *map(int, ws), *succ])
+    return T, NB, np.array(rows, dtype=np.int64).reshape(-1, len(dg["x"]) * 2 + 1 + len(dg["w"]))
+
+
+def sorted_rows(a: np.ndarray) -> np.ndarray:
+    return a[np.lexsort(a.T[::-1])] if a.size else a
+
+
+LAYOUTS = [
+    # (layouts, w_sizes): 1-D and 2-D states, no / one / two internal variables, non-powers of two
+    ([SubsystemLayout(0, (5,), 3, (0,), "a", 0), SubsystemLayout(1, (3, 2), 2, (0, 1), "b", 1)], [3, 2]),
+    ([SubsystemLayout(0, (4,), 2, (), "a", 0), SubsystemLayout(1, (7,), 3, (0,), "b", 1)], [5]),
+    ([SubsystemLayout(0, (6,), 1, (1,), "a", 0), SubsystemLayout(1, (6,), 1, (0,), "b", 1)], [1, 9]),
+]
+
+
+# ------------------------------------------------------------------------------------------- encoding
+def test_bit_widths():
+    assert [bit_width(k) for k in (1, 2, 3, 4, 5, 8, 9, 41, 64, 65)] == [1, 1, 2, 2, 3, 3, 4, 6, 6, 7]
+
+
+def test_unique_rows_matches_numpy():
+    rng = np.random.default_rng(0)
+    for big in (False, True):
+        rows = rng.integers(-3, 5, size=(500, 3))
+        if big:
+            rows[:, 0] *= 2**40  # spans too wide for one int64 key: the fallback path
+            rows[:, 1] *= 2**30
+        uniq, inv = unique_rows(rows)
+        ref, ref_inv = np.unique(rows, axis=0, return_inverse=True)
+        np.testing.assert_array_equal(uniq, ref)
+        np.testing.assert_array_equal(inv, ref_inv.reshape(-1))
+
+
+@pytest.mark.parametrize("order", ["interleaved", "shared_top"])
+def test_variable_order_is_as_declared(order):
+    layouts = [SubsystemLayout(0, (3,), 2, (1,), "a", 0), SubsystemLayout(1, (5,), 1, (0,), "b", 1)]
+    m = SymbolicModel(layouts, [2, 4], {"z0": 3}, z_owner={"z0": 0}, order=order)
+    if order == "interleaved":
+        expected = ["w1_0", "w1_1", "u0_0", "x0_0", "xn0_0", "x0_1", "xn0_1",
+                    "z0_0", "z0_1", "w0_0", "u1_0", "x1_0", "xn1_0", "x1_1", "xn1_1", "x1_2", "xn1_2"]
+    else:
+        expected = ["w0_0", "w1_0", "w1_1", "z0_0", "z0_1",
+                    "x0_0", "x0_1", "u0_0", "xn0_0", "xn0_1", "x1_0", "x1_1", "x1_2", "u1_0", "xn1_0", "xn1_1",
+                    "xn1_2"]
+    assert m.variables == expected
+    assert [m.bdd.var_at_level(k) for k in range(len(expected))] == expected
+    assert m.bdd.configure()["reordering"] is False
+
+
+def test_unread_internal_variables_go_on_top_in_the_interleaved_order():
+    layouts = [SubsystemLayout(0, (3,), 2, (0,), "a", 0)]
+    m = SymbolicModel(layouts, [2, 3], order="interleaved")
+    assert m.variables[:2] == ["w1_0", "w1_1"]
+
+
+# ------------------------------------------------------------------------------------------- relations
+@pytest.mark.parametrize("order", ["interleaved", "shared_top"])
+@pytest.mark.parametrize("case", range(len(LAYOUTS)))
+def test_bulk_relation_equals_naive_and_enumerates_back(case, order):
+    layouts, w_sizes = LAYOUTS[case]
+    rng = np.random.default_rng(10 * case + (order == "shared_top"))
+    m = SymbolicModel(layouts, w_sizes, order=order)
+    for s in layouts:
+        n_w = math.prod(w_sizes[j] for j in s.reads) if s.reads else 1
+        for p_block in (0.0, 0.3, 1.0):
+            rel = random_relation(rng, s.state_shape, s.n_inputs, n_w, p_block)
+            T, NB = m.subsystem_relation(s, rel)
+            T_ref, NB_ref, rows = naive_relation(m, s, rel)
+            assert T == T_ref
+            assert NB == NB_ref
+            dg = m.subsystem_digits(s)
+            got = m.enumerate(T, dg["x"] + dg["u"] + dg["w"] + dg["xn"])
+            np.testing.assert_array_equal(got, sorted_rows(rows))
+            assert m.count(T, dg["x"] + dg["u"] + dg["w"] + dg["xn"]) == rows.shape[0]
+            assert m.count(NB, dg["x"] + dg["u"] + dg["w"]) == int((~rel.blocking).sum())
+
+
+def test_identical_subsystems_rename_equals_build():
+    layouts = [SubsystemLayout(i, (5,), 3, (i,), "same", i) for i in range(3)]
+    rel = random_relation(np.random.default_rng(3), (5,), 3, 4)
+    for order in ("interleaved", "shared_top"):
+        m = SymbolicModel(layouts, [4, 4, 4], order=order)
+        T1, NB1 = m.subsystem_relations({"same": rel}, share="rename")
+        T2, NB2 = m.subsystem_relations({"same": rel}, share="build")
+        assert T1 == T2 and NB1 == NB2
+        assert len({int(t) for t in T1}) == 3  # each over its own variables
+
+
+def random_node(rng, output, out_size, inputs, in_sizes, p_empty=0.1) -> NodeRelation:
+    shape = tuple(in_sizes)
+    lo = rng.integers(0, out_size, size=shape)
+    hi = np.minimum(lo + rng.integers(0, 2, size=shape), out_size - 1)
+    empty = rng.random(shape) < p_empty
+    lo = np.where(empty, out_size - 1, lo)
+    hi = np.where(empty, 0, hi)
+    if out_size == 1:
+        hi = np.where(empty, -1, hi)
+    return NodeRelation(output, grid(out_size), tuple(inputs), tuple(grid(k) for k in in_sizes), None,
+                        lo.astype(np.int32), hi.astype(np.int32), 0.0)
+
+
+def explicit_node_sets(nodes, x: tuple[int, ...]) -> dict[str, set[int]]:
+    """Allowed cells of every node output at composed state ``x`` (exact ∃z on a forest)."""
+    env: dict[str, set[int]] = {f"x{i}": {v} for i, v in enumerate(x)}
+    for node in nodes:
+        cells: set[int] = set()
+        for combo in itertools.product(*(sorted(env[n]) for n in node.inputs)):
+            lo, hi = int(node.lo[combo]), int(node.hi[combo])
+            cells.update(range(lo, hi + 1))
+        env[node.output] = cells
+    return env
+
+
+@pytest.mark.parametrize("order", ["interleaved", "shared_top"])
+def test_interconnection_bdd_equals_explicit_exists_z(order):
+    rng = np.random.default_rng(5)
+    layouts = [SubsystemLayout(i, (k,), 2, (0,), f"k{i}", i) for i, k in enumerate((3, 4, 5))]
+    for trial in range(6):
+        nodes = [
+            random_node(rng, "z0", 3, ["x0", "x1"], [3, 4]),
+            random_node(rng, "z1", 2, ["x2"], [5]),
+            random_node(rng, "w0", 4, ["z0", "z1", "x1"], [3, 2, 4]),
+            random_node(rng, "w1", 3, [], []),
+        ]
+        m = SymbolicModel(layouts, [4, 3], {"z0": 3, "z1": 2}, z_owner={"z0": 0, "z1": 0}, order=order)
+        # Naive: R_node per point (cube by cube), conjunction, then ∃z.
+        naive = m.bdd.true
+        for node in nodes:
+            r = m.bdd.false
+            for combo in itertools.product(*(range(g.size) for g in node.input_grids)):
+                pre = m.bdd.true
+                for name, v in zip(node.inputs, combo):
+                    pre &= cube(m, name, v)
+                for c in range(node.lo[combo], node.hi[combo] + 1):
+                    r |= pre & cube(m, node.output, c)
+            assert m.node_relation(node) == r
+            naive &= r
+        naive = m.bdd.exist(m.z_bits, naive)
+        M = m.interconnection(nodes)
+        assert M == naive
+        rows = []
+        for x in itertools.product(range(3), range(4), range(5)):
+            env = explicit_node_sets(nodes, x)
+            rows += [[*x, a, b] for a in sorted(env["w0"]) for b in sorted(env["w1"])]
+        got = m.enumerate(M, m.x_digits() + m.w_digits())
+        np.testing.assert_array_equal(got, sorted_rows(np.array(rows, dtype=np.int64).reshape(-1, 5)))
+
+
+# ------------------------------------------------------------------------------------------- regions, counts
+def test_region_bdd_counts_equal_abstract_region_states():
+    rng = np.random.default_rng(11)
+    sizes = (7, 5, 9)
+    layouts = [SubsystemLayout(i, (k,), 2, (), f"k{i}", i) for i, k in enumerate(sizes)]
+    m = SymbolicModel(layouts, [], order="interleaved")
+    all_x = np.array(list(itertools.product(*(range(k) for k in sizes))))
+    for trial in range(20):
+        boxes = []
+        for _ in range(rng.integers(1, 5)):
+            a = rng.integers(0, sizes)
+            b = a + rng.integers(-1, 4, size=3)  # sometimes empty, sometimes past the grid
+            boxes.append((a, np.minimum(b, np.asarray(sizes) - 1)))
+        region = AbstractRegion(tuple(boxes))
+        f = m.region(region)
+        assert m.count_states(f) == region.states
+        np.testing.assert_array_equal(m.enumerate(f, m.x_digits()), all_x[region.contains(all_x)])
+
+
+def test_exact_count_beyond_double_precision():
+    """41^12 ≈ 2.25e19 > 2^64: CUDD's double count cannot say this exactly; ours must."""
+    layouts = [SubsystemLayout(i, (41,), 1, (), "t", i) for i in range(12)]
+    m = SymbolicModel(layouts, [], order="interleaved")
+    assert m.count_states(m.bdd.true) == 41**12
+    first = np.full(12, 3)
+    last = np.full(12, 19)
+    second = (np.full(12, 10), np.full(12, 30))
+    region = AbstractRegion(((first, last), second))
+    assert m.count_states(m.region(region)) == region.states == 17**12 + 21**12 - 10**12
+    assert m.count_states(~m.region(region)) == 41**12 - region.states
+
+
+def test_state_set_and_pair_set():
+    layouts = [SubsystemLayout(0, (3,), 2, (), "a", 0), SubsystemLayout(1, (5,), 3, (), "b", 1)]
+    m = SymbolicModel(layouts, [], order="shared_top")
+    xs = np.array([[0, 4], [2, 1], [2, 1], [1, 0]])
+    np.testing.assert_array_equal(m.enumerate(m.state_set(xs), m.x_digits()), np.unique(xs, axis=0))
+    us = np.array([[1, 2], [0, 0], [0, 1], [1, 1]])
+    C = m.pair_set(xs, us)
+    np.testing.assert_array_equal(m.inputs_at(C, [2, 1]), [[0, 0], [0, 1]])
+    assert m.inputs_at(C, [0, 0]).shape == (0, 2)
+
+
+# ------------------------------------------------------------------------------------------- persistence
+@pytest.mark.parametrize("order", ["interleaved", "shared_top"])
+def test_dddmp_round_trip_of_a_controller(tmp_path, order):
+    layouts, w_sizes = LAYOUTS[0]
+    m = SymbolicModel(layouts, w_sizes, order=order, grids={"note": "synthetic"})
+    rng = np.random.default_rng(2)
+    xs = np.stack([rng.integers(0, k, 40) for k in m.state_sizes], axis=1)
+    us = np.stack([rng.integers(0, s.n_inputs, 40) for s in layouts], axis=1)
+    C = m.pair_set(xs, us)
+    bdd_path, head_path = m.dump(tmp_path / "controller", C, meta={"kind": "reach", "domain_states": 7})
+    assert bdd_path.suffix == ".dddmp" and head_path.suffix == ".json"
+    m2, C2, meta = SymbolicModel.load(bdd_path)
+    assert meta == {"kind": "reach", "domain_states": 7}
+    assert m2.variables == m.variables
+    assert [m2.bdd.var_at_level(k) for k in range(len(m2.variables))] == m.variables
+    assert m2.bdd.configure()["reordering"] is False
+    assert m2.grids == {"note": "synthetic"}
+    digits = m.x_digits() + m.u_digits()
+    np.testing.assert_array_equal(m2.enumerate(C2, digits), m.enumerate(C, digits))
+    assert C2.dag_size == C.dag_size
+    for x in xs[:5]:
+        np.testing.assert_array_equal(m2.inputs_at(C2, x), m.inputs_at(C, x))
+    # constants survive too
+    m.dump(tmp_path / "empty", m.bdd.false)
+    m3, F, _ = SymbolicModel.load(tmp_path / "empty")
+    assert F == m3.bdd.false
+
+
+def test_out_of_memory_is_a_clear_error():
+    layouts = [SubsystemLayout(i, (64,), 1, (), "t", i) for i in range(8)]
+    m = SymbolicModel(layouts, [], order="interleaved", max_memory=8 << 20)
+    rng = np.random.default_rng(0)
+    with pytest.raises(BDDMemoryError, match="ran out of memory while stress"):
+        with m.guard("stress"):
+            f = m.bdd.false
+            for _ in range(200):
+                xs = rng.integers(0, 64, size=(2000, 8))
+                f |= m.state_set(xs)

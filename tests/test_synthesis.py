@@ -1,0 +1,395 @@
+"""Symbolic fixed points (METHOD §6) against an explicit-state solver on small random networks.
+
+Each random network has 2-3 subsystems with 3-6 states and 2 inputs, and either one internal variable shared
+by all subsystems (a random node relation x -> w, sometimes through an intermediate z) or one internal variable
+per subsystem (the tanks' structure). The explicit solver enumerates composed states, joint inputs and every
+``ŵ ∈ M̂(x̂)``; it shares no code with the symbolic one beyond the input arrays.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from pipelines.grid import UniformGrid
+from pipelines.interconnection import NodeRelation
+from pipelines.job import run_abstraction
+from pipelines.region import abstract_region
+from pipelines.spec import load_spec
+from pipelines.subsystem import SubsystemRelation
+from pipelines.symbolic import SubsystemLayout, SymbolicModel, tree_owners
+from pipelines.synthesis import CHAIN_ORDERS, Game, reach, reach_and_stay, reach_avoid, safe, synthesize
+
+from .conftest import EXAMPLES
+
+
+# ============================================================================ random networks
+def grid(k: int) -> UniformGrid:
+    return UniformGrid(origin=(0.0,), eta=(1.0,), k_lo=(0,), k_hi=(k - 1,), lb=(0.0,), ub=(float(k - 1),))
+
+
+def random_node(rng, output, out_size, inputs, in_sizes, p_empty) -> NodeRelation:
+    shape = tuple(in_sizes)
+    lo = rng.integers(0, out_size, size=shape)
+    hi = np.minimum(lo + rng.integers(0, 2, size=shape), out_size - 1)
+    empty = rng.random(shape) < p_empty
+    lo, hi = np.where(empty, 1, lo), np.where(empty, 0, hi)
+    return NodeRelation(output, grid(out_size), tuple(inputs), tuple(grid(k) for k in in_sizes), None,
+                        lo.astype(np.int32), hi.astype(np.int32), 0.0)
+
+
+@dataclass
+class Net:
+    layouts: list[SubsystemLayout]
+    relations: dict[str, SubsystemRelation]
+    w_sizes: list[int]
+    nodes: list[NodeRelation]
+    shape: tuple[int, ...]  # states per subsystem (all 1-D)
+    n_u: tuple[int, ...]
+
+
+def random_net(rng: np.random.Generator, shared: bool) -> Net:
+    N = int(rng.integers(2, 4))
+    shape = tuple(int(k) for k in rng.integers(3, 7, size=N))
+    n_u = (2,) * N
+    nodes: list[NodeRelation] = []
+    p_empty = 0.05 if rng.random() < 0.5 else 0.0
+    if shared:
+        Kw = int(rng.integers(2, 5))
+        w_sizes = [Kw]
+        reads = [(0,)] * N
+        if rng.random() < 0.5:  # through an intermediate variable, as MDec makes them
+            Kz = int(rng.integers(2, 4))
+            nodes.append(random_node(rng, "z0", Kz, ["x0", "x1"], [shape[0], shape[1]], p_empty))
+            nodes.append(random_node(rng, "w0", Kw, ["z0", f"x{N - 1}"], [Kz, shape[N - 1]], p_empty))
+        else:
+            sup = sorted(rng.choice(N, size=min(N, 2), replace=False).tolist())
+            nodes.append(random_node(rng, "w0", Kw, [f"x{i}" for i in sup], [shape[i] for i in sup], p_empty))
+    else:
+        w_sizes, reads = [], []
+        for i in range(N):
+            if rng.random() < 0.15:  # a subsystem that reads nothing
+                reads.append(())
+                continue
+            j = len(w_sizes)
+            Kw = int(rng.integers(2, 4))
+            w_sizes.append(Kw)
+            reads.append((j,))
+            sup = sorted(rng.choice(N, size=int(rng.integers(1, 3)), replace=False).tolist())
+            nodes.append(random_node(rng, f"w{j}", Kw, [f"x{k}" for k in sup], [shape[k] for k in sup], p_empty))
+        if rng.random() < 0.3:  # an internal variable nobody reads: only M̂(x) ≠ ∅ depends on it
+            j = len(w_sizes)
+            w_sizes.append(2)
+            nodes.append(random_node(rng, f"w{j}", 2, ["x0"], [shape[0]], 0.2))
+    layouts, relations = [], {}
+    for i in range(N):
+        # Identical neighbours share a key and one relation (exercises renaming).
+        same = i > 0 and shape[i] == shape[i - 1] and reads[i] == reads[i - 1] and rng.random() < 0.4
+        key = layouts[-1].key if same else f"k{i}"
+        layouts.append(SubsystemLayout(i, (shape[i],), n_u[i], reads[i], key, i))
+        if not same:
+            n_w = math.prod(w_sizes[j] for j in reads[i]) if reads[i] else 1
+            # Successors near the state (drift of -1..1 cells, width 1-2): safe sets are then often non-empty.
+            here = np.arange(shape[i]).reshape(-1, 1, 1, 1)
+            lo = np.clip(here + rng.integers(-1, 2, size=(shape[i], n_u[i], n_w, 1)), 0, shape[i] - 1)
+            hi = np.minimum(lo + rng.integers(0, 2, size=lo.shape), shape[i] - 1)
+            blocking = rng.random((shape[i], n_u[i], n_w)) < 0.1
+            lo[blocking], hi[blocking] = 0, -1
+            relations[key] = SubsystemRelation("test", lo.astype(np.int32), hi.astype(np.int32), blocking, 1, 1)
+    return Net(layouts, relations, w_sizes, nodes, shape, n_u)
+
+
+# ============================================================================ the explicit solver
+class Explicit:
+    """Explicit-state game: every (x̂, û, ŵ ∈ M̂(x̂)) row with its successor box, CPre by box sums."""
+
+    def __init__(self, net: Net) -> None:
+        self.net = net
+        self.shape = net.shape
+        self.nX = math.prod(net.shape)
+        self.nU = math.prod(net.n_u)
+        self.N = len(net.shape)
+        self.states = list(itertools.product(*(range(k) for k in net.shape)))
+        self.inputs = list(itertools.product(*(range(k) for k in net.n_u)))
+        rows = []  # (x, u, blocked, lo[N], hi[N])
+        self.has_w = np.zeros(self.nX, dtype=bool)
+        for xf, x in enumerate(self.states):
+            W = self._allowed_w(x)
+            self.has_w[xf] = len(W) > 0
+            for uf, u in enumerate(self.inputs):
+                for w in W:
+                    blocked, lo, hi = False, [], []
+                    for s, lay in enumerate(net.layouts):
+                        rel = net.relations[lay.key]
+                        wi = np.ravel_multi_index([w[j] for j in lay.reads], [net.w_sizes[j] for j in lay.reads]) \
+                            if lay.reads else 0
+                        blocked |= bool(rel.blocking[x[s], u[s], wi])
+                        lo.append(int(rel.lo[x[s], u[s], wi, 0]))
+                        hi.append(int(rel.hi[x[s], u[s], wi, 0]))
+                    rows.append((xf, uf, blocked, lo, hi))
+        self.rx = np.array([r[0] for r in rows], dtype=np.int64)
+        self.ru = np.array([r[1] for r in rows], dtype=np.int64)
+        self.blocked = np.array([r[2] for r in rows], dtype=bool)
+        self.lo = np.array([r[3] for r in rows], dtype=np.int64).reshape(-1, self.N)
+        self.hi = np.array([r[4] for r in rows], dtype=np.int64).reshape(-1, self.N)
+
+    def _allowed_w(self, x: tuple[int, ...]) -> list[tuple[int, ...]]:
+        """``M̂(x̂)``: ∃z computed bottom-up over the forest of nodes, then the product over outputs."""
+        env: dict[str, set[int]] = {f"x{i}": {v} for i, v in enumerate(x)}
+        for node in self.net.nodes:
+            cells: set[int] = set()
+            for combo in itertools.product(*(sorted(env[n]) for n in node.inputs)):
+                cells.update(range(int(node.lo[combo]), int(node.hi[combo]) + 1))
+            env[node.output] = cells
+        sets = [sorted(env[f"w{j}"]) for j in range(len(self.net.w_sizes))]
+        return list(itertools.product(*sets))
+
+    def cpre(self, Z: np.ndarray) -> np.ndarray:
+        """bool (nX, nU): M̂(x̂) ≠ ∅ and every row of (x̂, û) is non-blocking with all successors in Z."""
+        Zn = Z.reshape(self.shape).astype(np.int64)
+        S = np.zeros(tuple(k + 1 for k in self.shape), dtype=np.int64)  # summed-volume table
+        S[tuple(slice(1, None) for _ in self.shape)] = Zn
+        for a in range(self.N):
+            S = np.cumsum(S, axis=a)
+        inside = np.zeros(self.rx.size, dtype=np.int64)
+        for corner in itertools.product((0, 1), repeat=self.N):
+            idx = tuple(np.where(c, self.hi[:, a] + 1, self.lo[:, a]) for a, c in enumerate(corner))
+            inside += (-1) ** (self.N - sum(corner)) * S[idx]
+        volume = np.prod(self.hi - self.lo + 1, axis=1)
+        ok = ~self.blocked & (inside == volume)
+        bad = np.zeros((self.nX, self.nU), dtype=bool)
+        np.logical_or.at(bad, (self.rx, self.ru), ~ok)
+        return ~bad & self.has_w[:, None]
+
+    def pre(self, Z: np.ndarray) -> np.ndarray:
+        return self.cpre(Z).any(axis=1)
+
+    # fixed points, written from their definitions
+    def safe(self, S):
+        Z = S.copy()
+        while True:
+            Zn = S & self.pre(Z)
+            if np.array_equal(Zn, Z):
+                return Z
+            Z = Zn
+
+    def reach(self, T, A=None):
+        keep = np.ones(self.nX, bool) if A is None else ~A
+        Z = T & keep
+        while True:
+            Zn = (T | self.pre(Z)) & keep
+            if np.array_equal(Zn, Z):
+                return Z
+            Z = Zn
+
+    def cobuchi(self, phi):
+        X = np.zeros(self.nX, bool)
+        while True:
+            preX = self.pre(X)
+            Y = np.ones(self.nX, bool)
+            while True:
+                Yn = (phi & self.pre(Y)) | preX
+                if np.array_equal(Yn, Y):
+                    break
+                Y = Yn
+            if np.array_equal(Y, X):
+                return X
+            X = Y
+
+    # closed loops
+    def successors(self, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closed-loop graph under a controller C (nX, nU): adjacency (nX, nX) and whether some allowed row
+        blocks."""
+        adj = np.zeros((self.nX, self.nX), dtype=bool)
+        blocks = np.zeros(self.nX, dtype=bool)
+        for r in np.flatnonzero(C[self.rx, self.ru]):
+            x = self.rx[r]
+            if self.blocked[r]:
+                blocks[x] = True
+                continue
+            for succ in itertools.product(*(range(a, b + 1) for a, b in zip(self.lo[r], self.hi[r]))):
+                adj[x, np.ravel_multi_index(succ, self.shape)] = True
+        return adj, blocks
+
+
+def controller_matrix(model: SymbolicModel, C, ex: Explicit) -> np.ndarray:
+    rows = model.enumerate(C, model.x_digits() + model.u_digits())
+    out = np.zeros((ex.nX, ex.nU), dtype=bool)
+    if rows.size:
+        xf = np.ravel_multi_index(tuple(rows[:, : ex.N].T), ex.shape)
+        uf = np.ravel_multi_index(tuple(rows[:, ex.N :].T), ex.net.n_u)
+        out[xf, uf] = True
+    return out
+
+
+def states_vector(model: SymbolicModel, f, ex: Explicit) -> np.ndarray:
+    rows = model.enumerate(f, model.x_digits())
+    out = np.zeros(ex.nX, dtype=bool)
+    if rows.size:
+        out[np.ravel_multi_index(tuple(rows.T), ex.shape)] = True
+    return out
+
+
+def build(net: Net, order: str, method: str = "auto", chain_order: str = "greedy") -> Game:
+    z_sizes = {n.output: n.output_grid.size for n in net.nodes if n.output.startswith("z")}
+    m = SymbolicModel(net.layouts, net.w_sizes, z_sizes, z_owner=tree_owners(net.nodes), order=order)
+    T, NB = m.subsystem_relations(net.relations)
+    return Game(m, T, NB, m.interconnection_parts(net.nodes), method, chain_order)
+
+
+def random_set(rng, ex: Explicit, p: float) -> np.ndarray:
+    return rng.random(ex.nX) < p
+
+
+# ============================================================================ checks
+def check_progress(ex: Explicit, C: np.ndarray, domain: np.ndarray, T: np.ndarray) -> None:
+    """From every domain state, every run under the controller reaches T within |domain| steps."""
+    assert np.all(C.any(axis=1)[domain & ~T]), "a domain state without input"
+    assert not np.any(C[~domain]), "controller outside the domain"
+    adj, blocks = ex.successors(C & ~T[:, None])
+    assert not np.any(blocks[domain & ~T]), "an allowed input blocks"
+    done = T & domain
+    for _ in range(int(domain.sum()) + 1):
+        ready = domain & ~done & ~np.any(adj & ~done[None, :], axis=1)
+        if not ready.any():
+            break
+        done |= ready
+    assert np.array_equal(done, domain), "some run does not reach the target"
+
+
+def check_stay(ex: Explicit, C: np.ndarray, domain: np.ndarray, phi: np.ndarray) -> None:
+    """Reach-and-stay controller: the domain is closed, nothing blocks, no state outside φ is on a cycle."""
+    assert np.all(C.any(axis=1)[domain])
+    adj, blocks = ex.successors(C)
+    assert not np.any(blocks[domain])
+    assert not np.any(adj[domain][:, ~domain]), "a successor leaves the domain"
+    reach = adj.copy()  # transitive closure (Warshall), small graphs only
+    for k in range(ex.nX):
+        reach |= reach[:, [k]] & reach[[k], :]
+    on_cycle = np.diag(reach)
+    assert not np.any(on_cycle & domain & ~phi), "a run can visit a state outside φ forever"
+
+
+SEEDS = list(range(40))
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+@pytest.mark.parametrize("seed", SEEDS)
+def test_fixed_points_match_the_explicit_solver(seed, shared):
+    rng = np.random.default_rng(1000 * shared + seed)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    order = ["interleaved", "shared_top"][seed % 2]
+    game = build(net, order)
+    assert game.method == ("shared" if shared else "per_subsystem")
+    m = game.model
+
+    S, T, A, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.15, 0.6))
+    bS, bT, bA, bphi = (m.state_set(np.array(ex.states)[v]) for v in (S, T, A, phi))
+
+    # CPre itself on a random set
+    Z = random_set(rng, ex, 0.6)
+    np.testing.assert_array_equal(controller_matrix(m, game.cpre(m.state_set(np.array(ex.states)[Z])), ex),
+                                  ex.cpre(Z))
+
+    r = safe(game, bS)
+    dom = states_vector(m, r.domain, ex)
+    np.testing.assert_array_equal(dom, ex.safe(S))
+    assert r.domain_states == dom.sum()
+    C = controller_matrix(m, r.controller, ex)
+    np.testing.assert_array_equal(C, ex.cpre(dom) & dom[:, None])  # every input keeping the invariant
+
+    r = reach(game, bT)
+    dom = states_vector(m, r.domain, ex)
+    np.testing.assert_array_equal(dom, ex.reach(T))
+    check_progress(ex, controller_matrix(m, r.controller, ex), dom, T)
+
+    r = reach_avoid(game, bT, bA)
+    dom = states_vector(m, r.domain, ex)
+    np.testing.assert_array_equal(dom, ex.reach(T, A))
+    assert not np.any(dom & A)
+    check_progress(ex, controller_matrix(m, r.controller, ex), dom, T & ~A)
+
+    results = reach_and_stay(game, bphi)
+    co, rs = results["cobuchi"], results["reach_safe"]
+    dom_co, dom_rs = states_vector(m, co.domain, ex), states_vector(m, rs.domain, ex)
+    np.testing.assert_array_equal(dom_co, ex.cobuchi(phi))
+    np.testing.assert_array_equal(dom_rs, ex.reach(ex.safe(phi)))
+    assert not np.any(dom_rs & ~dom_co)  # Reach(Safe(φ)) ⊆ co-Büchi winning set
+    assert rs.details["safe_states"] == ex.safe(phi).sum()
+    check_stay(ex, controller_matrix(m, co.controller, ex), dom_co, phi)
+    check_stay(ex, controller_matrix(m, rs.controller, ex), dom_rs, phi)
+    for res in (co, rs):
+        assert res.domain_states == states_vector(m, res.domain, ex).sum()
+        assert res.iterations >= 1 and res.seconds >= 0 and res.peak_nodes > 0
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_shared_cpre_equals_per_subsystem_cpre_where_both_apply(seed):
+    """Both CPre implementations are exact, so on per-subsystem networks they must agree, in every
+    conjunction schedule; ``predecessors`` is ``∃u.CPre``."""
+    rng = np.random.default_rng(500 + seed)
+    net = random_net(rng, shared=False)
+    ex = Explicit(net)
+    games = [build(net, "interleaved", method, chain) for method in ("per_subsystem", "shared")
+             for chain in CHAIN_ORDERS]
+    for _ in range(5):
+        Z = random_set(rng, ex, 0.6)
+        for g in games:
+            bZ = g.model.state_set(np.array(ex.states)[Z])
+            C = controller_matrix(g.model, g.cpre(bZ), ex)
+            np.testing.assert_array_equal(C, ex.cpre(Z))
+            np.testing.assert_array_equal(states_vector(g.model, g.predecessors(bZ), ex), C.any(axis=1))
+
+
+def test_per_subsystem_method_is_refused_for_a_shared_internal_variable():
+    net = random_net(np.random.default_rng(1), shared=True)
+    with pytest.raises(ValueError, match="read by at most one subsystem"):
+        build(net, "shared_top", "per_subsystem")
+
+
+def test_blocking_for_one_admissible_w_makes_the_input_inadmissible():
+    """METHOD §6: with w quantified per subsystem, an input that blocks for one w ∈ M̂(x) must not count."""
+    lay = [SubsystemLayout(0, (2,), 2, (0,), "a", 0)]
+    lo = np.zeros((2, 2, 2, 1), np.int32)
+    hi = np.ones((2, 2, 2, 1), np.int32)
+    blocking = np.zeros((2, 2, 2), bool)
+    blocking[0, 0, 1] = True  # input 0 at x=0 blocks under w=1 only
+    lo[0, 0, 1], hi[0, 0, 1] = 0, -1
+    rel = SubsystemRelation("t", lo, hi, blocking, 1, 1)
+    node = NodeRelation("w0", grid(2), ("x0",), (grid(2),), None, np.array([0, 0], np.int32),
+                        np.array([1, 0], np.int32), 0.0)  # M̂(x=0) = {0, 1}, M̂(x=1) = {0}
+    m = SymbolicModel(lay, [2], order="interleaved")
+    T, NB = m.subsystem_relations({"a": rel})
+    game = Game(m, T, NB, m.interconnection_parts([node]))
+    C = game.cpre(m.x_domain)
+    np.testing.assert_array_equal(m.inputs_at(C, [0]), [[1]])
+    np.testing.assert_array_equal(m.inputs_at(C, [1]), [[0], [1]])
+
+
+def test_small_example_end_to_end_against_the_explicit_solver():
+    """examples/small.yaml (2 consensus agents, shared w): the real relations and interconnection, solved
+    symbolically (both orders) and explicitly; both reach-and-stay fixed points and their controllers."""
+    res = run_abstraction(load_spec(EXAMPLES / "small.yaml"), audit=False)
+    subs = res.network.subsystems
+    net = Net([SubsystemLayout.of(s) for s in subs], res.relations, [g.size for g in res.network.internal_grids],
+              list(res.interconnection.nodes), tuple(s.state_grid.size for s in subs),
+              tuple(s.input_grid.size for s in subs))
+    ex = Explicit(net)
+    region = abstract_region(res.spec.specification.target, res.network.composed_state_grid(), "target")
+    phi = region.contains(np.array(ex.states))
+    expected = ex.cobuchi(phi)
+    assert expected.sum() > phi.sum() // 2  # a non-trivial domain
+    np.testing.assert_array_equal(ex.reach(ex.safe(phi)), expected)  # as METHOD §6 found for consensus
+    for order in ("shared_top", "interleaved"):
+        game, results, report = synthesize(res, order=order)
+        assert game.method == "shared" and report["order"] == order
+        for name, r in results.items():
+            dom = states_vector(game.model, r.domain, ex)
+            np.testing.assert_array_equal(dom, expected, err_msg=name)
+            assert r.domain_states == report["results"][name]["domain_states"] == int(expected.sum())
+            check_stay(ex, controller_matrix(game.model, r.controller, ex), dom, phi)

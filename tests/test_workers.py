@@ -1,0 +1,380 @@
+"""The distributed runner on a real 2-worker LocalCluster: identical relations, resume, faults, errors.
+
+One cluster serves the whole module (starting one costs seconds). Fault tests use small.yaml with its dynamics
+given as ``tests.test_workers:slow_agent``: the same map, but sleeping inside Dask workers, so that a kill
+lands while tasks run; in this process (the in-process reference) it does not sleep.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from pipelines.errors import BlackBoxError
+from pipelines.job import run_abstraction
+from pipelines.spec import load_spec, parse_spec, spec_hash
+
+from .conftest import EXAMPLES, ROOT
+
+import zarr
+from workers.cluster import connect
+from workers.errors import ClusterError, StoreError, StoreMismatchError
+from workers.runner import run_job
+from workers.store import code_version, marker, result_from, write_chunk
+
+#: Seconds slow_agent sleeps per call inside a worker (two calls per chunk: samples and cell centres).
+SLEEP = 0.1
+
+
+def _in_worker() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError):
+        return False
+
+
+def slow_agent(x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """small.yaml's agent dynamics, shapes (B, 1) -> (B, 1); sleeps inside Dask workers."""
+    if x.shape[0] > 1 and _in_worker():
+        time.sleep(SLEEP)
+    return 32 / (1 + np.exp(-0.2 * (x + u + 0.1 * (x - w) - 16)))
+
+
+def killer_agent(x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Kills the worker process that evaluates it (a black box that crashes its interpreter)."""
+    if x.shape[0] > 1 and _in_worker():
+        os.kill(os.getpid(), signal.SIGKILL)
+    return slow_agent(x, u, w)
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+def small_spec(chunk_cells: int | None = 1, dynamics: str | None = "tests.test_workers:slow_agent", **sub):
+    data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
+    if dynamics is not None:
+        data["subsystems"][0]["dynamics"] = dynamics
+    data["subsystems"][0].update(sub)
+    data["options"] = {**data.get("options", {}), "chunk_cells": chunk_cells, "audit_transitions": 0}
+    return parse_spec(data)
+
+
+def assert_same_relations(a, b) -> None:
+    assert a.relations.keys() == b.relations.keys()
+    for key, ra in a.relations.items():
+        rb = b.relations[key]
+        for field in ("lo", "hi", "blocking"):
+            x, y = getattr(ra, field), getattr(rb, field)
+            assert x.dtype == y.dtype and x.shape == y.shape, (key, field)
+            assert np.array_equal(x, y), (key, field)
+
+
+def without_timings(report):
+    if isinstance(report, dict):
+        return {k: without_timings(v) for k, v in report.items() if k not in ("stage_seconds", "seconds", "runner")}
+    if isinstance(report, list):
+        return [without_timings(v) for v in report]
+    return report
+
+
+def store_of(out: Path):
+    return zarr.open_group(str(out / "relations.zarr"), mode="r", use_consolidated=False)
+
+
+def marker_counts(out: Path) -> tuple[int, int]:
+    """(chunks marked done, chunks) over all groups of a store; (0, 0) before it exists."""
+    try:
+        root = store_of(out)
+    except (FileNotFoundError, zarr.errors.BaseZarrError):
+        return 0, 0
+    done = total = 0
+    for _, g in root.groups():
+        if "done" not in g:
+            continue
+        d = g["done"][:]
+        done += int(sum(1 for t in d.tolist() if t))
+        total += d.size
+    return done, total
+
+
+def wait_idle(client, timeout: float = 30.0) -> None:
+    """Until the scheduler holds no task and no worker runs one (cancelled tasks still finish running)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        sched = client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks))
+        running = client.run(lambda dask_worker: len(dask_worker.state.executing))
+        if sched == 0 and not any(running.values()):
+            return
+        time.sleep(0.1)
+    raise AssertionError("cluster still busy")
+
+
+# ----------------------------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def cluster():
+    with connect(workers=2) as conn:
+        yield conn
+
+
+@pytest.fixture
+def client(cluster):
+    yield cluster.client
+    # A fault test may have killed workers: give the next test two again.
+    cluster.client.wait_for_workers(2, timeout=60)
+
+
+@pytest.fixture(scope="module")
+def small_reference():
+    spec = small_spec()
+    return spec, run_abstraction(spec, audit=False)
+
+
+# ----------------------------------------------------------------------------------------------- store units
+def test_marker_round_trip_is_exact():
+    from pipelines.network import build_network
+    from pipelines.subsystem import abstract_cells
+
+    spec = small_spec(dynamics=None)
+    sub = build_network(spec, None).subsystems[0]
+    r = abstract_cells(sub, 3, 5, 1.76, 0.16, "scp", "paper")
+    back = result_from(json.loads(json.dumps(marker(r, 0.1))), r.lo, r.hi, r.blocking)
+    assert (back.start, back.stop, back.successors) == (3, 5, r.successors)
+    assert back.slope_x == r.slope_x and back.slope_w == r.slope_w  # floats exact through JSON
+
+
+def test_group_left_half_created_is_made_again(tmp_path):
+    import shutil
+
+    from pipelines.network import build_network
+    from workers.store import RelationStore, group_name
+
+    spec = small_spec(chunk_cells=4, dynamics=None)
+    net = build_network(spec, None)
+    sub = net.subsystems[0]
+    store = RelationStore.open(tmp_path, spec, net)
+    group = group_name(sub, 1.76, 0.16, "scp", "paper", 4)
+    store.prepare(group, sub, [sub.name], 4, {})
+    shutil.rmtree(tmp_path / "relations.zarr" / group / "done")  # the runner died before creating it
+    store.prepare(group, sub, [sub.name], 4, {})
+    assert store.markers(group) == {} and store.groups() == [group]
+    assert RelationStore.open(tmp_path, spec, net).attrs()["grids"]["agent[0]"]["groups"] == [group]
+
+
+def test_connect_to_nowhere_fails_clearly(monkeypatch):
+    from workers import cluster as cluster_mod
+
+    monkeypatch.setattr(cluster_mod, "CONNECT_TIMEOUT", 1.0)
+    with pytest.raises(ClusterError, match="cannot reach the Dask scheduler at tcp://127.0.0.1:9"):
+        connect("tcp://127.0.0.1:9")
+
+
+def test_connect_from_environment(monkeypatch, cluster):
+    monkeypatch.setenv("COMPABS_SCHEDULER", cluster.info["scheduler"])
+    with connect() as (client, info):
+        assert info["scheduler"] == cluster.info["scheduler"] and not info["embedded"]
+        assert info["workers"] == 2
+    assert cluster.client.status == "running"  # closing a joined client leaves the cluster alone
+
+
+# ----------------------------------------------------------------------------------------------- equality
+@pytest.mark.slow
+def test_tanks_distributed_equals_in_process(tmp_path, client):
+    spec = load_spec(EXAMPLES / "tanks.yaml")
+    spec = spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": 100_000})})
+    reference = run_abstraction(spec)
+    events = []
+    result, info = run_job(spec, tmp_path, client=client, progress=lambda *e: events.append(e))
+
+    assert_same_relations(reference, result)
+    assert without_timings(result.report) == without_timings(reference.report)
+    assert info["chunks_total"] == info["chunks_computed"] == 2 and info["chunks_reused"] == 0
+    assert info["workers"] == 2 and info["scheduler"].startswith("tcp://")
+    sub_events = [e for e in events if e[0] == "subsystems"]
+    assert [e[1] for e in sub_events] == [1, 2] and all(e[2] == 2 for e in sub_events)
+
+    # The store: root attributes, one group per distinct subsystem, codec and chunking, consolidated metadata.
+    root = zarr.open_group(str(tmp_path / "relations.zarr"), mode="r")
+    assert root.metadata.consolidated_metadata is not None
+    assert root.attrs["spec_hash"] == spec_hash(spec)
+    assert root.attrs["code_version"] == code_version()
+    assert set(root.attrs["grids"]) == {f"tank{i}" for i in range(1, 11)}
+    groups = dict(root.groups())
+    assert len(groups) == 2
+    for name, g in groups.items():
+        key = g.attrs["key"]
+        assert name.startswith(key)
+        rel = result.relations[key]
+        assert g["lo"].shape == rel.lo.shape and g["lo"].dtype == np.int32 and g["blocking"].dtype == bool
+        assert g["lo"].chunks[0] == g.attrs["chunk_cells"] == rel.lo.shape[0]
+        codec = g["lo"].compressors[0]
+        assert type(codec).__name__ == "BloscCodec" and codec.cname.value == "zstd" and codec.shuffle.value == "bitshuffle"
+        assert (g.attrs["L_x"], g.attrs["L_w"]) == (0.98, 0.49)
+
+    # Same job again: everything is read back, nothing computed.
+    again, info2 = run_job(spec, tmp_path, client=client, audit=False)
+    assert info2["chunks_reused"] == 2 and info2["chunks_computed"] == 0
+    assert_same_relations(reference, again)
+
+
+# ----------------------------------------------------------------------------------------------- faults
+@pytest.mark.slow
+def test_worker_killed_mid_job(tmp_path, client, small_reference):
+    spec, reference = small_reference
+    pids = client.run(os.getpid)
+    victim = sorted(pids.values())[0]
+    killed = []
+
+    def progress(stage, done, total, message):
+        if stage == "subsystems" and done == 5 and not killed:
+            os.kill(victim, signal.SIGKILL)  # both workers are busy: 28 chunks still queued
+            killed.append(done)
+
+    result, info = run_job(spec, tmp_path, client=client, audit=False, progress=progress)
+    assert killed
+    assert_same_relations(reference, result)
+    assert info["chunks_computed"] == info["chunks_total"] == 33
+    assert marker_counts(tmp_path) == (33, 33)
+    client.wait_for_workers(2, timeout=60)
+    assert victim not in client.run(os.getpid).values()  # the nanny started a new worker process
+
+
+@pytest.mark.slow
+def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
+    spec, reference = small_reference
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(spec.model_dump_json())
+    code = (
+        "import sys; from pipelines.spec import load_spec; from workers.runner import run_job; "
+        "run_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)"
+    )
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(spec_file), str(out), client.scheduler.address],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while marker_counts(out)[0] < 6:
+            assert proc.poll() is None, "the runner ended before it could be killed"
+            assert time.monotonic() < deadline, "no chunk done within 60 s"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    # Tasks that were running when the runner died still finish (and mark their chunks): wait for them.
+    wait_idle(client)
+    done_before, total = marker_counts(out)
+    assert total == 33 and 6 <= done_before < total
+
+    result, info = run_job(spec, out, client=client, audit=False)
+    assert info["chunks_computed"] == total - done_before
+    assert info["chunks_reused"] == done_before
+    assert_same_relations(reference, result)
+    assert marker_counts(out) == (33, 33)
+
+
+def test_missing_marker_recomputes_that_chunk(tmp_path, client):
+    spec = small_spec(chunk_cells=4, dynamics=None)
+    first, info = run_job(spec, tmp_path, client=client, audit=False)
+    assert info["chunks_computed"] == 9
+    (group,) = [name for name, _ in store_of(tmp_path).groups()]
+    # Data written, marker not: what a task killed between its two writes leaves behind.
+    marker_file = tmp_path / "relations.zarr" / group / "done" / "c" / "3"
+    assert marker_file.exists() and (tmp_path / "relations.zarr" / group / "lo" / "c" / "3").exists()
+    marker_file.unlink()
+    (marker_file.parent / "4.0123abcd.partial").write_text("{")  # a killed writer's temporary: ignored
+    again, info = run_job(spec, tmp_path, client=client, audit=False)
+    assert (info["chunks_computed"], info["chunks_reused"]) == (1, 8)
+    assert_same_relations(first, again)
+    assert marker_file.exists()
+
+
+def test_changed_spec_is_refused_then_overwritten(tmp_path, client):
+    spec = small_spec(chunk_cells=8, dynamics=None)
+    run_job(spec, tmp_path, client=client, audit=False)
+    changed = small_spec(chunk_cells=8, dynamics=None, samples=90)
+    with pytest.raises(StoreMismatchError, match="another job") as err:
+        run_job(changed, tmp_path, client=client, audit=False)
+    assert "--overwrite" in str(err.value) and spec_hash(changed) in str(err.value)
+    assert marker_counts(tmp_path) == (5, 5)  # refused: nothing deleted
+
+    result, info = run_job(changed, tmp_path, client=client, audit=False, overwrite=True)
+    assert info["chunks_reused"] == 0 and info["chunks_computed"] == info["chunks_total"] == 5
+    assert store_of(tmp_path).attrs["spec_hash"] == spec_hash(changed)
+    assert_same_relations(run_abstraction(changed, audit=False), result)
+
+
+def test_raised_lipschitz_constant_gets_its_own_group(tmp_path, client):
+    # L_x = 1.0 is below the data's slope: the stage runs twice, the second time with the raised constant.
+    spec = small_spec(chunk_cells=8, dynamics=None, lipschitz={"x": 1.0, "w": 0.16, "on_violation": "raise"})
+    reference = run_abstraction(spec, audit=False)
+    result, info = run_job(spec, tmp_path, client=client, audit=False)
+    assert_same_relations(reference, result)
+    assert without_timings(result.report) == without_timings(reference.report)
+    assert reference.report["subsystems"][0]["lipschitz"]["x"]["source"] == "raised"
+    groups = dict(store_of(tmp_path).groups())
+    assert len(groups) == 2 and sorted(g.attrs["L_x"] for g in groups.values())[0] == 1.0
+    assert info["chunks_computed"] == info["chunks_total"] == 10
+    again, info = run_job(spec, tmp_path, client=client, audit=False)
+    assert (info["chunks_reused"], info["chunks_computed"]) == (10, 0)
+    assert_same_relations(reference, again)
+
+
+def test_not_a_store_is_refused(tmp_path, client):
+    (tmp_path / "relations.zarr").mkdir()
+    (tmp_path / "relations.zarr" / "notes.txt").write_text("mine")
+    with pytest.raises(StoreMismatchError, match="not a compabs relation store"):
+        run_job(small_spec(dynamics=None), tmp_path, client=client, audit=False)
+    assert (tmp_path / "relations.zarr" / "notes.txt").exists()
+
+
+# ----------------------------------------------------------------------------------------------- errors
+def test_black_box_error_surfaces_unchanged(tmp_path, client):
+    spec = small_spec(chunk_cells=4, dynamics="sqrt(x[0] - 16)")  # NaN below x = 16
+    with pytest.raises(BlackBoxError) as err:
+        run_job(spec, tmp_path, client=client, audit=False)
+    message = str(err.value)
+    assert "subsystem 'agent[0]' dynamics" in message and "not finite" in message and "state cell" in message
+    text = "".join(traceback.format_exception(err.value))
+    assert "distributed" not in text and "During handling" not in text
+    with pytest.raises(BlackBoxError) as in_process:
+        run_abstraction(small_spec(chunk_cells=4, dynamics="sqrt(x[0] - 16)"), audit=False)
+    assert type(in_process.value) is type(err.value)
+    wait_idle(client)  # cancelled tasks leave nothing running
+
+
+@pytest.mark.slow
+def test_task_that_kills_its_workers_is_a_clear_error(tmp_path, client):
+    spec = small_spec(chunk_cells=33, dynamics="tests.test_workers:killer_agent")
+    with pytest.raises(ClusterError, match=r"subsystem 'agent\[0\], agent\[1\]', chunk 0 \(state cells 0\.\.32\).*KilledWorker"):
+        run_job(spec, tmp_path, client=client, audit=False)
+    assert marker_counts(tmp_path) == (0, 1)
+
+
+def test_store_write_outside_a_chunk_is_refused(tmp_path, client):
+    from pipelines.network import build_network
+    from pipelines.subsystem import abstract_cells
+    from workers.store import RelationStore, group_name
+
+    spec = small_spec(chunk_cells=4, dynamics=None)
+    net = build_network(spec, None)
+    sub = net.subsystems[0]
+    store = RelationStore.open(tmp_path, spec, net)
+    group = group_name(sub, 1.76, 0.16, "scp", "paper", 4)
+    store.prepare(group, sub, [sub.name], 4, {})
+    with pytest.raises(StoreError, match="not one chunk"):
+        write_chunk(store.url, group, abstract_cells(sub, 2, 6, 1.76, 0.16, "scp", "paper"), 0.0)
+    assert store.markers(group) == {}

@@ -1,0 +1,171 @@
+"""Connecting to a Dask cluster: an embedded ``LocalCluster`` by default, or an existing scheduler.
+
+``connect()`` starts ``LocalCluster(n_workers=workers, threads_per_worker=1, processes=True)`` with the
+dashboard bound to 127.0.0.1 on a free port. One thread per worker process because the per-cell work is numpy
+plus Python that holds the GIL (ENGINEERING "Dask distributed"); parallelism comes from processes.
+``connect("tcp://HOST:PORT")`` (or ``COMPABS_SCHEDULER=tcp://HOST:PORT``) joins a running scheduler instead.
+
+The embedded cluster is owned by the client (``Client(n_workers=...)``), so closing the client closes the
+cluster: ``client, info = connect(); ...; client.close()`` leaks nothing, and ``with connect() as (client,
+info):`` closes it for you. A client of an external scheduler closes only its own connection.
+
+Process workers are started with ``spawn``, so the calling program's ``__main__`` must be importable (a file or
+``python -m``, not a script piped on stdin); the error message says so.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from .errors import ClusterError
+
+#: Environment variable naming an external scheduler (``tcp://HOST:PORT``).
+SCHEDULER_ENV = "COMPABS_SCHEDULER"
+#: Seconds to wait for an external scheduler to answer and to have at least one worker.
+CONNECT_TIMEOUT = 30.0
+#: Dask configuration of the embedded cluster. Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their
+#: workers, which turns off glibc's dynamic mmap threshold: every large numpy temporary of a task is then
+#: mmapped and page-faulted afresh. Measured on the stressed tank case (bench/runner.py --stress 40, one
+#: worker): task compute 3.75 s with it, 3.0 s without, 2.6 s in-process. ``None`` unsets it (a value the
+#: user exported is still inherited). External workers: set the same in their Dask config (see README).
+EMBEDDED_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
+
+
+class Connection(tuple):
+    """``(client, info)``, closable and usable as a context manager.
+
+    ``info`` is a dict: ``scheduler`` (address), ``workers`` (count at connection time), ``dashboard`` (URL, or
+    ``None`` when bokeh is not installed and there is no dashboard page to show), ``embedded`` (whether this
+    connection started the cluster).
+    """
+
+    def __new__(cls, client: Any, info: dict[str, Any]) -> "Connection":
+        return super().__new__(cls, (client, info))
+
+    @property
+    def client(self) -> Any:
+        return self[0]
+
+    @property
+    def info(self) -> dict[str, Any]:
+        return self[1]
+
+    def close(self) -> None:
+        """Close the client, and with it the embedded cluster if this connection started one."""
+        self.client.close()
+
+    def __enter__(self) -> "Connection":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _dashboard(client: Any) -> str | None:
+    # Without bokeh the scheduler still serves JSON routes on the port, but /status is a 404: report no URL
+    # rather than a dead link.
+    try:
+        import bokeh  # noqa: F401
+    except ImportError:
+        return None
+    return client.dashboard_link
+
+
+def _check_imports(client: Any, scheduler: bool) -> None:
+    """Import the task module on every worker (and the scheduler), or say what to install.
+
+    An external scheduler must import it too (ENGINEERING "Dask distributed"). On workers this is also a
+    warm-up: the first task would otherwise pay ~1 s of imports (numpy, zarr, the method) inside the job.
+    """
+
+    def probe() -> str:
+        import importlib
+
+        importlib.import_module("workers.tasks")
+        return "ok"
+
+    try:
+        if scheduler:
+            client.run_on_scheduler(probe)
+        client.run(probe)
+    except Exception as exc:  # anything from a remote import: name it and say what to install
+        raise ClusterError(
+            f"the Dask scheduler or a worker at {client.scheduler.address} cannot import compabs's task module "
+            f"(workers.tasks): {type(exc).__name__}: {exc}. Install compabs (same version) in the scheduler's and "
+            "the workers' environment."
+        ) from None
+
+
+def connect(scheduler: str | None = None, workers: int = 2) -> Connection:
+    """Connect to a Dask cluster.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        ``tcp://HOST:PORT`` of a running scheduler. ``None`` reads ``COMPABS_SCHEDULER``; if that is unset too,
+        an embedded ``LocalCluster`` with ``workers`` single-threaded worker processes is started.
+    workers : int
+        Worker processes of the embedded cluster (ignored for an external scheduler).
+
+    Returns
+    -------
+    Connection
+        ``(client, info)``; see :class:`Connection`.
+
+    Raises
+    ------
+    ClusterError
+        The scheduler cannot be reached, has no worker within ``CONNECT_TIMEOUT`` seconds, cannot import the
+        task module, or the embedded cluster cannot start.
+    """
+    import dask
+    from distributed import Client
+
+    scheduler = scheduler or os.environ.get(SCHEDULER_ENV) or None
+    if scheduler is None:
+        if workers < 1:
+            raise ClusterError(f"workers must be >= 1, got {workers}")
+        try:
+            with dask.config.set(EMBEDDED_CONFIG):
+                client = Client(
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address="127.0.0.1:0",
+                )
+        except RuntimeError as exc:
+            raise ClusterError(
+                f"cannot start a local Dask cluster: {exc}. Worker processes are spawned and import the caller's "
+                "__main__: run from a file or with `python -m`, not from a script piped on stdin."
+            ) from None
+        embedded = True
+    else:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError) as exc:
+            raise ClusterError(
+                f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one (`dask scheduler`), fix the "
+                f"address, or leave --scheduler / {SCHEDULER_ENV} unset to run an embedded cluster."
+            ) from None
+        try:
+            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT)
+        except TimeoutError:
+            client.close()
+            raise ClusterError(
+                f"the Dask scheduler at {scheduler} has no worker after {CONNECT_TIMEOUT:g} s: start some "
+                f"(`dask worker {scheduler}`)."
+            ) from None
+        embedded = False
+    try:
+        _check_imports(client, scheduler=not embedded)
+    except ClusterError:
+        client.close()
+        raise
+    info = {
+        "scheduler": client.scheduler.address,
+        "workers": len(client.nthreads()),
+        "dashboard": _dashboard(client),
+        "embedded": embedded,
+    }
+    return Connection(client, info)
