@@ -131,7 +131,7 @@ def cluster():
 def client(cluster):
     yield cluster.client
     # A fault test may have killed workers: give the next test two again.
-    cluster.client.wait_for_workers(2, timeout=60)
+    cluster.client.wait_for_workers(2, timeout=240)
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +245,7 @@ def test_worker_killed_mid_job(tmp_path, client, small_reference):
     assert_same_relations(reference, result)
     assert info["chunks_computed"] == info["chunks_total"] == 33
     assert marker_counts(tmp_path) == (33, 33)
-    client.wait_for_workers(2, timeout=60)
+    client.wait_for_workers(2, timeout=240)
     assert victim not in client.run(os.getpid).values()  # the nanny started a new worker process
 
 
