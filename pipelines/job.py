@@ -307,18 +307,13 @@ def run_abstraction(
 
 
 # ====================================================================================== synthesis stages
-def _random_domain_states(controller, count: int, rng: np.random.Generator, tries: int = 200) -> list[np.ndarray]:
-    """Concrete states drawn uniformly in the state box whose cells are in the controller's domain."""
-    grid = controller.state_grid
-    found: list[np.ndarray] = []
-    for _ in range(tries):
-        if len(found) >= count:
-            break
-        x = rng.uniform(np.asarray(grid.lb), np.asarray(grid.ub), (max(64, 4 * count), grid.dim))
-        idx, _ = grid.cell_of(x)
-        keep = controller.in_domain(idx)
-        found.extend(x[keep][: count - len(found)])
-    return found
+def _random_domain_states(controller, count: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Concrete states drawn uniformly in cells drawn uniformly from the controller's domain."""
+    idx = controller.sample_cells(count, rng)
+    if idx.shape[0] == 0:
+        return []
+    lo, hi = controller.state_grid.clipped_cells(idx)
+    return list(rng.uniform(lo, hi))
 
 
 def run_synthesis(
@@ -345,7 +340,7 @@ def run_synthesis(
     kind = spec.specification.kind
     t0 = time.perf_counter()
     progress("synthesis", 0, 1, "building BDDs and solving")
-    game, results, syn_report = synthesize(abstraction)
+    game, results, syn_report = synthesize(abstraction, reach_and_stay_methods=tuple(opts.fixed_points))
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
     main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))

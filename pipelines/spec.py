@@ -155,11 +155,22 @@ class OptionsSpec(_Model):
     controller: Literal["cobuchi", "reach_safe"] = Field(
         default="cobuchi", description="reach_and_stay: which fixed point's controller is saved as 'controller'"
     )
+    fixed_points: list[Literal["cobuchi", "reach_safe"]] = Field(
+        default_factory=lambda: ["cobuchi", "reach_safe"], min_length=1,
+        description="reach_and_stay: which fixed points to compute (co-Büchi can cost 20x Reach(Safe))",
+    )
     initial_states: list[list[float]] = Field(
         default_factory=list, max_length=100, description="concrete initial states for closed-loop runs and figures"
     )
     closed_loop_runs: int = Field(default=100, ge=0, le=100_000, description="runs from random domain states")
     closed_loop_steps: int | None = Field(default=None, ge=1, le=100_000, description="steps per run (default: auto)")
+
+    @model_validator(mode="after")
+    def _controller_is_computed(self):
+        if self.controller not in self.fixed_points:
+            raise ValueError(f"options.controller is '{self.controller}', which options.fixed_points {self.fixed_points} "
+                             "does not compute")
+        return self
 
 
 class JobSpec(_Model):

@@ -57,3 +57,18 @@ def test_small_example_end_to_end_on_the_local_cluster(tmp_path):
     for fig in ("trajectory.png", "domain_slice.png"):
         assert (tmp_path / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (tmp_path / "controller.dddmp").exists() and (tmp_path / "controller.json").exists()
+
+
+@pytest.mark.slow
+def test_tanks_controller_in_closed_loop(tmp_path):
+    """Issue 'symbolic composition': a non-empty reach-and-stay controller for the ten tanks, >= 100 closed-loop
+    runs of the concrete black boxes from random domain states, none violating the specification."""
+    args = ["run", str(EXAMPLES / "tanks.yaml"), "--out", str(tmp_path), "--quiet", "--in-process",
+            "--audit-transitions", "100000"]
+    assert main(args) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["domain_states"] > report["region_states"] // 10
+    closed = report["closed_loop"]
+    assert closed["runs"] >= 100 and closed["violations"] == 0, closed["first_violation"]
+    assert closed["initial_states"][0]["x0"] == [5, 6, 65, 7, 7.5, 70, 8, 65.5, 75, 80]
+    assert (tmp_path / "trajectory.png").exists()

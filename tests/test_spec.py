@@ -101,3 +101,12 @@ def test_schema_is_json_schema():
     schema = json_schema()
     assert schema["type"] == "object"
     assert "subsystems" in schema["properties"]
+
+
+def test_the_saved_controller_must_be_computed():
+    data = _small()
+    data["options"]["fixed_points"] = ["reach_safe"]
+    with pytest.raises(SpecError, match="controller"):
+        parse_spec(data)
+    data["options"]["controller"] = "reach_safe"
+    assert parse_spec(data).options.fixed_points == ["reach_safe"]
