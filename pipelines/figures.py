@@ -33,7 +33,7 @@ def trajectory_figure(controlled: Run, free: Run, path: Path, title: str, target
     if target is not None:
         ax1.axhspan(target[0], target[1], color="green", alpha=0.08, label="target (per coordinate)")
     ax1.set_ylabel("state")
-    ax1.set_title(f"{title}: controlled (solid) and u = 0 (dashed)")
+    ax1.set_title(f"{title}\ncontrolled (solid) and u = 0 (dashed)", fontsize=9)
     ax1.legend(ncol=min(n + 1, 6), fontsize=7, loc="upper right")
     if controlled.inputs.size:
         jitter = np.linspace(-0.05, 0.05, controlled.inputs.shape[1])

@@ -420,7 +420,7 @@ def run_synthesis(
             b = spec.specification.target.boxes[0]
             lb, ub = np.atleast_1d(b.lb), np.atleast_1d(b.ub)
             band = (float(lb.min()), float(ub.max()))
-        figures.append(trajectory_figure(run, free, out / "trajectory.png", f"{spec.name} from {np.round(x0, 2).tolist()}", band).name)
+        figures.append(trajectory_figure(run, free, out / "trajectory.png", f"{spec.name} from {np.round(x0, 1).tolist()}", band).name)
         idx = controller.cell(x0)
         if grid.dim >= 2 and idx is not None:
             figures.append(domain_slice_figure(
