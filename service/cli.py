@@ -108,6 +108,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     keys = ("abstract_states", "region_states", "domain_states", "domain_states_by_fixed_point", "stage_seconds")
     summary = {k: result.report[k] for k in keys if k in result.report}
     summary["audit"] = {k: result.report["audit"][k] for k in ("transitions_checked", "violations")}
+    if "runner" in result.report:
+        r = result.report["runner"]
+        summary["runner"] = {k: r.get(k) for k in ("scheduler", "workers", "dashboard", "chunks_computed", "chunks_reused")}
     if "closed_loop" in result.report:
         summary["closed_loop"] = {k: result.report["closed_loop"][k] for k in ("runs", "violations")}
     print(json.dumps(summary, indent=2, default=_json_default))
