@@ -13,6 +13,7 @@ from typing import Callable
 
 import numpy as np
 
+from .grid import UniformGrid
 from .network import Network
 from .region import AbstractRegion
 
@@ -73,10 +74,9 @@ class Run:
         }
 
 
-def _cell_in(network: Network, region: AbstractRegion | None, x: np.ndarray) -> bool:
+def _cell_in(grid: UniformGrid, region: AbstractRegion | None, x: np.ndarray) -> bool:
     if region is None:
         return False
-    grid = network.composed_state_grid()
     idx, inside = grid.cell_of(x[None, :])
     return bool(inside[0] and region.contains(idx)[0])
 
@@ -104,7 +104,7 @@ def simulate(
     m = input_dim(network)
     xs = [np.asarray(x0, dtype=float)]
     us: list[np.ndarray] = []
-    inside = [_cell_in(network, target, xs[0])]
+    inside = [_cell_in(grid, target, xs[0])]
     violation = None
     for k in range(steps):
         x = xs[-1]
@@ -113,7 +113,7 @@ def simulate(
         if np.any(x < lb) or np.any(x > ub):
             violation = f"step {k}: the state {x.tolist()} left the state set"
             break
-        if avoid is not None and _cell_in(network, avoid, x):
+        if avoid is not None and _cell_in(grid, avoid, x):
             violation = f"step {k}: the state entered the avoid set"
             break
         if kind == "safe" and policy is not None and not inside[-1]:
@@ -129,7 +129,7 @@ def simulate(
             u = options[rng.integers(options.shape[0])] if choose == "random" else options[0]
         us.append(u)
         xs.append(step(network, x[None, :], u[None, :])[0])
-        inside.append(_cell_in(network, target, xs[-1]))
+        inside.append(_cell_in(grid, target, xs[-1]))
     states = np.array(xs)
     flags = np.array(inside)
     settled = None

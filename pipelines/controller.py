@@ -81,7 +81,7 @@ class Controller:
         m = self._model
         out = np.zeros(idx.shape[0], dtype=bool)
         for r, row in enumerate(np.asarray(idx)):
-            out[r] = m.bdd.let(_state_assignment(m, row), self._domain) == m.bdd.true
+            out[r] = m.bdd.let(m.state_assignment(row), self._domain) == m.bdd.true
         return out
 
     def sample_cells(self, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -116,16 +116,6 @@ class Controller:
 
     def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, Path]:
         return self._model.dump(Path(directory) / name, self._bdd, self._meta)
-
-
-def _state_assignment(model, idx: np.ndarray) -> dict[str, bool]:
-    """Bit values of the current-state digits for composed cell indices ``idx`` (most significant bit first)."""
-    assign: dict[str, bool] = {}
-    for i, v in enumerate(idx):
-        bits = model.bits[f"x{i}"]
-        for k, b in enumerate(bits):
-            assign[b] = bool((int(v) >> (len(bits) - 1 - k)) & 1)
-    return assign
 
 
 def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Controller:

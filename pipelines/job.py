@@ -291,12 +291,13 @@ def run_abstraction(
         seconds["audit"] = time.perf_counter() - t0
 
     target = regions.get("target") or regions.get("safe")
+    counts = {k: r.states for k, r in regions.items()}  # exact counts cost a sweep each: once per region
     report = {
         "name": spec.name,
         "spec_hash": spec_hash(spec),
         "abstract_states": network.abstract_states,
-        "region_states": target.states if target is not None else None,
-        "regions": {k: {"states": r.states, "boxes": len(r.boxes)} for k, r in regions.items()},
+        "region_states": counts.get("target", counts.get("safe")),
+        "regions": {k: {"states": counts[k], "boxes": len(r.boxes)} for k, r in regions.items()},
         "subsystem_count": len(network.subsystems),
         "stage_seconds": seconds,
         "subsystems": infos,

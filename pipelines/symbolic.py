@@ -826,14 +826,18 @@ class SymbolicModel:
         out = np.array(rows, dtype=np.int64).reshape(-1, len(digits))
         return out[np.lexsort(out.T[::-1])] if out.size else out
 
-    def inputs_at(self, controller: Function, x_idx: Sequence[int]) -> np.ndarray:
-        """Joint inputs (per-subsystem flat indices, shape (k, N)) the controller allows at one state."""
+    def state_assignment(self, x_idx: Sequence[int]) -> dict[str, bool]:
+        """Values of the current-state bits encoding composed cell indices ``x_idx`` (MSB first)."""
         assign: dict[str, bool] = {}
         for i, v in enumerate(x_idx):
             bits = self.bits[f"x{i}"]
             for k, b in enumerate(bits):
                 assign[b] = bool((int(v) >> (len(bits) - 1 - k)) & 1)
-        return self.enumerate(self.bdd.let(assign, controller), self.u_digits())
+        return assign
+
+    def inputs_at(self, controller: Function, x_idx: Sequence[int]) -> np.ndarray:
+        """Joint inputs (per-subsystem flat indices, shape (k, N)) the controller allows at one state."""
+        return self.enumerate(self.bdd.let(self.state_assignment(x_idx), controller), self.u_digits())
 
     # ------------------------------------------------------------------ persistence (DDDMP + JSON header)
     def header(self) -> dict[str, Any]:
