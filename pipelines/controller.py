@@ -3,6 +3,10 @@
 A controller is a BDD over current-state and input bits, written in DDDMP with a JSON header (variable order,
 bit widths, the grids, the spec). :func:`load_controller` reads one without the job store; its
 :meth:`Controller.inputs` quantizes a concrete state and returns the admissible concrete inputs there.
+
+A :class:`LayeredController` is the same controller stored as what it is made of (the fixed point's iterates
+and the game's relations) and evaluated at one state at a time; where the explicit BDD is huge (consensus) it
+is the form that fits on disk and answers in milliseconds.
 """
 
 from __future__ import annotations
@@ -114,8 +118,106 @@ class Controller:
                          for i in range(n)])
         return np.array(rows, dtype=np.int64)
 
-    def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, Path]:
-        return self._model.dump(Path(directory) / name, self._bdd, self._meta)
+    def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
+        return self._model.dump(Path(directory) / name, self._bdd, {**self._meta, "form": "explicit"})
+
+    @property
+    def nodes(self) -> int:
+        """BDD nodes of what :meth:`save` writes."""
+        return self._bdd.dag_size
+
+
+class LayeredController(Controller):
+    """A progress controller kept as layers and evaluated on line (:class:`~pipelines.synthesis.SynthesisResult`).
+
+    At a cell first in ``layers[k]`` the admissible inputs are ``CPre(layers[k-1])`` at that cell (Algorithm 5's
+    reachability controller), in ``layers[0]`` ``CPre(layers[0])`` if ``stay`` (the invariant of Reach(Safe)) or
+    every valid input (a reach target). The answer equals the explicit controller's, cell for cell (tested).
+
+    Parameters
+    ----------
+    model : SymbolicModel
+    admissible : Function
+        States and inputs where every admissible internal input lets every subsystem move (``Game.admissible``).
+    chain : sequence of (Function, list of str)
+        The partitioned relations and the next-state bits each lets quantify (``Game.chain``).
+    M : Function or None
+        The interconnection over states and internal inputs for the shared-``w`` CPre, else ``None``.
+    layers : sequence of Function
+        Increasing sets over current-state bits; the last one is the domain.
+    stay : bool
+    meta : dict
+        As for :class:`Controller`.
+    """
+
+    def __init__(self, model, admissible, chain, M, layers, stay: bool, meta: dict) -> None:
+        from .synthesis import Game
+
+        if not layers:
+            raise CompabsError("a layered controller needs at least one layer")
+        self._layers = tuple(layers)
+        self._stay = bool(stay)
+        self._chain = [(rel, list(bits)) for rel, bits in chain]
+        self._M = M
+        self._admissible = admissible
+        # A Game without preparation: cpre_at only reads these attributes.
+        game = Game.__new__(Game)
+        game.model, game.bdd, game.admissible, game.chain = model, model.bdd, admissible, self._chain
+        game.method = "shared" if M is not None else "per_subsystem"
+        game.M, game.w_bits = M, model.w_bits
+        self._game = game
+        self._next: dict[int, object] = {}
+        super().__init__(model, self._layers[-1], meta)
+        self._domain = self._layers[-1]
+
+    @classmethod
+    def from_result(cls, game, result, meta: dict) -> "LayeredController":
+        """The controller of a layered :class:`~pipelines.synthesis.SynthesisResult` of ``game``."""
+        M = game.M if game.method == "shared" else None
+        return cls(game.model, game.admissible, game.chain, M, result.layers, result.stay, meta)
+
+    @property
+    def nodes(self) -> int:
+        roots = [self._admissible, *(r for r, _ in self._chain), *self._layers] + ([self._M] if self._M is not None else [])
+        return sum(f.dag_size for f in roots)
+
+    def layer_of(self, idx: np.ndarray) -> int | None:
+        """Index of the first layer holding the cell, or ``None`` outside the domain."""
+        m = self._model
+        state = m.state_assignment([int(v) for v in idx])
+        if m.bdd.let(state, self._layers[-1]) != m.bdd.true:
+            return None
+        for k, layer in enumerate(self._layers):
+            if m.bdd.let(state, layer) == m.bdd.true:
+                return k
+        return None  # pragma: no cover - the last layer holds it
+
+    def input_indices(self, idx: np.ndarray) -> np.ndarray:
+        m = self._model
+        k = self.layer_of(idx)
+        if k is None:
+            return np.zeros((0, len(m.subsystems)), dtype=np.int64)
+        if k == 0 and not self._stay:
+            return m.enumerate(m.u_domain, m.u_digits())
+        src = 0 if k == 0 else k - 1
+        if src not in self._next:
+            self._next[src] = m.to_next(self._layers[src])
+        good = self._game.cpre_at(m.state_assignment([int(v) for v in idx]), self._next[src])
+        return m.enumerate(good, m.u_digits())
+
+    def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
+        roots = [self._admissible, *(r for r, _ in self._chain), *self._layers]
+        if self._M is not None:
+            roots.append(self._M)
+        meta = {
+            **self._meta,
+            "form": "layered",
+            "stay": self._stay,
+            "chain_next_bits": [bits for _, bits in self._chain],
+            "layers": len(self._layers),
+            "shared": self._M is not None,
+        }
+        return self._model.dump(Path(directory) / name, roots, meta)
 
 
 def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Controller:
@@ -125,5 +227,18 @@ def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Contr
     base = Path(directory) / name
     if not base.with_name(base.name + ".json").exists():
         raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
-    model, bdd, meta = SymbolicModel.load(base)
-    return Controller(model, bdd, meta)
+    model, roots, meta = SymbolicModel.load_all(base)
+    if meta.get("form") != "layered":
+        (bdd,) = roots
+        return Controller(model, bdd, meta)
+    n_chain, n_layers = len(meta["chain_next_bits"]), int(meta["layers"])
+    admissible, chain, layers = roots[0], roots[1:1 + n_chain], roots[1 + n_chain:1 + n_chain + n_layers]
+    M = roots[1 + n_chain + n_layers] if meta["shared"] else None
+    return LayeredController(model, admissible, list(zip(chain, meta["chain_next_bits"])), M, layers, meta["stay"], meta)
+
+
+def controller_of(game, result, meta: dict) -> Controller:
+    """The controller of a :class:`~pipelines.synthesis.SynthesisResult`, explicit or layered."""
+    if result.layers:
+        return LayeredController.from_result(game, result, meta)
+    return Controller(game.model, result.controller, meta)

@@ -332,7 +332,7 @@ def run_synthesis(
     from pathlib import Path
 
     from .closed_loop import simulate
-    from .controller import Controller
+    from .controller import controller_of
     from .figures import domain_slice_figure, trajectory_figure
     from .synthesis import synthesize
 
@@ -356,14 +356,14 @@ def run_synthesis(
         "spec": spec.model_dump(mode="json"),
         "domain_states": main.domain_states,
     }
-    controller = Controller(game.model, main.controller, meta)
+    controller = controller_of(game, main, meta)
     files = {}
     if out_dir is not None:
         out = Path(out_dir)
         files["controller"] = [str(p.name) for p in controller.save(out)]
         for key, r in results.items():
             if key != main_key:
-                Controller(game.model, r.controller, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
+                controller_of(game, r, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
                     out, f"controller_{key}"
                 )
 
@@ -433,7 +433,8 @@ def run_synthesis(
     return {
         "domain_states": main.domain_states,
         "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
-        "controller": {"fixed_point": main_key, "nodes": main.controller.dag_size, "files": files.get("controller", [])},
+        "controller": {"fixed_point": main_key, "form": "layered" if main.layers else "explicit",
+                       "nodes": controller.nodes, "files": files.get("controller", [])},
         "synthesis": syn_report,
         "closed_loop": closed,
         "figures": figures,

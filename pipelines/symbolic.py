@@ -854,18 +854,30 @@ class SymbolicModel:
             "grids": self.grids,
         }
 
-    def dump(self, path: str | os.PathLike, f: Function, meta: dict | None = None) -> tuple[Path, Path]:
-        """Write ``f`` to ``<path>.dddmp`` and the header to ``<path>.json``; returns both paths."""
+    @staticmethod
+    def _paths(path: str | os.PathLike) -> tuple[Path, Path]:
         p = Path(path)
         if p.suffix.lower() == ".dddmp":
             p = p.with_suffix("")
-        bdd_path, head_path = p.with_name(p.name + ".dddmp"), p.with_name(p.name + ".json")
+        return p.with_name(p.name + ".dddmp"), p.with_name(p.name + ".json")
+
+    def dump(self, path: str | os.PathLike, f: Function | Sequence[Function], meta: dict | None = None) -> tuple[Path, ...]:
+        """Write ``f`` to ``<path>.dddmp`` and the header to ``<path>.json``; returns the paths written.
+
+        ``f`` may be a list of roots: CUDD's DDDMP writer takes one root per file, so root ``k > 0`` goes to
+        ``<path>.<k>.dddmp`` and the header lists the files in order.
+        """
+        bdd_path, head_path = self._paths(path)
+        roots = [f] if isinstance(f, Function) else list(f)
+        files = [bdd_path] + [bdd_path.with_name(f"{bdd_path.stem}.{k}.dddmp") for k in range(1, len(roots))]
         with self.guard(f"dumping {bdd_path}"):
-            self.bdd.dump(str(bdd_path), [f])
+            for root, file in zip(roots, files):
+                self.bdd.dump(str(file), [root])
         head = self.header()
         head["meta"] = meta or {}
+        head["roots"] = [file.name for file in files]
         head_path.write_text(json.dumps(head, indent=1))
-        return bdd_path, head_path
+        return (*files, head_path)
 
     @classmethod
     def from_header(cls, head: Mapping[str, Any], max_memory: int | None = None) -> "SymbolicModel":
@@ -881,16 +893,27 @@ class SymbolicModel:
         return model
 
     @classmethod
-    def load(cls, path: str | os.PathLike, max_memory: int | None = None) -> tuple["SymbolicModel", Function, dict]:
-        """Read ``<path>.dddmp`` and its header: ``(model, function, meta)``."""
-        p = Path(path)
-        if p.suffix.lower() == ".dddmp":
-            p = p.with_suffix("")
-        head = json.loads(p.with_name(p.name + ".json").read_text())
+    def load_all(cls, path: str | os.PathLike, max_memory: int | None = None) -> tuple["SymbolicModel", list[Function], dict]:
+        """Read ``<path>.dddmp`` (and the further roots its header lists) with the header:
+        ``(model, roots in dump order, meta)``."""
+        bdd_path, head_path = cls._paths(path)
+        head = json.loads(head_path.read_text())
         model = cls.from_header(head, max_memory)
-        with model.guard(f"loading {p}.dddmp"):
-            (f,) = model.bdd.load(str(p.with_name(p.name + ".dddmp")))
-        return model, f, head.get("meta", {})
+        names = head.get("roots", [bdd_path.name])
+        roots = []
+        with model.guard(f"loading {bdd_path}"):
+            for name in names:
+                (root,) = model.bdd.load(str(bdd_path.with_name(name)))
+                roots.append(root)
+        return model, roots, head.get("meta", {})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, max_memory: int | None = None) -> tuple["SymbolicModel", Function, dict]:
+        """Read a single-function ``<path>.dddmp`` and its header: ``(model, function, meta)``."""
+        model, roots, meta = cls.load_all(path, max_memory)
+        if len(roots) != 1:
+            raise ValueError(f"{path} holds {len(roots)} functions; use load_all")
+        return model, roots[0], meta
 
     # ------------------------------------------------------------------ reporting
     def stats(self) -> dict[str, Any]:

@@ -385,11 +385,63 @@ def test_small_example_end_to_end_against_the_explicit_solver():
     expected = ex.cobuchi(phi)
     assert expected.sum() > phi.sum() // 2  # a non-trivial domain
     np.testing.assert_array_equal(ex.reach(ex.safe(phi)), expected)  # as METHOD §6 found for consensus
-    for order in ("shared_top", "interleaved"):
-        game, results, report = synthesize(res, order=order)
+    from pipelines.controller import controller_of
+
+    meta = {"state_grid": res.network.composed_state_grid().describe(),
+            "input_grids": [s.input_grid.describe() for s in subs]}
+    for order, form in (("shared_top", "auto"), ("interleaved", "explicit")):
+        game, results, report = synthesize(res, order=order, controller_form=form)
         assert game.method == "shared" and report["order"] == order
         for name, r in results.items():
             dom = states_vector(game.model, r.domain, ex)
             np.testing.assert_array_equal(dom, expected, err_msg=name)
             assert r.domain_states == report["results"][name]["domain_states"] == int(expected.sum())
-            check_stay(ex, controller_matrix(game.model, r.controller, ex), dom, phi)
+            # auto = layered for the shared-w CPre (the co-Büchi controller is always explicit)
+            assert bool(r.layers) == (form == "auto" and name == "reach_safe")
+            C = layered_matrix(controller_of(game, r, meta), ex) if r.layers else \
+                controller_matrix(game.model, r.controller, ex)
+            check_stay(ex, C, dom, phi)
+
+
+# ============================================================================ layered controllers
+def layered_matrix(ctrl, ex: Explicit) -> np.ndarray:
+    """Inputs a (layered) controller allows at every cell, through ``input_indices`` one cell at a time."""
+    out = np.zeros((ex.nX, ex.nU), dtype=bool)
+    for xf, x in enumerate(ex.states):
+        rows = ctrl.input_indices(np.array(x))
+        if rows.size:
+            out[xf, np.ravel_multi_index(tuple(rows.T), ex.net.n_u)] = True
+    return out
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+@pytest.mark.parametrize("seed", SEEDS[:6])
+def test_layered_controllers_equal_explicit_ones_cell_for_cell(seed, shared, tmp_path):
+    from pipelines.controller import LayeredController, controller_of, load_controller
+
+    rng = np.random.default_rng(7000 + 1000 * shared + seed)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, ["interleaved", "shared_top"][seed % 2])
+    m = game.model
+    S, T, A, phi = (m.state_set(np.array(ex.states)[random_set(rng, ex, p)]) for p in (0.8, 0.2, 0.15, 0.6))
+    meta = {"state_grid": UniformGrid.product([grid(k) for k in ex.shape]).describe(),
+            "input_grids": [grid(k).describe() for k in net.n_u]}
+    cases = {
+        "safe": lambda layered: safe(game, S, layered=layered),
+        "reach": lambda layered: reach(game, T, layered=layered),
+        "reach_avoid": lambda layered: reach_avoid(game, T, A, layered=layered),
+        "reach_safe": lambda layered: reach_and_stay(game, phi, ("reach_safe",), layered=layered)["reach_safe"],
+    }
+    for name, solve in cases.items():
+        explicit, layered = solve(False), solve(True)
+        assert explicit.domain == layered.domain, name
+        assert layered.controller is None and layered.layers[-1] == layered.domain
+        ctrl = controller_of(game, layered, meta)
+        assert isinstance(ctrl, LayeredController)
+        want = controller_matrix(m, explicit.controller, ex)
+        np.testing.assert_array_equal(layered_matrix(ctrl, ex), want, err_msg=name)
+        ctrl.save(tmp_path, name)
+        back = load_controller(tmp_path, name)
+        assert isinstance(back, LayeredController)
+        np.testing.assert_array_equal(layered_matrix(back, ex), want, err_msg=f"{name} after save/load")
