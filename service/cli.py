@@ -19,6 +19,9 @@ import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
 
+from .execute import json_default as _json_default
+from .execute import save_relations  # noqa: F401  (kept importable from here)
+
 
 class _Bars:
     """One tqdm progress bar per stage, fed by ``progress(stage, done, total, message)`` events."""
@@ -60,65 +63,37 @@ def _parse_sets(items: Sequence[str]) -> dict[str, float]:
     return out
 
 
-def save_relations(result, out: Path) -> None:
-    """Write each distinct subsystem relation as ``relations/<key>.npz`` (lo, hi, blocking)."""
-    rel_dir = out / "relations"
-    rel_dir.mkdir(parents=True, exist_ok=True)
-    for key, rel in result.relations.items():
-        np.savez_compressed(rel_dir / f"{key}.npz", lo=rel.lo, hi=rel.hi, blocking=rel.blocking)
-
-
 def cmd_run(args: argparse.Namespace) -> int:
-    from pipelines.job import run_abstraction
     from pipelines.spec import load_spec
+
+    from .execute import execute_job
 
     spec = load_spec(args.spec, _parse_sets(args.set))
     if args.audit_transitions is not None:
         spec = spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": args.audit_transitions})})
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SpecError(f"--out {out}: cannot create the directory: {exc.strerror}") from None
     bars = _Bars(not args.quiet)
-    scheduler = args.scheduler or os.environ.get("COMPABS_SCHEDULER")
     try:
-        if args.in_process:
-            result = run_abstraction(spec, progress=bars, allowed_modules=None, audit=not args.no_audit)
-        else:
-            from workers.runner import run_job
-
-            result, runner = run_job(
-                spec, out, scheduler=scheduler, workers=args.workers, progress=bars, allowed_modules=None,
-                audit=not args.no_audit, overwrite=args.overwrite,
-            )
-            result.report["runner"] = runner
-        if spec.options.synthesis and not args.no_synthesis:
-            from pipelines.job import run_synthesis
-
-            extra = run_synthesis(result, out, progress=bars)
-            result.report["stage_seconds"].update(extra.pop("stage_seconds"))
-            result.report.update(extra)
+        report = execute_job(
+            spec, Path(args.out), scheduler=args.scheduler or os.environ.get("COMPABS_SCHEDULER"),
+            workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
+            audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite,
+        )
     finally:
         bars.close()
-    if args.in_process:
-        save_relations(result, out)
-    (out / "spec.json").write_text(json.dumps(spec.model_dump(mode="json"), indent=1))
-    (out / "report.json").write_text(json.dumps(result.report, indent=2, default=_json_default))
     keys = ("abstract_states", "region_states", "domain_states", "domain_states_by_fixed_point", "stage_seconds")
-    summary = {k: result.report[k] for k in keys if k in result.report}
-    summary["audit"] = {k: result.report["audit"][k] for k in ("transitions_checked", "violations")}
-    if "runner" in result.report:
-        r = result.report["runner"]
+    summary = {k: report[k] for k in keys if k in report}
+    summary["audit"] = {k: report["audit"][k] for k in ("transitions_checked", "violations")}
+    if "runner" in report:
+        r = report["runner"]
         summary["runner"] = {k: r.get(k) for k in ("scheduler", "workers", "dashboard", "chunks_computed", "chunks_reused")}
-    if "closed_loop" in result.report:
-        summary["closed_loop"] = {k: result.report["closed_loop"][k] for k in ("runs", "violations")}
+    if "closed_loop" in report:
+        summary["closed_loop"] = {k: report["closed_loop"][k] for k in ("runs", "violations")}
     print(json.dumps(summary, indent=2, default=_json_default))
-    if result.report["audit"]["violations"]:
+    if report["audit"]["violations"]:
         print("error: the audit found transitions missing from the abstraction (a soundness bug)", file=sys.stderr)
         return 3
-    if result.report.get("closed_loop", {}).get("violations"):
-        print(f"error: closed-loop runs violated the specification: {result.report['closed_loop']['first_violation']}",
+    if report.get("closed_loop", {}).get("violations"):
+        print(f"error: closed-loop runs violated the specification: {report['closed_loop']['first_violation']}",
               file=sys.stderr)
         return 3
     return 0
@@ -146,16 +121,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                    target=regions.get("target") or regions.get("safe"), avoid=regions.get("avoid"), choose=args.choose)
     print(json.dumps(run.as_dict()))
     return 0 if run.violation is None or args.free else 4
-
-
-def _json_default(o):
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.floating):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
@@ -191,6 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(func=cmd_simulate)
     s = sub.add_parser("schema", help="print the JSON Schema of job specs")
     s.set_defaults(func=cmd_schema)
+    from .serve import add_parser as add_serve_parser
+
+    add_serve_parser(sub)
     return p
 
 

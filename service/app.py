@@ -1,0 +1,216 @@
+"""The REST API: ``create_app(settings)`` returns the FastAPI application.
+
+Routes (``service/routers/``): ``POST /jobs``, ``GET /jobs``, ``GET /jobs/{id}``, ``DELETE /jobs/{id}``,
+``GET /jobs/{id}/events`` (server-sent events), ``GET /jobs/{id}/report``, ``GET /jobs/{id}/figures/{name}``,
+``GET /jobs/{id}/controller``, ``GET /schema``, ``GET /health``, ``GET /`` (dashboard), ``/static/...``,
+``GET /docs`` and ``GET /openapi.json``.
+
+The lifespan opens the job store, connects the Dask cluster (an embedded ``LocalCluster`` of
+``settings.workers`` processes, or ``settings.scheduler``; none with ``settings.in_process``), re-queues the
+jobs an earlier process left running (:meth:`JobManager.recover`) and starts the queue; on shutdown it asks
+running jobs to stop where they can resume, then closes the cluster. Run it in one process
+(``compabs serve``): every process would start its own cluster and job threads.
+
+Errors are JSON ``{"detail": "..."}`` everywhere: a spec error (any :class:`~pipelines.errors.CompabsError`)
+is 422 with its message, a cap 413/422/429 naming the cap and its value, a bug 500 without a traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from typing import Any, AsyncIterator
+
+import anyio
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from pipelines.errors import CompabsError
+from pipelines.spec import JobSpec
+
+from .manager import JobManager, ServiceError, new_store
+from .routers import dashboard, health, jobs, schema
+from .routers.jobs import _StreamEnded
+from .settings import Settings
+
+log = logging.getLogger("compabs.service")
+
+DESCRIPTION = """Submit compabs job specs, follow their progress, download reports, figures and controllers.
+
+With a token set on the server (`COMPABS_TOKEN`), every route but `/health` (and the dashboard page and its
+static files, which hold no data) needs `Authorization: Bearer <token>`; clients that cannot send headers
+(a browser's `EventSource`, `<img src>`) may pass `?token=<token>` instead.
+"""
+
+
+class BodyTooLarge(Exception):
+    """A request body beyond ``max_body_bytes`` (raised while it is being received)."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(limit)
+        self.limit = limit
+
+
+def _too_large(limit: int) -> JSONResponse:
+    return JSONResponse(
+        {"detail": f"the request body exceeds this server's cap max_body_bytes = {limit} bytes"}, status_code=413,
+    )
+
+
+class BodyLimitMiddleware:
+    """413 for bodies over ``limit`` bytes, before any of it is parsed: at once from ``Content-Length``, else
+    while it streams in (chunked uploads), by failing the receive that crosses the limit."""
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for key, value in scope.get("headers", ()):
+            if key == b"content-length":
+                try:
+                    length = int(value)
+                except ValueError:
+                    await JSONResponse({"detail": "Content-Length is not a number"}, status_code=400)(scope, receive, send)
+                    return
+                if length > self.limit:
+                    await _too_large(self.limit)(scope, receive, send)
+                    return
+        seen = 0
+
+        async def limited() -> dict[str, Any]:
+            nonlocal seen
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.limit:
+                    raise BodyTooLarge(self.limit)
+            return message
+
+        await self.app(scope, limited, send)
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    parts = []
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e.get("loc", ()))
+        parts.append(f"{loc}: {e.get('msg')}")
+    return "; ".join(parts) or "invalid request"
+
+
+def _install_handlers(app: FastAPI) -> None:
+    @app.exception_handler(CompabsError)
+    async def compabs_error(request: Request, exc: CompabsError) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=422)
+
+    @app.exception_handler(ServiceError)
+    async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+
+    @app.exception_handler(BodyTooLarge)
+    async def body_too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
+        return _too_large(exc.limit)
+
+    @app.exception_handler(RequestValidationError)
+    async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": _validation_message(exc)}, status_code=422)
+
+    @app.exception_handler(_StreamEnded)
+    async def stream_ended(request: Request, exc: _StreamEnded) -> Response:
+        return Response(status_code=204)
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, exc: Exception) -> JSONResponse:
+        log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+        return JSONResponse(
+            {"detail": f"internal error ({type(exc).__name__}); the server log has the details. Please report it."},
+            status_code=500,
+        )
+
+
+def _install_openapi(app: FastAPI) -> None:
+    """Publish :class:`JobSpec` as the body schema of ``POST /jobs`` (read by hand for JSON and YAML alike)."""
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            spec = JobSpec.model_json_schema(ref_template="#/components/schemas/{model}")
+            schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+            schemas.update(spec.pop("$defs", {}))
+            schemas["JobSpec"] = spec
+            app.openapi_schema = doc
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The API application.
+
+    Parameters
+    ----------
+    settings : Settings, optional
+        Default: :meth:`Settings.from_env` (``COMPABS_*`` variables).
+    """
+    settings = settings or Settings.from_env()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        try:
+            settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RuntimeError(f"cannot create the data directory {settings.jobs_dir}: {exc.strerror}; "
+                               "choose another with --data or COMPABS_DATA_DIR") from None
+        store = await anyio.to_thread.run_sync(new_store, settings)
+        conn = None
+        client, cluster = None, {"scheduler": None, "workers": 0, "dashboard": None, "embedded": False}
+        try:
+            if not settings.in_process:
+                from workers.cluster import connect
+
+                # A synchronous client, made off the event loop: job threads use it with blocking calls.
+                conn = await anyio.to_thread.run_sync(connect, settings.scheduler, settings.workers)
+                client, cluster = conn
+                log.info("Dask scheduler %s, dashboard %s", cluster["scheduler"], cluster["dashboard"])
+            manager = JobManager(settings, store, client, cluster)
+            await anyio.to_thread.run_sync(manager.recover)
+            manager.start()
+            app.state.manager = manager
+            yield
+            await anyio.to_thread.run_sync(manager.shutdown)
+        finally:
+            if conn is not None:
+                await anyio.to_thread.run_sync(conn.close)
+            store.close()
+
+    app = FastAPI(
+        title="compabs", version=_version(), description=DESCRIPTION, lifespan=lifespan,
+        docs_url=None, redoc_url=None, openapi_url=None,  # served by routers/schema.py, behind the token
+    )
+    app.state.settings = settings
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
+    _install_handlers(app)
+    app.include_router(jobs.router)
+    app.include_router(schema.router)
+    app.include_router(health.router)
+    app.include_router(dashboard.router)
+    dashboard.STATIC_DIR.mkdir(parents=True, exist_ok=True)
+    app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
+    _install_openapi(app)
+    return app
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("compabs")
+    except Exception:  # not installed (a source checkout on sys.path)
+        return "0"

@@ -1,0 +1,60 @@
+"""Dependencies the routers share: the token check, the job manager, a job or 404.
+
+Authentication: with ``settings.token`` set, every route but ``/health`` (and the dashboard's static assets,
+which hold no data) needs the token, as ``Authorization: Bearer <token>`` or, for what a browser cannot send
+headers with (``EventSource``, ``<img src>``, opening ``/`` or ``/docs``), as the query parameter
+``?token=<token>``. A token in a URL can end up in proxy logs and browser history: prefer the header where a
+client can set one, and serve over TLS (a reverse proxy) beyond 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import secrets
+
+from fastapi import Depends, HTTPException, Request, Security
+from fastapi.security import APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
+
+from ..manager import JobManager
+from ..models import ErrorDetail
+from ..store import JobRecord
+
+_bearer = HTTPBearer(auto_error=False, description="the server's token (COMPABS_TOKEN)")
+_query = APIKeyQuery(
+    name="token", auto_error=False,
+    description="the server's token, for clients that cannot send headers (EventSource, <img src>)",
+)
+
+#: OpenAPI entries of the errors every protected route can answer.
+AUTH_RESPONSES = {401: {"model": ErrorDetail, "description": "missing or wrong token"}}
+
+
+def require_token(
+    request: Request,
+    bearer: HTTPAuthorizationCredentials | None = Security(_bearer),
+    query: str | None = Security(_query),
+) -> None:
+    """401 unless the request carries the server's token (when one is set)."""
+    token = request.app.state.settings.token
+    if token is None:
+        return
+    given = bearer.credentials if bearer is not None else query
+    # compare_digest: the time taken must not tell how much of a guess was right.
+    if given is None or not secrets.compare_digest(given.encode(), token.encode()):
+        what = "a wrong token" if given is not None else "no token"
+        raise HTTPException(
+            401,
+            detail=f"this server requires a token and the request has {what}: send the header "
+            "'Authorization: Bearer <token>', or add ?token=<token> to the URL",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+
+
+def get_manager(request: Request) -> JobManager:
+    return request.app.state.manager
+
+
+def job_or_404(job_id: str, manager: JobManager = Depends(get_manager)) -> JobRecord:
+    rec = manager.store.get(job_id) if len(job_id) <= 64 else None
+    if rec is None:
+        raise HTTPException(404, detail=f"no job {job_id[:64]}")
+    return rec

@@ -1,0 +1,202 @@
+"""``/jobs``: submit, list, show, follow (server-sent events), download results, cancel."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+import uuid
+import zipfile
+from collections.abc import AsyncIterable
+from pathlib import Path
+
+from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+
+from ..manager import JobManager
+from ..models import ErrorDetail, Job, JobList, ProgressEvent
+from ..store import TERMINAL, JobRecord
+from .common import AUTH_RESPONSES, get_manager, job_or_404, require_token
+
+router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)
+
+_NOT_FOUND = {404: {"model": ErrorDetail, "description": "no such job"}}
+_NOT_DONE = {409: {"model": ErrorDetail, "description": "the job has not succeeded"}}
+#: How often an idle event stream looks for new events written by this process, and, at the longest, in the DB.
+_POLL, _DB_POLL = 0.1, 2.0
+
+_SPEC_BODY = {
+    "required": True,
+    "description": "the job spec (schema: GET /schema) as JSON, or as YAML text",
+    "content": {
+        "application/json": {"schema": {"$ref": "#/components/schemas/JobSpec"}},
+        "application/yaml": {"schema": {"type": "string"}},
+        "text/yaml": {"schema": {"type": "string"}},
+        "text/plain": {"schema": {"type": "string"}},
+    },
+}
+
+
+class _StreamEnded(Exception):
+    """A reconnecting event stream of an ended job: answered 204, which tells EventSource to stop retrying."""
+
+
+def _job_dir(manager: JobManager, rec: JobRecord) -> Path:
+    return manager.settings.jobs_dir / rec.id
+
+
+def _succeeded(rec: JobRecord) -> None:
+    if rec.status != "succeeded":
+        raise HTTPException(409, detail=f"job {rec.id} is {rec.status}, not succeeded: it has no results"
+                            + (f" ({rec.error})" if rec.error else ""))
+
+
+def _file(path: Path, what: str) -> Path:
+    if not path.is_file():
+        raise HTTPException(404, detail=f"{what} is missing from the server's data directory ({path.name})")
+    return path
+
+
+@router.post(
+    "", status_code=201, response_model=Job, openapi_extra={"requestBody": _SPEC_BODY},
+    responses={
+        413: {"model": ErrorDetail, "description": "body larger than max_body_bytes"},
+        415: {"model": ErrorDetail, "description": "content type neither JSON nor YAML"},
+        422: {"model": ErrorDetail, "description": "invalid spec (the field or token named), or a cap exceeded"},
+        429: {"model": ErrorDetail, "description": "max_concurrent_jobs jobs are queued or running"},
+    },
+)
+async def submit_job(
+    request: Request,
+    name: str | None = Query(default=None, min_length=1, max_length=256, description="the job's name (default: the spec's)"),
+    manager: JobManager = Depends(get_manager),
+) -> Job:
+    """Validate a spec (expressions compiled, regions resolved, caps checked) and queue it as a job."""
+    await run_in_threadpool(manager.check_capacity)  # a full server answers before reading the body
+    body = await request.body()
+    rec = await run_in_threadpool(manager.submit, body, request.headers.get("content-type"), name)
+    return Job.of(rec)
+
+
+@router.get("", response_model=JobList)
+def list_jobs(
+    limit: int = Query(default=100, ge=1, le=1000, description="at most this many, newest first"),
+    manager: JobManager = Depends(get_manager),
+) -> JobList:
+    """Jobs, newest first."""
+    return JobList(jobs=[Job.of(r) for r in manager.store.list(limit=limit)])
+
+
+@router.get("/{job_id}", response_model=Job, responses=_NOT_FOUND)
+def get_job(rec: JobRecord = Depends(job_or_404)) -> Job:
+    """A job: status, per-stage progress, summary and figures once done."""
+    return Job.of(rec)
+
+
+@router.delete("/{job_id}", response_model=Job, responses=_NOT_FOUND)
+def cancel_job(rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> Job:
+    """Cancel a job. A queued one is cancelled at once; a running one is asked to stop (its cluster tasks are
+    cancelled) and shows ``cancelled`` once it has. Cancelling an ended job changes nothing."""
+    return Job.of(manager.cancel(rec.id) or rec)
+
+
+def _stream_start(
+    rec: JobRecord = Depends(job_or_404),
+    last_event_id: str | None = Header(default=None, description="resume after this event id (EventSource sends it)"),
+) -> tuple[JobRecord, int]:
+    after = int(last_event_id) if last_event_id and last_event_id.strip().isdigit() else 0
+    if after and rec.terminal and rec.last_seq <= after:
+        raise _StreamEnded()
+    return rec, after
+
+
+@router.get(
+    "/{job_id}/events", response_class=EventSourceResponse,
+    responses={**_NOT_FOUND, 204: {"description": "the job has ended and the client has every event"},
+               200: {"description": "``event: progress`` (data: ProgressEvent) and ``event: status`` (data: Job); "
+                     "ids count 1, 2, ... per job; the stream ends after a terminal status"}},
+)
+async def job_events(
+    start: tuple[JobRecord, int] = Depends(_stream_start), manager: JobManager = Depends(get_manager),
+) -> AsyncIterable[ServerSentEvent]:
+    """The job's events as server-sent events: all stored ones, then live ones, until it ends.
+
+    ``progress`` events carry ``{stage, done, total, message}``, ``status`` events the job's JSON. A client that
+    reconnects with ``Last-Event-ID`` gets only the events after it.
+    """
+    rec, after = start
+    store = manager.store
+    while True:
+        events = await run_in_threadpool(store.events_after, rec.id, after)
+        for ev in events:
+            after = ev.seq
+            data = ProgressEvent(**ev.data).model_dump() if ev.kind == "progress" else ev.data
+            yield ServerSentEvent(event=ev.kind, data=data, id=str(ev.seq))
+            if ev.kind == "status" and ev.data.get("status") in TERMINAL:
+                return
+        if events:
+            continue
+        now = await run_in_threadpool(store.get, rec.id)
+        if now is None or (now.terminal and now.last_seq <= after):
+            return
+        # Wait for news: events this process writes are announced in memory; the DB is asked at least every
+        # _DB_POLL seconds in case another process wrote (a job store shared by mistake must not hang streams).
+        deadline = time.monotonic() + _DB_POLL
+        while time.monotonic() < deadline:
+            known = store.known_seq(rec.id)
+            if known is not None and known > after:
+                break
+            await asyncio.sleep(_POLL)
+
+
+@router.get("/{job_id}/report", responses={**_NOT_FOUND, **_NOT_DONE, 200: {"description": "report.json"}})
+def get_report(rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> FileResponse:
+    """The job's ``report.json`` (counts, times, audit, synthesis, closed loop)."""
+    _succeeded(rec)
+    return FileResponse(_file(_job_dir(manager, rec) / "report.json", "the report"), media_type="application/json")
+
+
+@router.get(
+    "/{job_id}/figures/{name}",
+    responses={**_NOT_FOUND, **_NOT_DONE, 200: {"content": {"image/png": {}}, "description": "the figure"}},
+)
+def get_figure(name: str, rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> FileResponse:
+    """A figure the report lists (``Job.figures``)."""
+    _succeeded(rec)
+    # Only names the job's report lists, and only plain file names: no path from a request reaches the disk.
+    if name not in rec.figures or Path(name).name != name or not name.endswith(".png"):
+        raise HTTPException(404, detail=f"job {rec.id} has no figure {name[:100]!r}; its figures are {rec.figures}")
+    return FileResponse(_file(_job_dir(manager, rec) / name, f"figure {name}"), media_type="image/png")
+
+
+@router.get(
+    "/{job_id}/controller",
+    responses={**_NOT_FOUND, **_NOT_DONE, 200: {"content": {"application/zip": {}},
+                                                "description": "controller.json and the DDDMP files it lists"}},
+)
+def get_controller(rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> FileResponse:
+    """The controller as a zip of ``controller.json`` (grids, variable order, spec) and the DDDMP files it lists
+    (``controller.dddmp``; a layered controller has ``controller.1.dddmp``, ... too);
+    ``pipelines.load_controller(DIR)`` loads the unzipped directory."""
+    _succeeded(rec)
+    d = _job_dir(manager, rec)
+    names = ["controller.dddmp", "controller.json"]
+    head = d / "controller.json"
+    if head.is_file():  # a layered controller has one DDDMP file per root, listed in its header
+        names = [*json.loads(head.read_text()).get("roots", ["controller.dddmp"]), "controller.json"]
+    if not all((d / n).is_file() for n in names):
+        spec = json.loads(rec.spec)
+        why = "options.synthesis is false" if not spec.get("options", {}).get("synthesis", True) else \
+            "its files are missing from the server's data directory"
+        raise HTTPException(404, detail=f"job {rec.id} has no controller: {why}")
+    # Zipped once into the job's directory and served from the file: a controller can be gigabytes.
+    archive = d / "controller.zip"
+    if not archive.is_file():
+        tmp = d / f"controller.zip.{uuid.uuid4().hex[:8]}.partial"
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
+            for n in names:
+                z.write(d / n, n)
+        tmp.replace(archive)  # atomic: two concurrent downloads never see half an archive
+    return FileResponse(archive, media_type="application/zip", filename=f"controller-{rec.id}.zip")
