@@ -1,0 +1,37 @@
+# One image for every service of docker-compose.yml: the Dask scheduler, the Dask workers and the API. The
+# scheduler and the workers import compabs's task module (workers.tasks), so they run this same image.
+#   docker build -t compabs .
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+# Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their workers, which makes every large numpy temporary
+# of a task an mmap (~25 % slower tasks; see workers/cluster.py EMBEDDED_CONFIG). /etc/dask is read by every Dask
+# process of the image.
+RUN mkdir -p /etc/dask \
+ && printf 'distributed:\n  nanny:\n    pre-spawn-environ:\n      MALLOC_TRIM_THRESHOLD_: null\n' > /etc/dask/compabs.yaml
+
+WORKDIR /opt/compabs
+COPY pyproject.toml README.md ./
+COPY pipelines ./pipelines
+COPY workers ./workers
+COPY service ./service
+COPY examples ./examples
+# dd's wheel bundles CUDD: no compiler needed.
+RUN pip install . && rm -rf build
+
+# Not root. /data is the shared volume (Zarr relation stores, the SQLite job store, reports, figures); a named
+# volume takes this directory's owner when it is first created.
+RUN useradd --create-home --uid 10001 --user-group compabs \
+ && mkdir /data && chown compabs:compabs /data
+USER compabs
+WORKDIR /home/compabs
+VOLUME ["/data"]
+ENV COMPABS_DATA_DIR=/data
+
+# 8000 the API, 8786 the Dask scheduler, 8787 its dashboard.
+EXPOSE 8000 8786 8787
+CMD ["compabs", "serve", "--host", "0.0.0.0", "--port", "8000", "--data", "/data"]
