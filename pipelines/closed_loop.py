@@ -18,6 +18,7 @@ from .network import Network
 from .region import AbstractRegion
 
 #: policy(x) -> admissible concrete inputs at x, shape (k, m_total); k = 0 outside the controller's domain.
+#: A :class:`~pipelines.controller.Controller` may be passed instead: its ``choose`` draws one input directly.
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
@@ -122,11 +123,15 @@ def simulate(
         if policy is None:
             u = np.zeros(m)
         else:
-            options = policy(x)
-            if options.shape[0] == 0:
+            if hasattr(policy, "choose"):  # a Controller draws one input without listing them all
+                u = policy.choose(x, rng, choose)
+            else:
+                options = policy(x)
+                u = None if options.shape[0] == 0 else \
+                    options[rng.integers(options.shape[0])] if choose == "random" else options[0]
+            if u is None:
                 violation = f"step {k}: the state {x.tolist()} is outside the controller's domain"
                 break
-            u = options[rng.integers(options.shape[0])] if choose == "random" else options[0]
         us.append(u)
         xs.append(step(network, x[None, :], u[None, :])[0])
         inside.append(_cell_in(grid, target, xs[-1]))

@@ -65,9 +65,30 @@ class Controller:
         idx, inside = self._state_grid.cell_of(x)
         return idx[0] if inside[0] else None
 
+    def input_set(self, idx: np.ndarray):
+        """The inputs allowed at a cell as a BDD over the input bits."""
+        return self._model.bdd.let(self._model.state_assignment([int(v) for v in idx]), self._bdd)
+
     def input_indices(self, idx: np.ndarray) -> np.ndarray:
         """Per-subsystem flat input indices allowed at a cell, shape (k, N)."""
-        return self._model.inputs_at(self._bdd, [int(v) for v in idx])
+        m = self._model
+        return m.enumerate(self.input_set(idx), m.u_digits())
+
+    def choose(self, x: np.ndarray, rng: np.random.Generator, how: str = "random") -> np.ndarray | None:
+        """One admissible concrete input at ``x``, shape (m_total,): uniform over the admissible joint inputs
+        (``how="random"``) or the smallest (``"first"``); ``None`` outside the domain.
+
+        Costs a few BDD operations per input bit, where :meth:`inputs` lists every admissible joint input (tens
+        of thousands at a consensus state).
+        """
+        idx = self.cell(x)
+        if idx is None:
+            return None
+        m = self._model
+        code = m.sample(self.input_set(idx), m.u_digits(), rng if how == "random" else None)
+        if code is None:
+            return None
+        return np.concatenate([g.points(g.unravel(np.array([c])))[0] for c, g in zip(code, self._input_grids)])
 
     def inputs(self, x: np.ndarray) -> np.ndarray:
         """Admissible concrete inputs at the concrete state ``x``, shape (k, m_total); (0, m_total) outside."""
@@ -150,7 +171,7 @@ class LayeredController(Controller):
         As for :class:`Controller`.
     """
 
-    def __init__(self, model, admissible, chain, M, layers, stay: bool, meta: dict) -> None:
+    def __init__(self, model, admissible, chain, M, layers, stay: bool, meta: dict) -> None:  # noqa: PLR0913
         from .synthesis import Game
 
         if not layers:
@@ -192,18 +213,17 @@ class LayeredController(Controller):
                 return k
         return None  # pragma: no cover - the last layer holds it
 
-    def input_indices(self, idx: np.ndarray) -> np.ndarray:
+    def input_set(self, idx: np.ndarray):
         m = self._model
         k = self.layer_of(idx)
         if k is None:
-            return np.zeros((0, len(m.subsystems)), dtype=np.int64)
+            return m.bdd.false
         if k == 0 and not self._stay:
-            return m.enumerate(m.u_domain, m.u_digits())
+            return m.u_domain
         src = 0 if k == 0 else k - 1
         if src not in self._next:
             self._next[src] = m.to_next(self._layers[src])
-        good = self._game.cpre_at(m.state_assignment([int(v) for v in idx]), self._next[src])
-        return m.enumerate(good, m.u_digits())
+        return self._game.cpre_at(m.state_assignment([int(v) for v in idx]), self._next[src])
 
     def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
         roots = [self._admissible, *(r for r, _ in self._chain), *self._layers]

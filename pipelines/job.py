@@ -390,7 +390,7 @@ def run_synthesis(
     violations = 0
     first_violation = None
     for i, (origin, x0) in enumerate(starts):
-        run = simulate(network, controller.inputs, x0, steps, rng, kind, target, avoid)
+        run = simulate(network, controller, x0, steps, rng, kind, target, avoid)
         if run.violation:
             violations += 1
             first_violation = first_violation or f"from {x0.tolist()}: {run.violation}"

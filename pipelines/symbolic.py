@@ -826,6 +826,37 @@ class SymbolicModel:
         out = np.array(rows, dtype=np.int64).reshape(-1, len(digits))
         return out[np.lexsort(out.T[::-1])] if out.size else out
 
+    def sample(self, f: Function, digits: Sequence[str], rng: np.random.Generator | None) -> np.ndarray | None:
+        """One cell of ``digits`` in ``f``, uniformly at random (``rng``) or the smallest (``rng=None``).
+
+        Bits are fixed one at a time in digit order, each with the probability of its share of the remaining
+        set (CUDD's floating-point count is enough for probabilities), so drawing costs ``O(bits)`` BDD
+        operations whatever the size of the set. Returns codes, shape (len(digits),), or ``None`` if ``f`` is
+        empty on the valid codes.
+        """
+        bits = list(self.bits_of(digits))
+        extra = self.bdd.support(f) - set(bits)
+        if extra:
+            raise ValueError(f"sample over {list(digits)}: the BDD also depends on {sorted(extra)[:6]}")
+        bdd = self.bdd
+        f = f & self.domain(digits)
+        if f == bdd.false:
+            return None
+        assign: dict[str, bool] = {}
+        for k, b in enumerate(bits):
+            f1, f0 = bdd.let({b: True}, f), bdd.let({b: False}, f)
+            if rng is None:
+                value = f0 == bdd.false
+            else:
+                rest = len(bits) - k - 1
+                c1 = bdd.count(f1, nvars=rest) if f1 != bdd.false else 0.0
+                c0 = bdd.count(f0, nvars=rest) if f0 != bdd.false else 0.0
+                value = bool(rng.random() * (c0 + c1) < c1)
+            assign[b] = value
+            f = f1 if value else f0
+        return np.array([sum(int(assign[b]) << (len(self.bits[d]) - 1 - j) for j, b in enumerate(self.bits[d]))
+                         for d in digits], dtype=np.int64)
+
     def state_assignment(self, x_idx: Sequence[int]) -> dict[str, bool]:
         """Values of the current-state bits encoding composed cell indices ``x_idx`` (MSB first)."""
         assign: dict[str, bool] = {}

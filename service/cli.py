@@ -116,7 +116,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if x0.size != network.state_dim:
         raise SpecError(f"--x0 has {x0.size} components; the system has {network.state_dim}")
     regions = spec_regions(spec, network)
-    run = simulate(network, None if args.free else controller.inputs, x0, args.steps,
+    run = simulate(network, None if args.free else controller, x0, args.steps,
                    np.random.default_rng(args.seed), spec.specification.kind,
                    target=regions.get("target") or regions.get("safe"), avoid=regions.get("avoid"), choose=args.choose)
     print(json.dumps(run.as_dict()))

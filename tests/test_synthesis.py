@@ -441,6 +441,15 @@ def test_layered_controllers_equal_explicit_ones_cell_for_cell(seed, shared, tmp
         assert isinstance(ctrl, LayeredController)
         want = controller_matrix(m, explicit.controller, ex)
         np.testing.assert_array_equal(layered_matrix(ctrl, ex), want, err_msg=name)
+        for xf in rng.choice(ex.nX, size=min(ex.nX, 8), replace=False):  # one input drawn = one of the listed
+            x = np.array(ex.states[xf], dtype=float)
+            drawn, first = ctrl.choose(x, rng), ctrl.choose(x, rng, "first")
+            if not want[xf].any():
+                assert drawn is None and first is None
+                continue
+            listed = ctrl.inputs(x)
+            assert any(np.array_equal(drawn, row) for row in listed)
+            np.testing.assert_array_equal(first, listed[0])
         ctrl.save(tmp_path, name)
         back = load_controller(tmp_path, name)
         assert isinstance(back, LayeredController)
