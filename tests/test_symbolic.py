@@ -302,3 +302,35 @@ def test_out_of_memory_is_a_clear_error():
             for _ in range(200):
                 xs = rng.integers(0, 64, size=(2000, 8))
                 f |= m.state_set(xs)
+
+
+def test_block_order_minimises_the_linear_arrangement_of_coupled_subsystems():
+    from pipelines.symbolic import block_order
+
+    tanks = {(0, 1), (0, 2), (1, 2), (3, 4), (2, 5), (3, 5), (4, 5), (5, 6), (4, 6), (2, 7), (5, 8), (7, 8), (7, 9), (8, 9)}
+
+    def length(order, edges):
+        pos = {v: i for i, v in enumerate(order)}
+        return sum(abs(pos[a] - pos[b]) for a, b in edges)
+
+    order = block_order(10, tanks)
+    assert sorted(order) == list(range(10))
+    assert length(order, tanks) == 22 < length(range(10), tanks) == 26  # 22 is the optimum (exhaustive search)
+    path = {(0, 5), (5, 2), (2, 7), (7, 1), (1, 6), (6, 3)}  # a path of 6 edges hidden in a permutation: optimum 6
+    path = {(min(a, b), max(a, b)) for a, b in path}
+    assert length(block_order(8, path), path) == 6
+    assert block_order(5, set()) == list(range(5))
+    ring = {(i, (i + 1) % 40) for i in range(40)}
+    ring = {(min(a, b), max(a, b)) for a, b in ring}
+    assert length(block_order(40, ring), ring) <= 2 * 39  # a ring laid out without long jumps
+
+
+def test_block_order_is_kept_in_the_header(tmp_path):
+    lay = [SubsystemLayout(i, (3,), 2, (), f"k{i}", i, f"s{i}") for i in range(3)]
+    m = SymbolicModel(lay, [], order="interleaved", blocks=[2, 0, 1])
+    assert m.variables[0].startswith("u2") or m.variables[0].startswith("x2")
+    m.dump(tmp_path / "f", m.bdd.true)
+    m2, f, _ = SymbolicModel.load(tmp_path / "f")
+    assert m2.blocks == (2, 0, 1) and m2.variables == m.variables
+    with pytest.raises(ValueError, match="not a permutation"):
+        SymbolicModel(lay, [], blocks=[0, 0, 1])
