@@ -1,0 +1,1155 @@
+"""compabs benchmark (issue 6): the paper's cases end to end, scalability in N, and baselines, in one run.
+
+    python bench/run.py                      # every case except consensus (about 8-10 minutes here)
+    python bench/run.py --quick              # small sizes, about 1 minute (what tests/test_bench.py runs)
+    python bench/run.py --cases tanks,consensus,scalability,floor,scp,workers,bdd   # all (about 15 minutes)
+    python bench/run.py --cases tanks,scp    # some cases; 'consensus' runs only when named
+    python bench/run.py --json out.json      # also write the results as JSON
+
+Cases (``--cases``; default: all but ``consensus``):
+
+``tanks``, ``consensus``
+    ``examples/{tanks,consensus}.yaml`` end to end in one process (abstraction with audit, synthesis with BDD
+    construction, closed loop, controller files and figures): seconds per stage (wall and CPU), peak RSS,
+    abstract and domain states, and ratios to the paper's figures (:data:`PAPER`). ``--quick`` runs
+    ``examples/small.yaml`` instead of the tanks and never the consensus case. The consensus case has a
+    timeout (``--consensus-timeout``) and then reports the stages that finished.
+``scalability``
+    ``examples/scalability.yaml --set N=...`` for N = 4 ... 128 (``--quick``: 4, 8, 16): the abstraction stages
+    (audit off, as in the paper's Fig. 3) and the composition, i.e. building the symbolic model from the
+    abstraction (``Game.from_abstraction``: subsystem relations, interconnection relation, CPre set-up; not
+    the fixed point). Fitted growth exponent: least-squares slope of log time against log N over N = 16..128
+    (``--quick``: over all points). If an N fails (error, timeout, memory) the next ones are not run, and the
+    gap between the last N that worked and the first that failed is bisected (``--bisect`` probes).
+``floor`` (a)
+    The per-cell stage (``abstract_cells`` over the default chunks of each distinct subsystem) against the
+    floor: the compiled dynamics (``compile_expression``, no validation) evaluated on exactly the sample
+    arrays that stage evaluated (recorded from it), chunk by chunk. Ratio = stage / floor.
+``scp`` (b)
+    The batched exact SCP (``pair_maxima_scalar`` + ``scp_parameters_scalar``, all cells of a subsystem) against
+    the reference formulation (``scp_reference``: one HiGHS LP over all sample pairs per cell, a random subset
+    of cells), on the pipeline's own samples; speed ratio per cell, largest difference of objective values and
+    of radii, for both SCP objectives.
+``workers`` (c)
+    ``workers.runner.run_job`` with 1 worker and with 2 workers (fresh output directories, audit off) on
+    ``examples/stress.yaml`` (``--quick``: the same spec with 16 samples per cell and input spacing 1).
+    Ratio = per-cell stage seconds with 1 worker / with 2 workers. The CPU the other engineers' processes used
+    meanwhile is reported with it.
+``bdd`` (d)
+    One subsystem relation built as a BDD from its interval arrays (the bulk Shannon tree of
+    ``SymbolicModel.range_leaves`` + ``SymbolicModel.tree``) against a naive construction, the OR of one cube
+    per (cell, input, internal cell) constraint conjoined with its successor interval; same BDD checked.
+
+Measurement: every case (every N, every worker count) runs in a fresh child process (``--child``), whose
+stage events are written to a JSON-lines file as they happen, so a case killed at its timeout still reports
+the stages it finished. Per stage: wall seconds (``report["stage_seconds"]`` where the pipeline reports the
+stage, else this harness's clock) and CPU seconds (``time.process_time`` of the child plus the CPU of its live
+descendants, e.g. Dask workers). Peak memory: the larger of the child's own peak RSS (``getrusage``, exact)
+and the polled (0.1 s) peak of the summed RSS of its process tree. The machine is small and shared: absolute
+seconds are noisy, ratios measured in the same run are what to read; the CPU that other processes used
+during each child is reported (``others_cores``: their average number of busy cores). Single-process
+comparisons (floor, scp, bdd) use CPU seconds, the worker comparison uses wall seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+EXAMPLES = ROOT / "examples"
+
+# ====================================================================================== the paper's figures
+#: What the paper reports (Ajeleye & Zamani, /work/shared/paper/data-driven-compositional-abstractions.tex), on a
+#: 64 GB MacBook with a modified SCOTS and CUDD, and where. "abstraction" is "abstracting and stacking of the
+#: abstraction BDD representations of the subsystems", "interconnection" is "constructing the interconnection
+#: abstraction"; synthesis times are not given.
+PAPER: dict[str, dict[str, Any]] = {
+    "consensus": {
+        "abstraction_seconds": 300.85,
+        "interconnection_seconds": 3.89,
+        "abstract_states": 1.406e12,
+        "region_states": 9.49e6,
+        "domain_states": 70.6e9,
+        "source": "Sec. 5.2 (Consensus-Driven Network of Logistic Systems), text after Fig. 4, N = 8",
+    },
+    "tanks": {
+        "abstraction_seconds": 262.51,
+        "interconnection_seconds": 58.76,
+        "abstract_states": 1.34e16,
+        "region_states": 2.016e12,
+        "domain_states": 6.729e14,
+        "source": "Sec. 5.3 (Stabilizing a Network of Tanks in Target Regions), text after Fig. 5",
+    },
+    "scalability": {
+        "seconds_by_N": None,
+        "source": "Sec. 5.1, Fig. 3 (runtime bars for N up to 32): the figure's data are not in the paper's source "
+                  "(its \\includegraphics is empty) and the text gives no numbers, so there is nothing to divide by",
+    },
+}
+#: Issue 6's targets ("Done when"), for the summary at the end.
+TARGETS = {
+    "tanks_end_to_end_vs_paper": 0.1,  # <= paper abstraction + interconnection / 10 (<= 32 s)
+    "consensus_end_to_end_vs_paper": 1.0,  # <= paper abstraction + interconnection (<= ~300 s)
+    "floor": 3.0,  # per-cell stage / floor <= 3
+    "scp_speedup": 30.0,  # >= 30
+    "scp_agreement": 1e-9,
+    "workers_speedup": 1.7,  # >= 1.7
+    "scalability_N": 128,
+    "scalability_exponent": 1.3,  # <= 1.3 over 16..128
+    "tanks_peak_rss_mb": 1536.0,  # <= 1.5 GB
+}
+STAGE_ORDER = ("startup", "plan", "lipschitz", "subsystems", "interconnection", "audit", "composition",
+               "synthesis", "closed_loop", "other")
+
+
+# ====================================================================================== measurement (child side)
+_DESCENDANT_CPU: dict[int, float] = {}
+
+
+def tree_cpu() -> float:
+    """CPU seconds of this process plus those of its descendants (Dask workers, ...).
+
+    A descendant that has exited counts with the last CPU time seen for it (so the sum never drops when a
+    cluster shuts down; CPU a worker spent after the last look is missed).
+    """
+    try:
+        import psutil
+
+        for c in psutil.Process().children(recursive=True):
+            try:
+                t = c.cpu_times()
+                _DESCENDANT_CPU[c.pid] = max(_DESCENDANT_CPU.get(c.pid, 0.0), t.user + t.system)
+            except psutil.Error:
+                pass
+    except ImportError:  # pragma: no cover - psutil is a test dependency
+        pass
+    return time.process_time() + sum(_DESCENDANT_CPU.values())
+
+
+def self_peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+class StageClock:
+    """A ``progress`` callback that times stages by their completion events.
+
+    A stage is complete at its first event with ``done >= total``; it is charged the wall and CPU time since the
+    previous completion (the first event of the run closes a ``startup`` segment). ``mark(name)`` closes a
+    segment by hand. Each closed segment is emitted at once (so a killed child has reported it).
+    """
+
+    def __init__(self, emit: Callable[[dict], None]) -> None:
+        self.emit = emit
+        self.last = (time.perf_counter(), tree_cpu())
+        self.started = False
+        self.closed: set[str] = set()
+        self.stages: dict[str, dict[str, float]] = {}
+
+    def mark(self, stage: str) -> None:
+        now = (time.perf_counter(), tree_cpu())
+        wall, cpu = now[0] - self.last[0], now[1] - self.last[1]
+        self.last = now
+        self.started = True
+        s = self.stages.setdefault(stage, {"wall": 0.0, "cpu": 0.0})
+        s["wall"] += wall
+        s["cpu"] += cpu
+        self.emit({"type": "stage", "stage": stage, "wall": wall, "cpu": cpu, "self_peak_mb": self_peak_mb()})
+
+    def __call__(self, stage: str, done: int, total: int, message: str = "") -> None:
+        if not self.started:
+            self.mark("startup")
+        if done >= total and stage not in self.closed:
+            self.closed.add(stage)
+            self.mark(stage)
+
+
+def _jsonable(obj: Any, depth: int = 0) -> Any:
+    """Numbers, strings and small containers only (reports carry arrays and BDD sizes per layer)."""
+    if isinstance(obj, (bool, int, float, str)) or obj is None:
+        return obj
+    if depth > 4:
+        return None
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v, depth + 1) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)) and len(obj) <= 32:
+        return [_jsonable(v, depth + 1) for v in obj]
+    try:
+        return float(obj)
+    except (TypeError, ValueError):
+        return None
+
+
+# ====================================================================================== cases (child side)
+def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
+    """A spec end to end in this process: abstraction (with audit), synthesis, closed loop, files."""
+    from pipelines.job import run_abstraction, run_synthesis
+    from pipelines.spec import load_spec
+
+    spec = load_spec(p["spec"], p.get("set"))
+    clock = StageClock(emit)
+    r = run_abstraction(spec, progress=clock)
+    rep = r.report
+    emit({"type": "info", "stage_seconds": rep["stage_seconds"], "abstract_states": rep["abstract_states"],
+          "region_states": rep.get("region_states"),
+          "audit": {k: rep["audit"].get(k) for k in ("transitions_checked", "violations")},
+          "interconnection_mode": _jsonable(rep["interconnection"].get("output_modes"))})
+    with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
+        extra = run_synthesis(r, out, progress=clock)
+        clock.mark("other")  # controller files and figures, after the closed loop
+    syn = extra.get("synthesis", {})
+    rel = syn.get("relation_seconds") or {}
+    emit({"type": "info", "stage_seconds": extra.get("stage_seconds", {}), "domain_states": extra.get("domain_states"),
+          "synthesis": _jsonable({
+              **{k: syn.get(k) for k in ("order", "method", "build_seconds", "cpre_setup_seconds", "results", "bdd")},
+              "relation_build_seconds": sum(v for k, v in rel.items() if k.startswith("T")),
+              "interconnection_build_seconds": rel.get("interconnection"),
+          }),
+          "closed_loop": _jsonable({k: extra.get("closed_loop", {}).get(k) for k in ("runs", "violations")})})
+
+
+def child_scalability(p: dict, emit: Callable[[dict], None]) -> None:
+    """One N of the scalability example: abstraction stages (no audit) and the composition."""
+    from pipelines.job import run_abstraction
+    from pipelines.spec import load_spec
+    from pipelines.synthesis import Game
+
+    spec = load_spec(EXAMPLES / "scalability.yaml", {"N": p["N"]})
+    clock = StageClock(emit)
+    r = run_abstraction(spec, progress=clock, audit=False)
+    ia = r.interconnection
+    final = [n for n in ia.nodes if n.output.startswith("w")]
+    res = (ia.details.get("certify_resolution") or {}).get("w0", {})
+    emit({"type": "info", "stage_seconds": r.report["stage_seconds"], "abstract_states": r.report["abstract_states"],
+          "interconnection": {  # how informative M̂ is: a w cell range of 33 cells allows every w
+              "error_bound": float(ia.error_bounds[0]), "nodes": len(ia.nodes),
+              "certify_cells_per_axis": (res.get("cells_per_axis") or [None])[0],
+              "final_node_mean_w_cells": final[0].mean_cells() if final else None,
+              "w_cells": network_w_cells(r)}})
+    clock.mark("other")
+    game = Game.from_abstraction(r)
+    clock.mark("composition")
+    bs = game.model.build_seconds
+    emit({"type": "info", "composition": {
+        "relations_seconds": sum(v for k, v in bs.items() if k.startswith("T")),
+        "interconnection_seconds": bs.get("interconnection"),
+        "cpre_setup_seconds": game.setup_seconds,
+        "live_nodes": len(game.model.bdd),
+        "variables": len(game.model.variables),
+        "interconnection_nodes": sum(part.dag_size for part in game.parts.values()),
+    }})
+
+
+def network_w_cells(abstraction) -> int:
+    return int(abstraction.network.internal_grids[0].size)
+
+
+class _Recorder:
+    """Wraps a black box; keeps the arrays of its first call (the samples call of ``abstract_cells``)."""
+
+    def __init__(self, box) -> None:
+        self.box = box
+        self.args = None
+        self.out = None
+
+    def __call__(self, *arrays, describe=None):
+        out = self.box(*arrays, describe=describe)
+        if self.args is None:
+            self.args, self.out = arrays, out
+        return out
+
+
+def _floor_function(sub, network) -> Callable:
+    """The compiled dynamics of a subsystem, called bare (no shape or finiteness checks)."""
+    from pipelines.expr import compile_expression
+    from pipelines.spec import is_module_function
+
+    src = sub.spec.dynamics
+    names = list(sub.dynamics.inputs)  # x, u, w in call order
+    if is_module_function(src):
+        import importlib
+
+        mod, fn = src.split(":")
+        return getattr(importlib.import_module(mod), fn)
+    used = {k: d for k, d in sub.dynamics.inputs.items() if d > 0}
+    expr = compile_expression(src, used, network.constants)
+
+    def bare(*arrays):
+        return expr(**{k: a.T for k, a in zip(names, arrays) if k in used})
+
+    return bare
+
+
+def _constants(sub) -> tuple[float, float]:
+    lip = sub.spec.lipschitz
+    if lip.x == "estimate" or lip.w == "estimate":
+        raise ValueError(f"{sub.name}: the benchmark needs given Lipschitz constants")
+    return float(lip.x), float(lip.w) if sub.internal_grid is not None else 0.0
+
+
+def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
+    """(a) Per-cell stage against the bare evaluation of the black box on the same samples."""
+    from pipelines.network import build_network
+    from pipelines.spec import load_spec
+    from pipelines.subsystem import abstract_cells, chunk_ranges
+
+    spec = load_spec(p["spec"], p.get("set"))
+    if p.get("samples"):
+        spec = _with_samples(spec, p["samples"], p.get("input_eta"))
+    network = build_network(spec, None)
+    rows = []
+    for key, members in network.unique_subsystems().items():
+        sub = members[0]
+        L_x, L_w = _constants(sub)
+        chunks = chunk_ranges(sub, spec.options.chunk_cells)
+        floor = _floor_function(sub, network)
+        best = None
+        for _ in range(p.get("repeat", 1)):
+            tot = {"stage_wall": 0.0, "stage_cpu": 0.0, "floor_wall": 0.0, "floor_cpu": 0.0, "evaluations": 0}
+            for a, b in chunks:
+                rec = _Recorder(sub.dynamics)
+                s2 = replace(sub, dynamics=rec)
+                w0, c0 = time.perf_counter(), time.process_time()
+                abstract_cells(s2, a, b, L_x, L_w, sub.spec.growth_bound, sub.spec.scp_objective)
+                w1, c1 = time.perf_counter(), time.process_time()
+                floor(*rec.args)
+                w2, c2 = time.perf_counter(), time.process_time()
+                tot["stage_wall"] += w1 - w0
+                tot["stage_cpu"] += c1 - c0
+                tot["floor_wall"] += w2 - w1
+                tot["floor_cpu"] += c2 - c1
+                tot["evaluations"] += rec.args[0].shape[0]
+                del rec, s2
+            if best is None or tot["stage_cpu"] + tot["floor_cpu"] < best["stage_cpu"] + best["floor_cpu"]:
+                best = tot
+        best.update(subsystem=sub.name, members=len(members), chunks=len(chunks), triples=sub.triples,
+                    ratio_cpu=best["stage_cpu"] / best["floor_cpu"], ratio_wall=best["stage_wall"] / best["floor_wall"],
+                    ns_per_evaluation_stage=1e9 * best["stage_cpu"] / best["evaluations"],
+                    ns_per_evaluation_floor=1e9 * best["floor_cpu"] / best["evaluations"])
+        rows.append(best)
+        emit({"type": "row", "row": best})
+
+
+def _with_samples(spec, samples: int, input_eta: float | None = None):
+    """The spec with every subsystem's samples (and optionally input spacing) replaced: smaller quick runs."""
+    subs = []
+    for s in spec.subsystems:
+        upd: dict[str, Any] = {"samples": samples}
+        if input_eta is not None:
+            upd["input"] = s.input.model_copy(update={"eta": input_eta})
+        subs.append(s.model_copy(update=upd))
+    return spec.model_copy(update={"subsystems": subs})
+
+
+def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
+    """(b) Batched exact SCP against one HiGHS LP per cell, on the pipeline's own samples."""
+    import numpy as np
+
+    from pipelines.growth_bound import pair_maxima_scalar, scp_parameters_scalar, scp_reference, scp_rho, subgrid_counts
+    from pipelines.network import build_network
+    from pipelines.spec import load_spec
+    from pipelines.subsystem import abstract_cells, chunk_ranges
+
+    spec = load_spec(p["spec"], p.get("set"))
+    network = build_network(spec, None)
+    sub = next(iter(network.unique_subsystems().values()))[0]
+    if sub.n != 1:
+        raise ValueError("the batched SCP is for scalar states")
+    L_x, L_w = _constants(sub)
+    xg, wg = sub.state_grid, sub.internal_grid
+    counts = subgrid_counts(sub.spec.samples, sub.n + sub.p)
+    cx, cw = counts[: sub.n], counts[sub.n:]
+    Sx, Sw = int(np.prod(cx)), int(np.prod(cw)) if cw else 1
+    # The samples and successors the pipeline uses, recorded from abstract_cells, chunk by chunk.
+    Xs, Vs, RXs, HXs, rhos = [], [], [], [], []
+    n_u = sub.input_grid.size
+    if wg is None:
+        w_lo = w_hi = np.zeros((1, 0))
+    else:
+        w_lo, w_hi = wg.clipped_cells(wg.unravel(np.arange(wg.size)))
+    n_w = w_lo.shape[0]
+    for a, b in chunk_ranges(sub, spec.options.chunk_cells):
+        rec = _Recorder(sub.dynamics)
+        abstract_cells(replace(sub, dynamics=rec), a, b, L_x, L_w, "scp", "paper")
+        c = b - a
+        B = c * n_u * n_w
+        Xs.append(rec.args[0].reshape(B, Sx * Sw, sub.n))
+        Vs.append(rec.out.reshape(B, Sx, Sw, sub.n))
+        x_lo, x_hi = xg.clipped_cells(xg.unravel(np.arange(a, b)))
+        RX = np.broadcast_to(((x_hi - x_lo) / 2)[:, None, None, :], (c, n_u, n_w, sub.n)).reshape(B, sub.n)
+        RW = np.broadcast_to(((w_hi - w_lo) / 2)[None, None, :, :], (c, n_u, n_w, sub.p)).reshape(B, sub.p)
+        HX = 2 * RX / np.asarray(cx, dtype=float)
+        HW = 2 * RW / np.asarray(cw, dtype=float) if sub.p else RW
+        RXs.append(RX)
+        HXs.append(HX)
+        rhos.append(scp_rho(HX, HW, L_x, L_w))
+    X, V, RX, HX, rho = (np.concatenate(v) for v in (Xs, Vs, RXs, HXs, rhos))
+    B = V.shape[0]
+    rng = np.random.default_rng(0)
+    subset = np.sort(rng.choice(B, size=min(B, p["reference_cells"]), replace=False))
+    out = {"subsystem": sub.name, "spec": Path(p["spec"]).name, "cells": B, "reference_cells": int(subset.size),
+           "samples_per_cell": Sx * Sw, "pairs_per_lp": Sx * Sw * (Sx * Sw + 1) // 2}
+    for objective in ("paper", "radius"):
+        weight = np.ones(B) if objective == "paper" else RX[:, 0]
+        best = math.inf
+        for _ in range(p.get("repeat", 3)):
+            c0 = time.process_time()
+            E = pair_maxima_scalar(V[..., 0])
+            t1, t2 = scp_parameters_scalar(E, HX[:, 0], rho, L_x, weight)
+            best = min(best, time.process_time() - c0)
+        c0 = time.process_time()
+        ref = [scp_reference(X[k], V[k].reshape(-1, sub.n), float(rho[k]), L_x, np.array([weight[k]])) for k in subset]
+        ref_cpu = time.process_time() - c0
+        th1 = np.array([r[0][0, 0] for r in ref])
+        th2 = np.array([r[1][0] for r in ref])
+        obj_fast = weight[subset] * t1[subset] + t2[subset]
+        obj_ref = weight[subset] * th1 + th2
+        rad_fast = t1[subset] * RX[subset, 0] + t2[subset]
+        rad_ref = th1 * RX[subset, 0] + th2
+        per_fast, per_ref = best / B, ref_cpu / subset.size
+        out[objective] = {
+            "batched_cpu_per_cell": per_fast, "reference_cpu_per_cell": per_ref, "speedup": per_ref / per_fast,
+            "max_objective_difference": float(np.max(np.abs(obj_fast - obj_ref))),
+            "max_radius_difference": float(np.max(np.abs(rad_fast - rad_ref))),
+            "cells_radius_differs_1e-9": int(np.sum(np.abs(rad_fast - rad_ref) > 1e-9)),
+            "max_relative_radius_difference": float(np.max(np.abs(rad_fast - rad_ref) / np.maximum(rad_ref, 1e-300))),
+        }
+    emit({"type": "row", "row": out})
+
+
+def child_workers(p: dict, emit: Callable[[dict], None]) -> None:
+    """(c) The per-cell stage on an embedded Dask cluster of ``p['workers']`` workers, fresh store."""
+    from pipelines.spec import load_spec
+    from workers.runner import run_job
+
+    spec = load_spec(p["spec"], p.get("set"))
+    if p.get("samples"):
+        spec = _with_samples(spec, p["samples"], p.get("input_eta"))
+    clock = StageClock(emit)
+    with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
+        r, info = run_job(spec, out, workers=p["workers"], audit=False, progress=clock)
+        clock.mark("other")  # cluster shutdown and the store's consolidation
+    emit({"type": "info", "stage_seconds": r.report["stage_seconds"], "abstract_states": r.report["abstract_states"],
+          "runner": _jsonable({k: info.get(k) for k in ("workers", "chunks_total", "chunks_computed",
+                                                          "task_compute_seconds")})})
+
+
+def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
+    """(d) Bulk Shannon-tree construction of a relation against OR-ing one cube per constraint."""
+    import numpy as np
+
+    from pipelines.network import build_network
+    from pipelines.spec import load_spec
+    from pipelines.subsystem import abstract_cells, assemble, chunk_ranges
+    from pipelines.symbolic import SymbolicModel
+
+    spec = load_spec(p["spec"], p.get("set"))
+    network = build_network(spec, None)
+    sub = network.subsystems[p.get("subsystem", 0)]
+    L_x, L_w = _constants(sub)
+    parts = [abstract_cells(sub, a, b, L_x, L_w, sub.spec.growth_bound, sub.spec.scp_objective)
+             for a, b in chunk_ranges(sub, None)]
+    rel = assemble(parts, sub.state_grid.size, sub.spec.growth_bound, L_x, L_w)
+    readers: dict[int, int] = {}
+    for s in network.subsystems:
+        for j in s.reads:
+            readers[j] = readers.get(j, 0) + 1
+    order = "interleaved" if all(c <= 1 for c in readers.values()) else "shared_top"
+
+    k = min(sub.state_grid.size, p.get("state_cells") or sub.state_grid.size)
+    lo, hi, blocking = rel.lo[:k], rel.hi[:k], rel.blocking[:k]
+    _, n_u, n_w = blocking.shape
+    N = k * n_u * n_w
+    state_shape = tuple(sub.state_grid.shape)
+    w_shape = tuple(network.internal_grids[j].size for j in sub.reads) or (1,)
+    xi, ui, wi = np.unravel_index(np.arange(N, dtype=np.int64), (k, n_u, n_w))
+    cols = list(np.unravel_index(xi, state_shape)) + [ui]
+    if sub.reads:
+        cols += list(np.unravel_index(wi, w_shape))
+    values = np.stack(cols, axis=1)
+    lo2, hi2, blk = lo.reshape(N, -1), hi.reshape(N, -1), blocking.reshape(N)
+
+    def fresh():
+        m = SymbolicModel.from_network(network, None, order=order)
+        return m, m.subsystem_digits(m.subsystems[sub.index])
+
+    def bulk(m, dg):
+        ids, leaves = m.range_leaves(dg["xn"], lo2, hi2, blk)
+        return m.tree(dg["x"] + dg["u"] + dg["w"], values, ids, leaves)
+
+    def naive(m, dg):
+        digits = dg["x"] + dg["u"] + dg["w"]
+        f = m.bdd.false
+        for r in np.flatnonzero(~blk):
+            assign = {}
+            for d, digit in enumerate(digits):
+                bits = m.bits[digit]
+                v = int(values[r, d])
+                for q, name in enumerate(bits):
+                    assign[name] = bool((v >> (len(bits) - 1 - q)) & 1)
+            g = m.bdd.cube(assign)
+            for d, digit in enumerate(dg["xn"]):
+                g &= m.interval(digit, int(lo2[r, d]), int(hi2[r, d]))
+            f |= g
+        return f
+
+    times = {}
+    for name, fn in (("bulk", bulk), ("naive", naive)):
+        best = math.inf
+        for _ in range(p.get("repeat", 1) if name == "naive" else max(3, p.get("repeat", 1))):
+            m, dg = fresh()  # a fresh manager each time: no nodes left from an earlier build
+            c0 = time.process_time()
+            f = fn(m, dg)
+            best = min(best, time.process_time() - c0)
+        times[name] = best
+        if name == "naive":
+            same = bool(f == bulk(m, dg))
+            nodes = f.dag_size
+    m, _ = fresh()
+    c0 = time.process_time()
+    m.subsystem_relation(m.subsystems[sub.index], rel)
+    full = time.process_time() - c0
+    constraints = int((~blk).sum())
+    emit({"type": "row", "row": {
+        "spec": Path(p["spec"]).name, "subsystem": sub.name, "order": order, "state_cells": k,
+        "triples": N, "constraints": constraints, "bulk_cpu": times["bulk"], "naive_cpu": times["naive"],
+        "speedup": times["naive"] / times["bulk"], "same_bdd": same, "nodes": nodes,
+        "bulk_us_per_constraint": 1e6 * times["bulk"] / max(1, constraints),
+        "naive_us_per_constraint": 1e6 * times["naive"] / max(1, constraints),
+        "full_relation_cpu": full, "full_relation_triples": int(rel.blocking.size),
+    }})
+
+
+CHILDREN: dict[str, Callable[[dict, Callable[[dict], None]], None]] = {
+    "end_to_end": child_end_to_end,
+    "scalability": child_scalability,
+    "floor": child_floor,
+    "scp": child_scp,
+    "workers": child_workers,
+    "bdd": child_bdd,
+}
+
+
+def child_main(kind: str, params: str, events: str) -> int:
+    with open(events, "a", buffering=1) as fh:
+        def emit(rec: dict) -> None:
+            fh.write(json.dumps(rec, default=_jsonable) + "\n")
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            CHILDREN[kind](json.loads(params), emit)
+        except BaseException as exc:  # reported to the parent, which decides
+            emit({"type": "error", "error": f"{type(exc).__name__}: {exc}",
+                  "traceback": traceback.format_exc(limit=12)[-4000:]})
+            return 1
+        emit({"type": "done", "wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+              "self_peak_mb": self_peak_mb()})
+    return 0
+
+
+# ====================================================================================== running children (parent)
+def _busy_cpu() -> float:
+    import psutil
+
+    t = psutil.cpu_times()
+    return sum(getattr(t, f, 0.0) for f in ("user", "nice", "system", "irq", "softirq", "steal"))
+
+
+def run_child(kind: str, params: dict, timeout: float, mem_limit_mb: float) -> dict:
+    """Run one child case in a fresh process (own session); poll its process tree; collect its events.
+
+    Returns a record: ``status`` (ok | error | timeout | memory), ``error``, ``events``, ``wall`` (process
+    lifetime), ``cpu`` (the tree's CPU), ``peak_rss_mb``, ``others_cores`` (average busy cores of other processes).
+    """
+    import psutil
+
+    with tempfile.NamedTemporaryFile("w", suffix=".jsonl", prefix="compabs-bench-", delete=False) as fh:
+        events_path = fh.name
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", kind, "--params", json.dumps(params),
+           "--events", events_path]
+    busy0, t0 = _busy_cpu(), time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=str(ROOT), start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    stderr_lines: list[str] = []
+    reader = threading.Thread(target=lambda: stderr_lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    status, peak_tree, cpu_seen = "ok", 0.0, {}
+    root = psutil.Process(proc.pid)
+    while True:
+        try:
+            pid, wstatus, ru = os.wait4(proc.pid, os.WNOHANG)
+        except ChildProcessError:  # pragma: no cover
+            pid, wstatus, ru = proc.pid, 0, None
+        if pid == proc.pid:
+            break
+        rss = 0
+        try:
+            for q in [root] + root.children(recursive=True):
+                try:
+                    rss += q.memory_info().rss
+                    t = q.cpu_times()
+                    cpu_seen[q.pid] = t.user + t.system
+                except psutil.Error:
+                    pass
+        except psutil.Error:
+            pass
+        peak_tree = max(peak_tree, rss / 2**20)
+        elapsed = time.perf_counter() - t0
+        if elapsed > timeout or peak_tree > mem_limit_mb:
+            status = "timeout" if elapsed > timeout else "memory"
+            _kill_group(proc.pid)
+            pid, wstatus, ru = os.wait4(proc.pid, 0)
+            break
+        time.sleep(0.1)
+    proc.returncode = os.waitstatus_to_exitcode(wstatus) if ru is not None else None
+    wall = time.perf_counter() - t0
+    busy = _busy_cpu() - busy0
+    _kill_group(proc.pid)  # leftovers of the session (a worker that outlived its parent)
+    reader.join(timeout=5)
+    events = []
+    with open(events_path) as fh:
+        for line in fh:
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:  # a line cut by a kill
+                pass
+    os.unlink(events_path)
+    rusage_cpu = (ru.ru_utime + ru.ru_stime) if ru is not None else 0.0
+    cpu = max(rusage_cpu, sum(cpu_seen.values()))
+    error = next((e["error"] for e in events if e["type"] == "error"), None)
+    if status == "ok" and (error or proc.returncode):
+        status = "error"
+        error = error or f"exit status {proc.returncode}: {''.join(stderr_lines)[-2000:]}"
+    if status == "timeout":
+        error = f"did not finish within {timeout:.0f} s"
+    elif status == "memory":
+        error = f"process tree exceeded {mem_limit_mb:.0f} MB RSS"
+    peak_self = (ru.ru_maxrss / 1024.0) if ru is not None else 0.0
+    return {"status": status, "error": error, "events": events, "wall": wall, "cpu": cpu,
+            "peak_rss_mb": max(peak_self, peak_tree), "others_cores": max(0.0, (busy - cpu) / wall) if wall else 0.0,
+            "traceback": next((e.get("traceback") for e in events if e["type"] == "error"), None)}
+
+
+def _kill_group(pid: int) -> None:
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def stages_of(child: dict) -> dict[str, dict[str, float]]:
+    """Per-stage wall and CPU: the pipeline's own stage seconds where it reports them, the harness clock else."""
+    stages: dict[str, dict[str, float]] = {}
+    for e in child["events"]:
+        if e["type"] == "stage":
+            s = stages.setdefault(e["stage"], {"wall": 0.0, "cpu": 0.0})
+            s["wall"] += e["wall"]
+            s["cpu"] += e["cpu"]
+    for e in child["events"]:
+        if e["type"] == "info":
+            for k, v in (e.get("stage_seconds") or {}).items():
+                if k in stages:
+                    stages[k]["wall"] = v
+    if not stages:  # a baseline child: one segment, the whole case function
+        for e in child["events"]:
+            if e["type"] == "done":
+                stages["run"] = {"wall": e["wall"], "cpu": e["cpu"]}
+    return {k: stages[k] for k in sorted(stages, key=lambda k: STAGE_ORDER.index(k) if k in STAGE_ORDER else 99)}
+
+
+def info_of(child: dict) -> dict:
+    out: dict[str, Any] = {}
+    for e in child["events"]:
+        if e["type"] == "info":
+            out.update({k: v for k, v in e.items() if k not in ("type", "stage_seconds")})
+    return out
+
+
+def case_record(name: str, child: dict, **extra) -> dict:
+    """The common fields of a case."""
+    stages = stages_of(child)
+    info = info_of(child)
+    return {
+        "case": name,
+        "status": child["status"],
+        "error": child["error"],
+        "stages": stages,
+        "total_wall": sum(s["wall"] for s in stages.values()),
+        "total_cpu": sum(s["cpu"] for s in stages.values()),
+        "process_wall": child["wall"],
+        "process_cpu": child["cpu"],
+        "peak_rss_mb": child["peak_rss_mb"],
+        "others_cores": child["others_cores"],
+        "abstract_states": info.get("abstract_states"),
+        "domain_states": info.get("domain_states"),
+        "paper": None,
+        "vs_paper": {},
+        "details": {k: v for k, v in info.items() if k not in ("abstract_states", "domain_states")},
+        **extra,
+    }
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b not in (None, 0) else None
+
+
+# ====================================================================================== cases (parent side)
+def bench_end_to_end(name: str, spec: Path, args, timeout: float) -> dict:
+    """tanks / consensus (/ small under --quick) end to end, with ratios to the paper."""
+    child = run_child("end_to_end", {"spec": str(spec)}, timeout, args.mem_limit_gb * 1024)
+    rec = case_record(name, child, spec=spec.name)
+    paper = PAPER.get(name)
+    if paper:
+        st = rec["stages"]
+        syn = rec["details"].get("synthesis") or {}
+        # The paper's "abstraction" includes building and stacking the subsystems' BDDs, and its interconnection
+        # time its BDD: here those are built in the synthesis stage (relation_build / interconnection_build).
+        rel_build, ic_build = syn.get("relation_build_seconds"), syn.get("interconnection_build_seconds")
+        ours_abs = st.get("subsystems", {}).get("wall")
+        ours_ic = st.get("interconnection", {}).get("wall")
+        paper_total = paper["abstraction_seconds"] + paper["interconnection_seconds"]
+        finished = rec["status"] == "ok"
+        rec["paper"] = paper
+        rec["vs_paper"] = {
+            # ours / paper (< 1: faster than the paper)
+            "subsystems_with_bdds": _ratio(ours_abs + rel_build, paper["abstraction_seconds"])
+            if ours_abs is not None and rel_build is not None else None,
+            "interconnection_with_bdd": _ratio(ours_ic + ic_build, paper["interconnection_seconds"])
+            if ours_ic is not None and ic_build is not None else None,
+            "abstraction_stages_total": _ratio(sum(st[k]["wall"] for k in ("plan", "lipschitz", "subsystems",
+                                                                            "interconnection") if k in st),
+                                               paper_total) if ours_ic is not None else None,
+            "end_to_end": _ratio(rec["total_wall"], paper_total) if finished else None,
+            "abstract_states": _ratio(rec["abstract_states"], paper["abstract_states"]),
+            "domain_states": _ratio(rec["domain_states"], paper["domain_states"]),
+        }
+    return rec
+
+
+def bench_scalability(args) -> dict:
+    Ns = [4, 8, 16] if args.quick else [4, 8, 16, 32, 64, 128]
+    fit_from = 4 if args.quick else 16
+    points: list[dict] = []
+    failed = None
+    for N in Ns:
+        child = run_child("scalability", {"N": N}, args.point_timeout, args.mem_limit_gb * 1024)
+        pt = case_record(f"scalability N={N}", child, N=N)
+        points.append(pt)
+        _progress(pt)
+        if pt["status"] != "ok":
+            failed = N
+            break
+    probes = []
+    ok_Ns = [p["N"] for p in points if p["status"] == "ok"]
+    if failed is not None and ok_Ns and args.bisect > 0:
+        lo, hi = max(ok_Ns), failed
+        for _ in range(args.bisect):
+            if hi - lo <= 1:
+                break
+            mid = (lo + hi) // 2
+            child = run_child("scalability", {"N": mid}, args.point_timeout, args.mem_limit_gb * 1024)
+            pt = case_record(f"scalability N={mid} (probe)", child, N=mid)
+            probes.append(pt)
+            _progress(pt)
+            if pt["status"] == "ok":
+                lo = mid
+            else:
+                hi = mid
+        breaks = {"largest_ok": lo, "smallest_failed": hi}
+    else:
+        breaks = None if failed is None else {"largest_ok": max(ok_Ns) if ok_Ns else None, "smallest_failed": failed}
+
+    def series(p: dict) -> dict[str, float]:
+        st = p["stages"]
+        abst = sum(st[k]["wall"] for k in ("plan", "lipschitz", "subsystems", "interconnection") if k in st)
+        comp = st.get("composition", {}).get("wall", 0.0)
+        return {"abstraction": abst, "composition": comp, "total": abst + comp}
+
+    fit_pts = [p for p in points if p["status"] == "ok" and p["N"] >= fit_from]
+    exponents = {}
+    for key in ("abstraction", "composition", "total"):
+        xs = [math.log(p["N"]) for p in fit_pts]
+        ys = [math.log(max(1e-9, series(p)[key])) for p in fit_pts]
+        exponents[key] = _slope(xs, ys) if len(xs) >= 2 else None
+    failure = next(({"N": p["N"], "status": p["status"], "error": p["error"], "traceback": p.get("traceback")}
+                    for p in points + probes if p["status"] != "ok"), None)
+    for p in points + probes:
+        p["series"] = series(p)
+    return {
+        "case": "scalability",
+        "status": "ok" if failed is None else "partial",
+        "error": None if failure is None else f"N={failure['N']}: {failure['error']}",
+        "points": points,
+        "probes": probes,
+        "exponents": exponents,
+        "fit_range": [fit_pts[0]["N"], fit_pts[-1]["N"]] if fit_pts else None,
+        "fit_N": [p["N"] for p in fit_pts],
+        "breaks": breaks,
+        "failure": failure,
+        "paper": PAPER["scalability"],
+        "vs_paper": {},
+    }
+
+
+def _slope(xs: list[float], ys: list[float]) -> float:
+    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+    sxx = sum((x - mx) ** 2 for x in xs)
+    return sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx
+
+
+def bench_floor(args) -> dict:
+    if args.quick:
+        specs = [(EXAMPLES / "small.yaml", {}), (EXAMPLES / "tanks.yaml", {})]
+    else:
+        specs = [(EXAMPLES / "tanks.yaml", {}), (EXAMPLES / "consensus.yaml", {}),
+                 (EXAMPLES / "scalability.yaml", {}), (EXAMPLES / "stress.yaml", {"repeat": 1})]
+    rows, children = [], []
+    for spec, extra in specs:
+        child = run_child("floor", {"spec": str(spec), "repeat": 3, **extra}, args.point_timeout,
+                          args.mem_limit_gb * 1024)
+        children.append(case_record(f"floor {spec.stem}", child, spec=spec.name))
+        for e in child["events"]:
+            if e["type"] == "row":
+                rows.append({"spec": spec.name, **e["row"]})
+    stage = sum(r["stage_cpu"] for r in rows)
+    floor = sum(r["floor_cpu"] for r in rows)
+    worst = max(rows, key=lambda r: r["ratio_cpu"]) if rows else None
+    return _baseline("floor", children, rows=rows, ratio=max((r["ratio_cpu"] for r in rows), default=None),
+                     ratio_meaning="per-cell stage CPU / bare evaluation CPU, worst subsystem (target <= 3)",
+                     ratio_pooled=_ratio(stage, floor), worst=worst and f"{worst['spec']}:{worst['subsystem']}")
+
+
+def bench_scp(args) -> dict:
+    if args.quick:
+        specs = [(EXAMPLES / "small.yaml", 20)]
+    else:
+        specs = [(EXAMPLES / "consensus.yaml", 150), (EXAMPLES / "scalability.yaml", 150)]
+    rows, children = [], []
+    for spec, k in specs:
+        child = run_child("scp", {"spec": str(spec), "reference_cells": k}, args.point_timeout,
+                          args.mem_limit_gb * 1024)
+        children.append(case_record(f"scp {spec.stem}", child, spec=spec.name))
+        rows += [e["row"] for e in child["events"] if e["type"] == "row"]
+    sp = [r[o]["speedup"] for r in rows for o in ("paper", "radius")]
+    return _baseline("scp", children, rows=rows, ratio=min(sp) if sp else None,
+                     ratio_meaning="reference LP CPU per cell / batched CPU per cell, smallest (target >= 30)",
+                     max_objective_difference=max((r[o]["max_objective_difference"] for r in rows
+                                                   for o in ("paper", "radius")), default=None),
+                     max_radius_difference=max((r[o]["max_radius_difference"] for r in rows
+                                                for o in ("paper", "radius")), default=None),
+                     max_radius_difference_radius_objective=max((r["radius"]["max_radius_difference"] for r in rows),
+                                                                default=None))
+
+
+def bench_workers(args) -> dict:
+    spec = EXAMPLES / "stress.yaml"
+    params: dict[str, Any] = {"spec": str(spec)}
+    if args.quick:
+        params.update(samples=16, input_eta=1.0)
+    runs, children = {}, []
+    for w in (1, 2):
+        child = run_child("workers", {**params, "workers": w}, args.point_timeout, args.mem_limit_gb * 1024)
+        rec = case_record(f"workers={w}", child, workers=w, spec=spec.name)
+        children.append(rec)
+        runs[w] = rec
+        _progress(rec)
+    t1 = runs[1]["stages"].get("subsystems", {}).get("wall")
+    t2 = runs[2]["stages"].get("subsystems", {}).get("wall")
+    c1 = runs[1]["stages"].get("subsystems", {}).get("cpu")
+    c2 = runs[2]["stages"].get("subsystems", {}).get("cpu")
+    return _baseline("workers", children, ratio=_ratio(t1, t2),
+                     ratio_meaning="per-cell stage wall, 1 worker / 2 workers (target >= 1.7)",
+                     one_worker_seconds=t1, two_workers_seconds=t2, one_worker_cpu=c1, two_workers_cpu=c2,
+                     # CPU of the stage (runner, scheduler and workers): how much work a second worker adds, and
+                     # the speed-up two otherwise idle cores would give if that work were the only limit.
+                     cpu_overhead_two_workers=_ratio(c2, c1),
+                     cpu_bound_speedup=2 * c1 / c2 if c1 and c2 else None,
+                     cpu_share={w: _ratio(r["stages"].get("subsystems", {}).get("cpu"),
+                                          r["stages"].get("subsystems", {}).get("wall")) for w, r in runs.items()},
+                     others_cores={w: r["others_cores"] for w, r in runs.items()},
+                     quick_spec=("stress.yaml with samples=16, input eta=1" if args.quick else None))
+
+
+def bench_bdd(args) -> dict:
+    if args.quick:
+        specs = [(EXAMPLES / "small.yaml", {"state_cells": 12})]
+    else:
+        specs = [(EXAMPLES / "tanks.yaml", {"subsystem": 1}), (EXAMPLES / "consensus.yaml", {})]
+    rows, children = [], []
+    for spec, extra in specs:
+        child = run_child("bdd", {"spec": str(spec), **extra}, args.point_timeout, args.mem_limit_gb * 1024)
+        children.append(case_record(f"bdd {spec.stem}", child, spec=spec.name))
+        rows += [e["row"] for e in child["events"] if e["type"] == "row"]
+    return _baseline("bdd", children, rows=rows, ratio=min((r["speedup"] for r in rows), default=None),
+                     ratio_meaning="naive (OR of cubes) CPU / bulk Shannon tree CPU, smallest",
+                     all_same_bdd=all(r["same_bdd"] for r in rows) if rows else None)
+
+
+def _baseline(name: str, children: list[dict], **fields) -> dict:
+    bad = [c for c in children if c["status"] != "ok"]
+    return {
+        "case": name,
+        "status": "ok" if not bad and fields.get("ratio") is not None else "error",
+        "error": "; ".join(f"{c['case']}: {c['error']}" for c in bad) or None,
+        "runs": children,
+        "peak_rss_mb": max((c["peak_rss_mb"] for c in children), default=None),
+        **{"others_cores": max((c["others_cores"] for c in children), default=None), **fields},
+    }
+
+
+# ====================================================================================== table
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, int) and abs(v) >= 10**7:
+        return f"{v:.3e}" if v < 1e300 else f"1e{len(str(v)) - 1}"
+    if isinstance(v, float):
+        if v != 0 and (abs(v) >= 1e6 or abs(v) < 1e-3):
+            return f"{v:.2e}"
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _stage_line(stages: dict) -> str:
+    return "  ".join(f"{k} {s['wall']:.2f}/{s['cpu']:.2f}" for k, s in stages.items())
+
+
+def print_table(results: dict, out=sys.stdout) -> None:
+    """One line per case (and per N), then the baselines, then the targets of issue 6."""
+    def w(s: str = "") -> None:
+        print(s, file=out)
+
+    w(f"{'case':<24}{'status':<9}{'total s':>9}{'CPU s':>9}{'peak MB':>9}{'others':>8}  {'abstract':>10}"
+      f"{'domain':>11}  vs paper (ours/paper)")
+    for name, c in results["cases"].items():
+        rows = c["points"] + c["probes"] if name == "scalability" else (
+            c["runs"] if "runs" in c else [c])
+        for r in rows:
+            vp = r.get("vs_paper") or {}
+            vps = ", ".join(f"{k} {_fmt(v)}" for k, v in vp.items() if v is not None)
+            w(f"{r['case']:<24}{r['status']:<9}{_fmt(r['total_wall']):>9}{_fmt(r['total_cpu']):>9}"
+              f"{_fmt(r['peak_rss_mb'], 4):>9}{_fmt(r['others_cores'], 2):>8}  {_fmt(r['abstract_states']):>10}"
+              f"{_fmt(r['domain_states']):>11}  {vps}")
+            if r["stages"]:
+                w(f"    stages wall/CPU s: {_stage_line(r['stages'])}")
+            if r.get("error"):
+                w(f"    {r['status']}: {r['error'][:300]}")
+    w()
+    w("baselines (same run)")
+    if "scalability" in results["cases"]:
+        s = results["cases"]["scalability"]
+        ex = s["exponents"]
+        w(f"  scalability exponent over N={s['fit_N']}: abstraction {_fmt(ex['abstraction'])}, composition "
+          f"{_fmt(ex['composition'])}, total {_fmt(ex['total'])}" + (f"; breaks: {s['breaks']}" if s["breaks"] else ""))
+    for name in ("floor", "scp", "workers", "bdd"):
+        c = results["cases"].get(name)
+        if not c:
+            continue
+        w(f"  {name}: ratio {_fmt(c.get('ratio'))}  ({c.get('ratio_meaning')})")
+        if name == "floor":
+            for r in c["rows"]:
+                w(f"    {r['spec']}:{r['subsystem']:<8} stage {r['stage_cpu']:.3f} s, floor {r['floor_cpu']:.3f} s CPU, "
+                  f"{r['evaluations']:.3g} evaluations ({r['ns_per_evaluation_stage']:.0f} vs "
+                  f"{r['ns_per_evaluation_floor']:.0f} ns each): {r['ratio_cpu']:.2f}x (wall {r['ratio_wall']:.2f}x)")
+        if name == "scp":
+            for r in c["rows"]:
+                for o in ("paper", "radius"):
+                    q = r[o]
+                    w(f"    {r['spec']}:{r['subsystem']} objective {o}: {1e6 * q['batched_cpu_per_cell']:.1f} us vs "
+                      f"{1e3 * q['reference_cpu_per_cell']:.1f} ms per cell ({r['cells']} / {r['reference_cells']} cells)"
+                      f" -> {q['speedup']:.0f}x; max |d objective| {q['max_objective_difference']:.1e}, "
+                      f"max |d radius| {q['max_radius_difference']:.1e}")
+        if name == "workers":
+            w(f"    per-cell stage wall: 1 worker {_fmt(c['one_worker_seconds'])} s, 2 workers "
+              f"{_fmt(c['two_workers_seconds'])} s; CPU {_fmt(c['one_worker_cpu'])} s vs {_fmt(c['two_workers_cpu'])} s "
+              f"(cores busy for the stage {', '.join(f'{k}w {_fmt(v, 2)}' for k, v in c['cpu_share'].items())}; other "
+              f"processes' busy cores {', '.join(f'{k}w {_fmt(v, 2)}' for k, v in c['others_cores'].items())}); "
+              f"CPU-bound speed-up 2 x cpu1/cpu2 = {_fmt(c['cpu_bound_speedup'])}")
+        if name == "bdd":
+            for r in c["rows"]:
+                w(f"    {r['spec']}:{r['subsystem']} ({r['order']}), {r['constraints']} constraints: bulk "
+                  f"{r['bulk_us_per_constraint']:.1f} us, naive {r['naive_us_per_constraint']:.1f} us per constraint "
+                  f"-> {r['speedup']:.1f}x, same BDD: {_fmt(r['same_bdd'])}")
+        if c.get("error"):
+            w(f"    error: {c['error'][:300]}")
+    w()
+    w("issue 6 targets")
+    for k, (val, target, ok) in results["targets"].items():
+        w(f"  {k:<34} {_fmt(val):>10}  target {target:<10} {'met' if ok else ('NOT met' if ok is False else '-')}")
+
+
+def targets(results: dict) -> dict[str, tuple]:
+    """(measured, target, met) for each of issue 6's "Done when" items that this run measured."""
+    c = results["cases"]
+    out: dict[str, tuple] = {}
+
+    def put(key, val, target, ok):
+        out[key] = (val, target, None if val is None else ok)
+
+    for name, key in (("tanks", "tanks_end_to_end_vs_paper"), ("consensus", "consensus_end_to_end_vs_paper")):
+        if name in c:
+            v = c[name]["vs_paper"].get("end_to_end")
+            put(f"{name} end to end / paper", v, f"<= {TARGETS[key]}", v is not None and v <= TARGETS[key])
+            if name == "tanks":
+                m = c[name]["peak_rss_mb"]
+                put("tanks peak RSS MB", m, f"<= {TARGETS['tanks_peak_rss_mb']:.0f}", m <= TARGETS["tanks_peak_rss_mb"])
+    if "scalability" in c:
+        s = c["scalability"]
+        reached = max((p["N"] for p in s["points"] if p["status"] == "ok"), default=None)
+        put("scalability largest N", reached, f">= {TARGETS['scalability_N']}", (reached or 0) >= TARGETS["scalability_N"])
+        e = s["exponents"]["total"]
+        full = s["fit_N"] and s["fit_N"][-1] >= 128
+        put(f"scalability exponent N={s['fit_range']}", e, f"<= {TARGETS['scalability_exponent']} (16..128)",
+            bool(full) and e is not None and e <= TARGETS["scalability_exponent"])
+    if "floor" in c:
+        v = c["floor"]["ratio"]
+        put("per-cell / floor (worst)", v, f"<= {TARGETS['floor']}", v is not None and v <= TARGETS["floor"])
+    if "scp" in c:
+        v = c["scp"]["ratio"]
+        put("batched SCP speed-up (least)", v, f">= {TARGETS['scp_speedup']:.0f}", v is not None and v >= TARGETS["scp_speedup"])
+        d = c["scp"]["max_objective_difference"]
+        put("batched SCP |d objective|", d, f"<= {TARGETS['scp_agreement']}", d is not None and d <= TARGETS["scp_agreement"])
+        d = c["scp"]["max_radius_difference"]
+        put("batched SCP |d radius|", d, f"<= {TARGETS['scp_agreement']}", d is not None and d <= TARGETS["scp_agreement"])
+    if "workers" in c:
+        v = c["workers"]["ratio"]
+        put("two workers / one", v, f">= {TARGETS['workers_speedup']}", v is not None and v >= TARGETS["workers_speedup"])
+    if "bdd" in c:
+        v = c["bdd"]["ratio"]
+        put("bulk BDD speed-up (least)", v, "> 1", v is not None and v > 1)
+    return out
+
+
+def headline_ratios(results: dict) -> dict[str, float | None]:
+    """The ratios of this run in one flat dict (positive where measured; None where not)."""
+    c = results["cases"]
+    out: dict[str, float | None] = {}
+    for name in ("floor", "scp", "workers", "bdd"):
+        if name in c:
+            out[name] = c[name]["ratio"]
+    for name in ("tanks", "consensus"):
+        if name in c:
+            for k, v in c[name]["vs_paper"].items():
+                out[f"{name}_vs_paper_{k}"] = v
+    return out
+
+
+# ====================================================================================== main
+def _progress(rec: dict) -> None:
+    print(f"  .. {rec['case']}: {rec['status']} in {rec.get('process_wall', 0):.1f} s"
+          + (f" ({rec['error'][:200]})" if rec.get("error") else ""), file=sys.stderr, flush=True)
+
+
+def meta(args) -> dict:
+    import numpy
+
+    try:
+        import dd
+
+        dd_version = getattr(dd, "__version__", "?")
+    except ImportError:  # pragma: no cover
+        dd_version = None
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True).stdout.split("\n")
+        dirty = [line[3:] for line in dirty if line.strip()]
+    except OSError:  # pragma: no cover
+        rev, dirty = None, []
+    return {
+        "quick": bool(args.quick),
+        "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "dd": dd_version,
+        "cpus": os.cpu_count(),
+        "memory_gb": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
+        "loadavg_start": list(os.getloadavg()),
+        "git": rev,
+        "modified_files": dirty,
+        "command": " ".join(sys.argv),
+    }
+
+
+ALL_CASES = ("tanks", "consensus", "scalability", "floor", "scp", "workers", "bdd")
+DEFAULT_CASES = tuple(c for c in ALL_CASES if c != "consensus")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="small sizes (under ~3 minutes); never the consensus case")
+    p.add_argument("--json", metavar="OUT", help="write the results as JSON")
+    p.add_argument("--cases", default=",".join(DEFAULT_CASES),
+                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus)")
+    p.add_argument("--consensus-timeout", type=float, default=1800.0, metavar="S")
+    p.add_argument("--tanks-timeout", type=float, default=1200.0, metavar="S")
+    p.add_argument("--point-timeout", type=float, default=900.0, metavar="S",
+                   help="timeout of every other child process (one N, one baseline run)")
+    p.add_argument("--mem-limit-gb", type=float, default=12.0, help="kill a case whose process tree exceeds this RSS")
+    p.add_argument("--bisect", type=int, default=6, metavar="K", help="probes between the last N that worked and the "
+                   "first that failed (scalability)")
+    p.add_argument("--child", help=argparse.SUPPRESS)
+    p.add_argument("--params", help=argparse.SUPPRESS)
+    p.add_argument("--events", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        return child_main(args.child, args.params, args.events)
+
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    unknown = set(cases) - set(ALL_CASES)
+    if unknown:
+        p.error(f"unknown case(s) {sorted(unknown)}; choose from {ALL_CASES}")
+    results: dict[str, Any] = {"meta": meta(args), "paper": PAPER, "cases": {}, "skipped": {}}
+    t0 = time.perf_counter()
+    for case in cases:
+        print(f"[{time.perf_counter() - t0:7.1f} s] {case} ...", file=sys.stderr, flush=True)
+        if case == "tanks":
+            spec = EXAMPLES / ("small.yaml" if args.quick else "tanks.yaml")
+            rec = bench_end_to_end("small" if args.quick else "tanks", spec, args, args.tanks_timeout)
+            results["cases"]["small" if args.quick else "tanks"] = rec
+            _progress(rec)
+        elif case == "consensus":
+            if args.quick:
+                results["skipped"]["consensus"] = "not run under --quick"
+                continue
+            rec = bench_end_to_end("consensus", EXAMPLES / "consensus.yaml", args, args.consensus_timeout)
+            results["cases"]["consensus"] = rec
+            _progress(rec)
+        elif case == "scalability":
+            results["cases"]["scalability"] = bench_scalability(args)
+        else:
+            rec = {"floor": bench_floor, "scp": bench_scp, "workers": bench_workers, "bdd": bench_bdd}[case](args)
+            results["cases"][case] = rec
+            _progress({**rec, "process_wall": sum(r["process_wall"] for r in rec["runs"])})
+    results["meta"]["seconds"] = time.perf_counter() - t0
+    results["meta"]["loadavg_end"] = list(os.getloadavg())
+    results["targets"] = targets(results)
+    results["ratios"] = headline_ratios(results)
+    if "scalability" in results["cases"]:
+        results["exponents"] = results["cases"]["scalability"]["exponents"]
+    print_table(results)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1, default=_jsonable))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

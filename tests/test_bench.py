@@ -1,0 +1,88 @@
+"""``bench/run.py --quick`` runs and writes a complete JSON report (issue 6).
+
+Times are never asserted (the machine is small and shared): only that every case reports every field, that
+the ratios measured in the run are finite and positive, and that the batched SCP agrees with the reference LP.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from .conftest import ROOT
+
+CASE_FIELDS = ("case", "status", "error", "stages", "total_wall", "total_cpu", "process_wall", "process_cpu",
+               "peak_rss_mb", "others_cores", "abstract_states", "domain_states", "paper", "vs_paper", "details")
+
+
+def _positive(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v) and v > 0
+
+
+def _check_case(rec: dict) -> None:
+    for f in CASE_FIELDS:
+        assert f in rec, f"{rec.get('case')}: no field {f}"
+    assert rec["status"] == "ok", f"{rec['case']}: {rec['error']}"
+    assert rec["stages"], rec["case"]
+    for name, s in rec["stages"].items():
+        assert math.isfinite(s["wall"]) and s["wall"] >= 0, (rec["case"], name)
+        assert math.isfinite(s["cpu"]), (rec["case"], name)
+    assert _positive(rec["total_wall"]) and _positive(rec["peak_rss_mb"])
+
+
+@pytest.mark.slow
+def test_quick_benchmark(tmp_path):
+    out = tmp_path / "bench.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run.py"), "--quick", "--json", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "issue 6 targets" in proc.stdout
+    res = json.loads(out.read_text())
+    assert {"meta", "paper", "cases", "targets", "ratios", "exponents"} <= set(res)
+    assert res["meta"]["quick"] is True
+    assert res["skipped"] == {} or "consensus" in res["skipped"]
+    cases = res["cases"]
+    assert set(cases) == {"small", "scalability", "floor", "scp", "workers", "bdd"}
+
+    # end to end (small.yaml stands in for the tanks under --quick)
+    e2e = cases["small"]
+    _check_case(e2e)
+    for stage in ("plan", "lipschitz", "subsystems", "interconnection", "audit", "synthesis", "closed_loop"):
+        assert stage in e2e["stages"], stage
+    assert e2e["abstract_states"] == 33**2 and e2e["domain_states"] > 0
+
+    # scalability: every N ran, composition timed, exponents fitted
+    scal = cases["scalability"]
+    assert scal["status"] == "ok", scal["error"]
+    assert [p["N"] for p in scal["points"]] == [4, 8, 16]
+    for p in scal["points"]:
+        _check_case(p)
+        assert {"subsystems", "interconnection", "composition"} <= set(p["stages"])
+        assert p["abstract_states"] == 33 ** p["N"]
+        assert p["details"]["composition"]["live_nodes"] > 0
+    for key in ("abstraction", "composition", "total"):
+        assert math.isfinite(res["exponents"][key])
+    assert scal["paper"]["source"]
+
+    # baselines: every child ran, every ratio finite and positive
+    for name in ("floor", "scp", "workers", "bdd"):
+        c = cases[name]
+        assert c["status"] == "ok", (name, c["error"])
+        for run in c["runs"]:
+            _check_case(run)
+        assert _positive(c["ratio"]), name
+    for row in cases["floor"]["rows"]:
+        assert _positive(row["ratio_cpu"]) and _positive(row["ratio_wall"]) and row["evaluations"] > 0
+    for row in cases["scp"]["rows"]:
+        for objective in ("paper", "radius"):
+            q = row[objective]
+            assert _positive(q["speedup"])
+            assert q["max_objective_difference"] <= 1e-9  # the batched SCP is exact
+    assert all(r["same_bdd"] for r in cases["bdd"]["rows"])
+    assert cases["workers"]["one_worker_seconds"] > 0 and cases["workers"]["two_workers_seconds"] > 0
+    assert res["ratios"] and all(_positive(v) for v in res["ratios"].values())
+    assert res["targets"]
