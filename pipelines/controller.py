@@ -76,7 +76,8 @@ class Controller:
 
     def choose(self, x: np.ndarray, rng: np.random.Generator, how: str = "random") -> np.ndarray | None:
         """One admissible concrete input at ``x``, shape (m_total,): uniform over the admissible joint inputs
-        (``how="random"``) or the smallest (``"first"``); ``None`` outside the domain.
+        (``how="random"``) or the first in the BDD's variable order (``"first"``, deterministic; the same as
+        ``inputs(x)[0]`` when the subsystems' blocks are in network order); ``None`` outside the domain.
 
         Costs a few BDD operations per input bit, where :meth:`inputs` lists every admissible joint input (tens
         of thousands at a consensus state).
@@ -112,32 +113,11 @@ class Controller:
     def sample_cells(self, count: int, rng: np.random.Generator) -> np.ndarray:
         """Cells drawn uniformly from the controller's domain, shape (count, n) (empty if the domain is).
 
-        Bits are fixed one at a time, each with the probability of its share of the remaining domain (CUDD's
-        floating-point count is enough for probabilities), so a domain of 1e-5 of the state space costs no
-        more than a large one, where rejection sampling would fail.
+        Exact model counts guide a walk down the domain BDD (:meth:`SymbolicModel.sample`), so a domain of
+        1e-5 of the state space costs no more than a large one, where rejection sampling would fail.
         """
         m = self._model
-        bdd = m.bdd
-        n = self._state_grid.dim
-        bits = list(m.x_bits)
-        if self._domain == bdd.false:
-            return np.zeros((0, n), dtype=np.int64)
-        rows = []
-        for _ in range(count):
-            f = self._domain
-            assign: dict[str, bool] = {}
-            for k, b in enumerate(bits):
-                rest = len(bits) - k - 1
-                f1 = bdd.let({b: True}, f)
-                f0 = bdd.let({b: False}, f)
-                c1 = bdd.count(f1, nvars=rest) if f1 != bdd.false else 0.0
-                c0 = bdd.count(f0, nvars=rest) if f0 != bdd.false else 0.0
-                value = bool(rng.random() * (c0 + c1) < c1)
-                assign[b] = value
-                f = f1 if value else f0
-            rows.append([sum(int(assign[b]) << (len(m.bits[f"x{i}"]) - 1 - j) for j, b in enumerate(m.bits[f"x{i}"]))
-                         for i in range(n)])
-        return np.array(rows, dtype=np.int64)
+        return m.sample(self._domain, m.x_digits(), rng, size=count)
 
     def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
         return self._model.dump(Path(directory) / name, self._bdd, {**self._meta, "form": "explicit"})

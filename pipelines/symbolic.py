@@ -873,8 +873,11 @@ class SymbolicModel:
         """Exact number of composed abstract states in a BDD over the current-state bits."""
         return self.count(f, self.x_digits())
 
-    def _exact_count(self, f: Function, bits: Sequence[str]) -> int:
-        """Model count over ``bits`` with Python integers (CUDD's count is a double: inexact above 2**53)."""
+    def _count_table(self, f: Function, bits: Sequence[str]):
+        """Exact model counts of every node below ``f`` over ``bits`` (Python integers; CUDD's count is a
+        double, inexact above 2**53). Returns ``count(g)``: the assignments of the bits from ``g``'s level down
+        that satisfy ``g``, and ``position(g)``: the index of ``g``'s level among ``bits`` (``len(bits)`` for a
+        constant)."""
         levels = sorted(self.bdd.level_of_var(b) for b in bits)
         pos = {lvl: k for k, lvl in enumerate(levels)}
         N = len(levels)
@@ -886,8 +889,7 @@ class SymbolicModel:
             return N if g.var is None else pos[g.level]
 
         memo: dict[int, int] = {}
-        root = regular(f)
-        stack = [root]
+        stack = [regular(f)]
         while stack:
             g = stack[-1]
             key = int(g)
@@ -914,11 +916,61 @@ class SymbolicModel:
                 total += n << (q - p - 1)
             memo[key] = total
             stack.pop()
-        q = position(root)
-        n = memo[int(root)]
-        if f.negated:
-            n = (1 << (N - q)) - n
-        return n << q
+
+        def count(g: Function) -> int:
+            r = regular(g)
+            n = memo[int(r)]
+            return (1 << (N - position(r))) - n if g.negated else n
+
+        return count, position, N
+
+    def _exact_count(self, f: Function, bits: Sequence[str]) -> int:
+        """Model count over ``bits`` with Python integers (CUDD's count is a double: inexact above 2**53)."""
+        count, position, N = self._count_table(f, bits)
+        return count(f) << position(f)
+
+    def sample(self, f: Function, digits: Sequence[str], rng: np.random.Generator | None, size: int | None = None):
+        """Cells of ``digits`` in ``f``, uniformly at random (``rng``) or the smallest (``rng=None``).
+
+        One pass counts the models below every node (:meth:`_count_table`); each draw then walks from the root
+        to ``TRUE`` choosing each branch with the probability of its share of the models (a skipped level is a
+        free bit: 1/2). Cost: ``O(|f|)`` once, ``O(bits)`` per draw.
+
+        Returns codes, shape (len(digits),) (``size=None``) or (size, len(digits)); ``None`` / shape (0, ...)
+        if ``f`` is empty on the valid codes.
+        """
+        bits = list(self.bits_of(digits))
+        extra = self.bdd.support(f) - set(bits)
+        if extra:
+            raise ValueError(f"sample over {list(digits)}: the BDD also depends on {sorted(extra)[:6]}")
+        f = f & self.domain(digits)
+        k = 1 if size is None else int(size)
+        if f == self.bdd.false:
+            return None if size is None else np.zeros((0, len(digits)), dtype=np.int64)
+        count, position, N = self._count_table(f, bits)
+        by_level = sorted(bits, key=self.bdd.level_of_var)
+        rows = np.zeros((k, N), dtype=np.int64)
+        for r in range(k):
+            g, at = f, 0
+            while at < N:
+                q = position(g)
+                if at < q:  # a level the function does not test: either value
+                    rows[r, at] = 0 if rng is None else int(rng.integers(2))
+                    at += 1
+                    continue
+                reg = ~g if g.negated else g
+                lo, hi = (~reg.low, ~reg.high) if g.negated else (reg.low, reg.high)
+                w0, w1 = count(lo) << (position(lo) - q - 1), count(hi) << (position(hi) - q - 1)
+                take = (w0 == 0) if rng is None else bool(rng.random() * (w0 + w1) < w1)
+                rows[r, q] = int(take)
+                g = hi if take else lo
+                at = q + 1
+        col = {b: j for j, b in enumerate(by_level)}
+        out = np.zeros((k, len(digits)), dtype=np.int64)
+        for d_i, d in enumerate(digits):
+            for b in self.bits[d]:
+                out[:, d_i] = (out[:, d_i] << 1) | rows[:, col[b]]
+        return out[0] if size is None else out
 
     def enumerate(self, f: Function, digits: Sequence[str]) -> np.ndarray:
         """Every cell of ``digits`` in ``f`` as an array of codes, shape (B, len(digits)). Small sets only."""
@@ -932,37 +984,6 @@ class SymbolicModel:
                          for d in digits])
         out = np.array(rows, dtype=np.int64).reshape(-1, len(digits))
         return out[np.lexsort(out.T[::-1])] if out.size else out
-
-    def sample(self, f: Function, digits: Sequence[str], rng: np.random.Generator | None) -> np.ndarray | None:
-        """One cell of ``digits`` in ``f``, uniformly at random (``rng``) or the smallest (``rng=None``).
-
-        Bits are fixed one at a time in digit order, each with the probability of its share of the remaining
-        set (CUDD's floating-point count is enough for probabilities), so drawing costs ``O(bits)`` BDD
-        operations whatever the size of the set. Returns codes, shape (len(digits),), or ``None`` if ``f`` is
-        empty on the valid codes.
-        """
-        bits = list(self.bits_of(digits))
-        extra = self.bdd.support(f) - set(bits)
-        if extra:
-            raise ValueError(f"sample over {list(digits)}: the BDD also depends on {sorted(extra)[:6]}")
-        bdd = self.bdd
-        f = f & self.domain(digits)
-        if f == bdd.false:
-            return None
-        assign: dict[str, bool] = {}
-        for k, b in enumerate(bits):
-            f1, f0 = bdd.let({b: True}, f), bdd.let({b: False}, f)
-            if rng is None:
-                value = f0 == bdd.false
-            else:
-                rest = len(bits) - k - 1
-                c1 = bdd.count(f1, nvars=rest) if f1 != bdd.false else 0.0
-                c0 = bdd.count(f0, nvars=rest) if f0 != bdd.false else 0.0
-                value = bool(rng.random() * (c0 + c1) < c1)
-            assign[b] = value
-            f = f1 if value else f0
-        return np.array([sum(int(assign[b]) << (len(self.bits[d]) - 1 - j) for j, b in enumerate(self.bits[d]))
-                         for d in digits], dtype=np.int64)
 
     def state_assignment(self, x_idx: Sequence[int]) -> dict[str, bool]:
         """Values of the current-state bits encoding composed cell indices ``x_idx`` (MSB first)."""

@@ -334,3 +334,26 @@ def test_block_order_is_kept_in_the_header(tmp_path):
     assert m2.blocks == (2, 0, 1) and m2.variables == m.variables
     with pytest.raises(ValueError, match="not a permutation"):
         SymbolicModel(lay, [], blocks=[0, 0, 1])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sample_draws_members_uniformly_and_first_is_deterministic(seed):
+    rng = np.random.default_rng(seed)
+    lay = [SubsystemLayout(i, (5,), 3, (), f"k{i}", i, f"s{i}") for i in range(3)]  # 5 cells: codes 5..7 invalid
+    m = SymbolicModel(lay, [], order="interleaved", blocks=[2, 0, 1] if seed % 2 else None)
+    members = rng.random((5, 5, 5)) < 0.3
+    members[0, 0, 0] = True
+    cells = np.argwhere(members)
+    f = m.state_set(cells)
+    draws = m.sample(f, m.x_digits(), rng, size=6000)
+    assert draws.shape == (6000, 3)
+    assert members[tuple(draws.T)].all()  # only members, never an invalid code
+    hist = np.zeros(members.shape)
+    np.add.at(hist, tuple(draws.T), 1)
+    expected = 6000 / len(cells)
+    assert (hist[members] > 0).all()
+    assert np.abs(hist[members] - expected).max() < 6 * math.sqrt(expected)  # uniform: every member near 6000/|f|
+    first = m.sample(f, m.x_digits(), None)
+    assert members[tuple(first)] and np.array_equal(first, m.sample(f, m.x_digits(), None))
+    assert m.sample(m.bdd.false, m.x_digits(), rng) is None
+    assert m.sample(m.bdd.false, m.x_digits(), rng, size=3).shape == (0, 3)
