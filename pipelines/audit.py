@@ -106,7 +106,8 @@ def audit_subsystem(sub: Subsystem, rel: SubsystemRelation, count: int, rng: np.
         if bad.any() and first is None:
             k = int(np.argmax(bad))
             first = (
-                f"{sub.name}: x={x[k].tolist()} u={u[k].tolist()} w={w[k].tolist()} -> x'={xn[k].tolist()} "
+                f"{sub.name}: state cell {int(xi[k])}, input {int(ui[k])}, internal cell {int(wi[k])}: "
+                f"x={x[k].tolist()} u={u[k].tolist()} w={w[k].tolist()} -> x'={xn[k].tolist()} "
                 f"in cell {n_idx[k].tolist()}, abstraction allows {lo[k].tolist()}..{hi[k].tolist()}"
             )
     return AuditResult(checked, violations, skipped, first)
@@ -138,3 +139,116 @@ def audit_interconnection(network: Network, ia, count: int, rng: np.random.Gener
             k = int(np.argmax(~ok))
             first = f"interconnection: x={x[k].tolist()} M(x)={w[k].tolist()} cells {w_idx[k].tolist()} not allowed"
     return AuditResult(checked, violations, 0, first)
+
+
+def _successor_ok(grid: UniformGrid, xn: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each successor's cell(s) lie in ``[lo, hi]`` and in the state box; also the (upper) cell index.
+
+    A successor on a cell boundary lies in both cells, so both must be in the range.
+    """
+    n_up, in_up = grid.cell_of(xn, "upper")
+    n_low, in_low = grid.cell_of(xn, "lower")
+    inside_box = np.all((xn >= np.asarray(grid.lb)) & (xn <= np.asarray(grid.ub)), axis=1)
+    ok = in_up & in_low & inside_box
+    ok &= np.all((n_up >= lo) & (n_up <= hi) & (n_low >= lo) & (n_low <= hi), axis=1)
+    return ok, n_up
+
+
+def audit_composition(
+    network: Network,
+    relations: dict[str, SubsystemRelation],
+    ia,
+    count: int,
+    rng: np.random.Generator,
+) -> AuditResult:
+    """Check ``count`` random concrete transitions of the composed system against the composed abstraction.
+
+    Each transition draws a composed concrete state ``x`` (a share on cell boundaries) and one input grid point
+    per subsystem, computes ``w = M(x)`` with the concrete map and steps every subsystem's black box with its
+    share of ``w``. With ``x̂`` the cell of ``x`` and ``ŵ`` the cell of ``w``, the abstraction must allow it:
+    ``ŵ ∈ M̂(x̂)`` (Theorem 4.7) and, unless some subsystem blocks at ``(x̂_i, û_i, ŵ_i)`` (then the composed input
+    is not admissible at ``x̂`` and no controller uses it), every ``x'_i``'s cell is a successor of
+    ``(x̂_i, û_i, ŵ_i)`` in subsystem ``i``'s relation. The per-part audits check the same inclusions one part at a
+    time; this one checks the wiring between them too: state offsets, which ``w_j`` each subsystem reads and in
+    which order, which stored relation serves which replica.
+
+    Parameters
+    ----------
+    network : Network
+    relations : dict of str to SubsystemRelation
+        By subsystem key (``Subsystem.key``), as :class:`pipelines.job.AbstractionResult` holds them.
+    ia : InterconnectionAbstraction
+    count : int
+        Composed transitions to draw.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    AuditResult
+        ``transitions_checked`` counts the composed transitions with every subsystem non-blocking (plus those
+        whose ``ŵ`` is not in ``M̂(x̂)``, which are violations whatever the subsystems do); ``skipped_blocking``
+        the others.
+    """
+    grid = network.composed_state_grid()
+    subs = network.subsystems
+    checked = violations = skipped = 0
+    first: str | None = None
+    done = 0
+    while done < count:
+        b = min(BATCH, count - done)
+        done += b
+        x = draw_in_box(grid, b, rng)
+        x_idx = _either_cell(grid, x, rng)
+        w = network.interconnection_map(x)
+        p = len(network.internal_grids)
+        w_idx = np.zeros((b, p), dtype=np.int64)
+        w_in = np.ones(b, dtype=bool)
+        for j, g in enumerate(network.internal_grids):
+            inside = (w[:, j] >= g.lb[0]) & (w[:, j] <= g.ub[0])
+            w_idx[:, j] = np.where(inside, _either_cell(g, np.clip(w[:, j : j + 1], g.lb[0], g.ub[0]), rng)[:, 0], 0)
+            w_in &= inside
+        bad_w = ~(w_in & ia.contains(x_idx, w_idx))
+        blocked = np.zeros(b, dtype=bool)
+        bad_sub = np.zeros(b, dtype=bool)
+        culprit = np.full(b, -1, dtype=np.int64)
+        records = []
+        for i, s in enumerate(subs):
+            sl = slice(s.state_offset, s.state_offset + s.n)
+            xi = s.state_grid.ravel(x_idx[:, sl])
+            ui = rng.integers(0, s.input_grid.size, b)
+            u = s.input_grid.points(s.input_grid.unravel(ui))
+            if s.reads:
+                ws = w[:, list(s.reads)]
+                wi = s.internal_grid.ravel(w_idx[:, list(s.reads)])
+            else:
+                ws = np.zeros((b, 0))
+                wi = np.zeros(b, dtype=np.int64)
+            xn = s.dynamics(x[:, sl], u, ws)
+            lo, hi, block = relations[s.key].successor_ranges(xi, ui, wi)
+            ok, n_idx = _successor_ok(s.state_grid, xn, lo, hi)
+            blocked |= block
+            new_bad = ~block & ~ok & ~bad_sub
+            culprit[new_bad] = i
+            bad_sub |= ~block & ~ok
+            records.append((xi, ui, wi, u, xn, n_idx, lo, hi))
+        bad = bad_w | (bad_sub & ~blocked)
+        live = bad_w | ~blocked
+        checked += int(live.sum())
+        skipped += int((~live).sum())
+        violations += int(bad.sum())
+        if bad.any() and first is None:
+            k = int(np.argmax(bad))
+            if bad_w[k]:
+                first = (
+                    f"composition: x={x[k].tolist()} (cells {x_idx[k].tolist()}) M(x)={w[k].tolist()} in internal "
+                    f"cells {w_idx[k].tolist()}, which M̂ does not allow"
+                )
+            else:
+                i = int(culprit[k])
+                xi, ui, wi, u, xn, n_idx, lo, hi = (r[k] for r in records[i])
+                first = (
+                    f"composition: subsystem {subs[i].name}, state cell {int(xi)}, input {int(ui)}, internal cell "
+                    f"{int(wi)}: x={x[k].tolist()} M(x)={w[k].tolist()} u={u.tolist()} -> x'={xn.tolist()} in cell "
+                    f"{n_idx.tolist()}, abstraction allows {lo.tolist()}..{hi.tolist()}"
+                )
+    return AuditResult(checked, violations, skipped, first)

@@ -80,11 +80,15 @@ class BlackBox:
                 raise SpecError(f"{self._name}: {self._source} is not callable")
             self._fn = fn
         else:
+            from .errors import ExpressionError
             from .expr import compile_expression
 
             # An argument of dimension 0 (a subsystem that reads no internal variable) is not a variable.
             used = {k: d for k, d in self._inputs.items() if d > 0}
-            expr = compile_expression(self._source, used, self._constants)
+            try:
+                expr = compile_expression(self._source, used, self._constants)
+            except ExpressionError as exc:  # name the field as well as the token
+                raise ExpressionError(f"{self._name}: {exc}") from None
 
             def run(*arrays: np.ndarray) -> np.ndarray:
                 out = expr(**{k: a.T for k, a in zip(self._inputs, arrays) if k in used})
@@ -145,6 +149,8 @@ class BlackBox:
         ndarray, shape (B, out_dim), float64, all finite.
         """
         B = arrays[0].shape[0] if arrays else 0
+        # A whole-batch failure (an exception, a wrong shape) has no one offending row: name the batch's range.
+        batch = f" on the batch from {describe(0)} to {describe(B - 1)}" if describe is not None and B else ""
         try:
             with np.errstate(all="ignore"):
                 out = self._fn(*arrays)
@@ -152,9 +158,9 @@ class BlackBox:
         except BlackBoxError:
             raise
         except Exception as exc:
-            raise BlackBoxError(f"{self._name}: raised {type(exc).__name__}: {exc}") from None
+            raise BlackBoxError(f"{self._name}: raised {type(exc).__name__}: {exc}{batch}") from None
         if out.shape != (B, self._out_dim):
-            raise BlackBoxError(f"{self._name}: returned shape {out.shape}, expected {(B, self._out_dim)}")
+            raise BlackBoxError(f"{self._name}: returned shape {out.shape}, expected {(B, self._out_dim)}{batch}")
         finite = np.isfinite(out)
         if not finite.all():
             row = int(np.argmin(finite.all(axis=1)))

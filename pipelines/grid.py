@@ -124,6 +124,11 @@ class UniformGrid:
 
     @classmethod
     def _make(cls, o_, eta_, k_lo, k_hi, lb_, ub_, name) -> "UniformGrid":
+        if not (np.all(np.isfinite(k_lo)) and np.all(np.isfinite(k_hi))):
+            raise SpecError(
+                f"{name}: spacing {eta_.tolist()} is too fine for the box [{lb_.tolist()}, {ub_.tolist()}] "
+                "(the number of grid points overflows); use a larger eta"
+            )
         if np.any(k_hi < k_lo):
             raise SpecError(
                 f"{name}: empty grid, no point of spacing {eta_.tolist()} lies in [{lb_.tolist()}, {ub_.tolist()}]"

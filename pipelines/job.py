@@ -15,7 +15,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .audit import AuditResult, audit_interconnection, audit_subsystem
+from .audit import AuditResult, audit_composition, audit_interconnection, audit_subsystem
 from .errors import LipschitzError
 from .lipschitz import estimate_lipschitz
 from .network import Network, Subsystem, build_network
@@ -54,6 +54,9 @@ class ConstantRecord:
         d = {"value": self.value, "source": self.source, "observed_max_slope": self.observed_max_slope}
         if self.given is not None:
             d["given"] = self.given
+            if self.source == "raised":  # how much the data made it grow (METHOD §3: say so in the report)
+                d["raised_by"] = self.value - self.given
+                d["raised_factor"] = self.value / self.given if self.given > 0 else None
         if self.where:
             d["where"] = self.where
         if self.estimate:
@@ -144,9 +147,10 @@ def _abstract_one(
             c = constants[arg]
             where = _describe_cell(sub, rec)
             if c.source == "given" and spec.lipschitz.on_violation == "fail":
+                excess = f", {rec.slope - c.value:.6g} ({rec.slope / c.value - 1:.2%}) above it" if c.value > 0 else ""
                 raise LipschitzError(
                     f"subsystem {names}: the given L_{arg} = {c.value:g} is contradicted by the data: slope "
-                    f"{rec.slope:.6g} observed at {where}. An abstraction built with it would be unsound. Give "
+                    f"{rec.slope:.6g} observed at {where}{excess}. An abstraction built with it would be unsound. Give "
                     f"L_{arg} >= {rec.slope:.6g}, set lipschitz.{arg}: estimate, or lipschitz.on_violation: raise."
                 )
             c.value = rec.slope * spec.lipschitz.safety_factor
@@ -277,12 +281,17 @@ def run_abstraction(
         t0 = time.perf_counter()
         n = spec.options.audit_transitions
         parts: dict[str, AuditResult] = {}
-        total = len(groups) + 1
+        total = len(groups) + 2
         for i, (key, members) in enumerate(groups.items()):
             parts[members[0].name] = audit_subsystem(members[0], relations[key], n, rng)
             progress("audit", i + 1, total, members[0].name)
         parts["interconnection"] = audit_interconnection(network, ia, n, rng)
-        progress("audit", total, total, "interconnection")
+        progress("audit", total - 1, total, "interconnection")
+        # The composed system: the same inclusions again, plus the wiring between the parts (which w_j each
+        # subsystem reads, offsets, which relation serves which replica). A tenth of the transitions is plenty
+        # for that here; `compabs audit DIR --transitions N` draws N of them against the stored abstraction.
+        parts["composition"] = audit_composition(network, relations, ia, max(min(n, 10_000), n // 10), rng)
+        progress("audit", total, total, "composition")
         audit_report = {
             "transitions_checked": sum(p.transitions_checked for p in parts.values()),
             "violations": sum(p.violations for p in parts.values()),
@@ -359,7 +368,10 @@ def run_synthesis(
     controller = controller_of(game, main, meta)
     files = {}
     if out_dir is not None:
+        from .artifacts import save_interconnection
+
         out = Path(out_dir)
+        save_interconnection(abstraction.interconnection, out, spec)  # what the controller was built from (audit)
         files["controller"] = [str(p.name) for p in controller.save(out)]
         for key, r in results.items():
             if key != main_key:

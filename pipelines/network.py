@@ -93,6 +93,10 @@ class Network:
         return groups
 
 
+#: Largest ``replicate`` count (bounds what a spec can make this process allocate before any other check).
+MAX_REPLICAS = 100_000
+
+
 def _grid(g: GridSpec, name: str, kind: str) -> UniformGrid:
     make = UniformGrid.covering if kind == "cover" else UniformGrid.inside
     return make(g.lb, g.ub, g.eta, g.origin, name=name)
@@ -104,8 +108,10 @@ def _replicas(s: SubsystemSpec, params: dict[str, float]) -> int:
         if r not in params:
             raise SpecError(f"subsystem '{s.name}': replicate names parameter '{r}', which is not defined")
         r = params[r]
-    if r != int(r) or int(r) < 1:
+    if isinstance(r, bool) or not math.isfinite(r) or r != int(r) or int(r) < 1:
         raise SpecError(f"subsystem '{s.name}': replicate must be a positive integer, got {r}")
+    if r > MAX_REPLICAS:
+        raise SpecError(f"subsystem '{s.name}': replicate = {r:g} copies; at most {MAX_REPLICAS} are supported")
     return int(r)
 
 

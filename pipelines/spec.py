@@ -37,6 +37,15 @@ class GridSpec(_Model):
     eta: Vector = Field(description="grid spacing (cell width), > 0")
     origin: Vector | None = Field(default=None, description="grid origin, 0 by default (points are origin + k*eta)")
 
+    @model_validator(mode="after")
+    def _lengths(self):
+        lists = {k: len(v) for k in ("lb", "ub", "eta", "origin") if isinstance(v := getattr(self, k), list)}
+        if any(n == 0 for n in lists.values()):
+            raise ValueError(f"empty list in {sorted(k for k, n in lists.items() if n == 0)}: give a number, or one per dimension")
+        if len(set(lists.values())) > 1:
+            raise ValueError(f"lists of different lengths {lists}: give one value per dimension in each")
+        return self
+
     @property
     def dim(self) -> int:
         sizes = {len(v) for v in (self.lb, self.ub, self.eta) if isinstance(v, list)}
@@ -164,6 +173,11 @@ class OptionsSpec(_Model):
     )
     closed_loop_runs: int = Field(default=100, ge=0, le=100_000, description="runs from random domain states")
     closed_loop_steps: int | None = Field(default=None, ge=1, le=100_000, description="steps per run (default: auto)")
+    task_timeout: float | None = Field(
+        default=600.0, gt=0, le=1e7,
+        description="seconds one cluster task (a chunk of cells) may run before the job fails as hung; null: no "
+        "limit. Not part of the spec's hash: changing it keeps the stored chunks (resume)",
+    )
 
     @model_validator(mode="after")
     def _controller_is_computed(self):
@@ -260,7 +274,9 @@ def spec_hash(spec: JobSpec) -> str:
     """A stable hash of everything that determines the abstraction (used to refuse stale stores)."""
     import hashlib
 
-    canonical = json.dumps(spec.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    # task_timeout changes how long a task may run, not what it computes: a job that timed out must resume.
+    canonical = json.dumps(spec.model_dump(mode="json", exclude={"options": {"task_timeout"}}), sort_keys=True,
+                           separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 

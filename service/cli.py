@@ -156,6 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(func=cmd_simulate)
     s = sub.add_parser("schema", help="print the JSON Schema of job specs")
     s.set_defaults(func=cmd_schema)
+    from .audit_cmd import add_parser as add_audit_parser
+
+    add_audit_parser(sub)
     from .serve import add_parser as add_serve_parser
 
     add_serve_parser(sub)

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from pipelines.errors import SpecError
+from pipelines.errors import CompabsError, SpecError
 
 if TYPE_CHECKING:  # the CLI imports this module; keep its start-up free of pydantic models it may not need
     from pipelines.spec import JobSpec
@@ -151,11 +151,18 @@ def execute_job(
         extra = run_synthesis(result, out, progress=progress)
         result.report["stage_seconds"].update(extra.pop("stage_seconds"))
         result.report.update(extra)
-    if in_process:
-        save_relations(result, out)
-    (out / "spec.json").write_text(json.dumps(spec.model_dump(mode="json"), indent=1))
-    # Written last (through a temporary and a rename): a report on disk means the job's files are complete.
-    tmp = out / "report.json.partial"
-    tmp.write_text(json.dumps(result.report, indent=2, default=json_default))
-    tmp.replace(out / "report.json")
+    try:
+        if in_process:
+            from pipelines.artifacts import save_interconnection
+
+            save_relations(result, out)
+            save_interconnection(result.interconnection, out, spec)  # what `compabs audit` checks (runner does its own)
+        (out / "spec.json").write_text(json.dumps(spec.model_dump(mode="json"), indent=1))
+        # Written last (through a temporary and a rename): a report on disk means the job's files are complete.
+        tmp = out / "report.json.partial"
+        tmp.write_text(json.dumps(result.report, indent=2, default=json_default))
+        tmp.replace(out / "report.json")
+    except OSError as exc:  # a full or read-only disk: say which file, keep what was written
+        raise CompabsError(f"cannot write the job's files in {out}: {exc.strerror or exc} ({exc.filename or ''}); "
+                           "free space or fix permissions and run the job again (stored chunks are reused)") from None
     return result.report

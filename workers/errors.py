@@ -19,3 +19,16 @@ class StoreError(CompabsError):
 
 class ClusterError(CompabsError):
     """The Dask cluster cannot be reached, has no workers, or lost a task's workers repeatedly."""
+
+
+class TaskTimeoutError(CompabsError):
+    """A cluster task ran longer than ``options.task_timeout`` (a black box that hangs).
+
+    ``worker`` is the address of the worker that ran it and ``stuck`` whether the task's thread was still running
+    there when the error was raised (the runner then restarts that worker to stop it).
+    """
+
+    def __init__(self, message: str, worker: str | None = None, stuck: bool = False) -> None:
+        super().__init__(message)
+        self.worker = worker
+        self.stuck = stuck

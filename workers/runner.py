@@ -35,7 +35,10 @@ with that error, same type and message, without the remote traceback. A task who
 (``KilledWorker`` after ``distributed.scheduler.allowed-failures`` restarts) becomes a :class:`ClusterError`
 naming the subsystem and the chunk. A worker killed once is restarted by its nanny and its task reruns; the
 job goes on. When the job fails, its outstanding tasks are cancelled; chunks already marked done are kept, so
-running the job again resumes.
+running the job again resumes. A task running longer than ``options.task_timeout`` seconds (a hung black box)
+fails the job with a :class:`TaskTimeoutError` naming the subsystem and the cells; if its thread cannot be
+stopped, the worker that ran it is restarted (:func:`workers.tasks._watched`). The stages that run in the
+runner's own process (Lipschitz estimation, interconnection, audit, synthesis, closed loop) have no such limit.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from pipelines.spec import JobSpec
 from pipelines.subsystem import CellsResult, abstract_cells
 
 from .cluster import connect
-from .errors import ClusterError, StoreError
+from .errors import ClusterError, StoreError, TaskTimeoutError
 from .store import RelationStore, group_name
 from .tasks import abstract_chunk
 
@@ -103,6 +106,7 @@ class StoreMapper:
         self._client = client
         self._store = store
         self._members = {k: [m.name for m in ms] for k, ms in network.unique_subsystems().items()}
+        self._timeout = network.spec.options.task_timeout  # seconds per task (workers.tasks._watched)
         self.stats = RunnerStats()
 
     def __call__(self, fn: Callable[..., Any], args: Sequence[tuple]) -> Iterable[Any]:
@@ -143,7 +147,7 @@ class StoreMapper:
         run = uuid.uuid4().hex[:8]
         futures = {
             self._client.submit(
-                abstract_chunk, self._store.url, group, *a,
+                abstract_chunk, self._store.url, group, *a, self._timeout,
                 key=f"abstract_chunk-{group}-{a[1] // chunk_cells}-{run}", pure=False,
             ): a
             for a in todo
@@ -177,6 +181,15 @@ class StoreMapper:
         where = f"subsystem '{', '.join(members)}', chunk {start // chunk_cells} (state cells {start}..{stop - 1})"
         try:
             return fut.result()
+        except TaskTimeoutError as exc:
+            if exc.stuck and exc.worker:
+                # Its thread is still running on that worker (blocked in C): restart the process to stop it. Dask
+                # reruns whatever else that worker was running; other jobs carry on.
+                try:
+                    self._client.restart_workers([exc.worker], timeout=60, raise_for_error=False)
+                except Exception:  # best effort: the job fails with the timeout either way
+                    pass
+            raise TaskTimeoutError(f"{where}: {exc}") from None
         except CompabsError as exc:
             # The method's own error, same type and message; the worker's traceback says nothing more.
             raise exc.with_traceback(None) from None
@@ -284,7 +297,17 @@ def run_job(
         result = run_abstraction(
             spec, mapper=mapper, allowed_modules=allowed_modules, audit=audit, chunk_points=TASK_POINTS, **kwargs
         )
-        store.consolidate()
+        try:
+            store.consolidate()
+            if "://" not in os.fspath(out_dir):  # the audit reads it back (pipelines.artifacts)
+                from pipelines.artifacts import save_interconnection
+
+                save_interconnection(result.interconnection, out_dir, spec)
+        except OSError as exc:
+            raise StoreError(
+                f"writing the job's files in {os.fspath(out_dir)} failed: {exc}. Every chunk is stored; free space or "
+                "fix the permissions and run the job again to finish it."
+            ) from None
     finally:
         if conn is not None:
             conn.close()

@@ -12,13 +12,20 @@ This module must be importable by the scheduler and the workers (it is part of t
 
 from __future__ import annotations
 
+import contextvars
+import ctypes
+import threading
 import time
 from typing import Any
 
 from pipelines.network import Subsystem
-from pipelines.subsystem import abstract_cells
+from pipelines.subsystem import CellsResult, abstract_cells
 
+from .errors import TaskTimeoutError
 from .store import write_chunk
+
+#: Seconds a timed-out task waits for its thread to stop after asking it to.
+STOP_GRACE = 1.0
 
 
 def abstract_chunk(
@@ -31,6 +38,7 @@ def abstract_chunk(
     L_w: float,
     method: str,
     objective: str,
+    timeout: float | None = None,
 ) -> dict[str, Any]:
     """Abstract state cells ``[start, stop)`` of a subsystem and write them into the store.
 
@@ -43,6 +51,8 @@ def abstract_chunk(
         already, created by the runner.
     sub, start, stop, L_x, L_w, method, objective
         As :func:`pipelines.subsystem.abstract_cells`; ``[start, stop)`` is exactly one chunk of the group.
+    timeout : float, optional
+        Seconds the computation may take (``options.task_timeout``); ``None``: no limit. See :func:`_watched`.
 
     Returns
     -------
@@ -53,8 +63,59 @@ def abstract_chunk(
     ------
     CompabsError
         Whatever the method raises (a BlackBoxError for a NaN, ...), unchanged: the runner re-raises it.
+    TaskTimeoutError
+        The computation ran longer than ``timeout``; nothing was written.
     """
     t0 = time.perf_counter()
-    result = abstract_cells(sub, start, stop, L_x, L_w, method, objective)
+    args = (sub, start, stop, L_x, L_w, method, objective)
+    result = abstract_cells(*args) if timeout is None else _watched(args, timeout)
     seconds = time.perf_counter() - t0
     return write_chunk(store_url, group, result, seconds)
+
+
+def _watched(args: tuple, timeout: float) -> CellsResult:
+    """``abstract_cells(*args)`` in a watched thread: its result, its exception, or a TaskTimeoutError.
+
+    A thread cannot be killed. After ``timeout`` seconds the task asks it to stop (an asynchronous
+    ``TaskTimeoutError`` delivered at its next Python bytecode: enough for a black box looping in Python), waits
+    ``STOP_GRACE`` seconds, and raises. If the thread is still running (a black box blocked in C, e.g. a sleep),
+    the error says ``stuck`` and the runner restarts the worker process to stop it. Nothing is written to the
+    store either way: the data and marker writes happen only after a result.
+    """
+    sub, start, stop = args[0], args[1], args[2]
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["result"] = abstract_cells(*args)
+        except BaseException as exc:  # handed to the task's thread below
+            box["error"] = exc
+
+    # The task's context variables go along (Dask's get_worker() reads one: a black box may ask where it runs).
+    context = contextvars.copy_context()
+    thread = threading.Thread(target=context.run, args=(target,), name=f"compabs-chunk-{sub.name}-{start}", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if not thread.is_alive():
+        if "error" in box:
+            raise box["error"]
+        return box["result"]
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread.ident), ctypes.py_object(TaskTimeoutError))
+    thread.join(STOP_GRACE)
+    if not thread.is_alive() and "result" in box:  # it finished after all
+        return box["result"]
+    worker = None
+    try:
+        from distributed import get_worker
+
+        worker = get_worker().address
+    except (ImportError, ValueError):  # not inside a Dask worker (a direct call)
+        pass
+    raise TaskTimeoutError(
+        f"subsystem '{sub.name}': the black box did not finish state cells {start}..{stop - 1} within "
+        f"options.task_timeout = {timeout:g} s, so the job stops here (a hung or far too slow black box). "
+        "Check the dynamics on those cells, or raise options.task_timeout (or lower options.chunk_cells); "
+        "chunks already done are kept and running the job again resumes.",
+        worker=worker,
+        stuck=thread.is_alive(),
+    )
