@@ -35,6 +35,7 @@ from pipelines.spec import JobSpec
 from .manager import JobManager, ServiceError, new_store
 from .routers import dashboard, health, jobs, schema
 from .routers.jobs import _StreamEnded
+from .models import ErrorDetail
 from .settings import Settings
 
 log = logging.getLogger("compabs.service")
@@ -135,6 +136,24 @@ def _install_handlers(app: FastAPI) -> None:
         )
 
 
+def _errors_as_published(doc: dict[str, Any]) -> None:
+    """Document error bodies as they are sent: every 4xx is ``ErrorDetail`` (``{"detail": "text"}``) in JSON.
+
+    FastAPI documents 422 as its validation-error array and gives an event-stream route's errors that route's
+    media type; this API answers both with :class:`ErrorDetail` JSON (schemathesis checks the two agree).
+    """
+    ref = {"$ref": "#/components/schemas/ErrorDetail"}
+    schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+    schemas.setdefault("ErrorDetail", ErrorDetail.model_json_schema())
+    for operations in doc.get("paths", {}).values():
+        for op in operations.values():
+            for code, response in op.get("responses", {}).items():
+                if str(code).startswith("4"):
+                    response["content"] = {"application/json": {"schema": ref}}
+    for name in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(name, None)
+
+
 def _install_openapi(app: FastAPI) -> None:
     """Publish :class:`JobSpec` as the body schema of ``POST /jobs`` (read by hand for JSON and YAML alike)."""
 
@@ -145,6 +164,7 @@ def _install_openapi(app: FastAPI) -> None:
             schemas = doc.setdefault("components", {}).setdefault("schemas", {})
             schemas.update(spec.pop("$defs", {}))
             schemas["JobSpec"] = spec
+            _errors_as_published(doc)
             app.openapi_schema = doc
         return app.openapi_schema
 
