@@ -388,8 +388,9 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
         abstract_cells(replace(sub, dynamics=rec), a, b, L_x, L_w, "scp", "paper")
         c = b - a
         B = c * n_u * n_w
-        Xs.append(rec.args[0].reshape(B, Sx * Sw, sub.n))
-        Vs.append(rec.out.reshape(B, Sx, Sw, sub.n))
+        # abstract_cells lays the samples out sample-major, (S_x, S_w, triples): triples first here.
+        Xs.append(np.moveaxis(rec.args[0].reshape(Sx * Sw, B, sub.n), 1, 0))
+        Vs.append(np.moveaxis(rec.out.reshape(Sx, Sw, B, sub.n), 2, 0))
         x_lo, x_hi = xg.clipped_cells(xg.unravel(np.arange(a, b)))
         RX = np.broadcast_to(((x_hi - x_lo) / 2)[:, None, None, :], (c, n_u, n_w, sub.n)).reshape(B, sub.n)
         RW = np.broadcast_to(((w_hi - w_lo) / 2)[None, None, :, :], (c, n_u, n_w, sub.p)).reshape(B, sub.p)

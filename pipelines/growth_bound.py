@@ -11,7 +11,9 @@ Three methods, all sound given Lipschitz constants ``L_x``, ``L_w`` in the infin
     Beyond the paper: ``[min_l x'_l - rho_h, max_l x'_l + rho_h]``, ``rho_h = L_x ||h_x/2|| + L_w ||h_w/2||``,
     where ``h`` are the sub-cell spacings of the samples.
 
-All functions work on batches of cells: arrays carry the batch along axis 0.
+All functions work on batches of cells: arrays carry the batch along axis 0, except the ``*_batch_last``
+variants the per-cell stage uses, which carry it on the last (contiguous) axis so that numpy reduces over the
+short sample axes with whole-row operations.
 """
 
 from __future__ import annotations
@@ -101,17 +103,47 @@ def pair_maxima_scalar(values: np.ndarray) -> np.ndarray:
     ndarray, shape (B, m_x)
         ``E[:, k]`` for ``k = 0 .. m_x - 1``; the pair constraints of the SCP depend on a pair only through
         ``|x_l - x_m| = k h_x`` and ``|x'_l - x'_m|``, so these maxima are all the SCP needs.
+
+    Notes
+    -----
+    Computed by :func:`pair_maxima_batch_last` on a transposed copy (the batch on the contiguous last axis:
+    numpy reduces short axes one row at a time, which is slow); maxima and differences are exact, so the
+    result is bit-identical to any evaluation order.
     """
-    vmax = values.max(axis=2)
-    vmin = values.min(axis=2)
-    m = values.shape[1]
-    out = np.empty(values.shape[:2])
-    out[:, 0] = np.max(vmax - vmin, axis=1)
+    vt = np.ascontiguousarray(np.moveaxis(values, 0, -1))  # (m_x, s_w, B)
+    return np.ascontiguousarray(pair_maxima_batch_last(vt.max(axis=1), vt.min(axis=1)).T)
+
+
+def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
+    """:func:`pair_maxima_scalar` from the per-``x``-sample extremes, batch on the last axis.
+
+    Parameters
+    ----------
+    vmax, vmin : ndarray, shape (m_x, B)
+        ``max`` / ``min`` of the successors over the internal-input samples at each state sample.
+
+    Returns
+    -------
+    ndarray, shape (m_x, B)
+        ``E[k] = max_l max(vmax[l + k] - vmin[l], vmax[l] - vmin[l + k])`` (``E[0] = max_l vmax[l] - vmin[l]``).
+    """
+    m = vmax.shape[0]
+    out = np.empty(vmax.shape)
+    np.max(vmax - vmin, axis=0, out=out[0])
     for k in range(1, m):
-        up = vmax[:, k:] - vmin[:, :-k]
-        down = vmax[:, :-k] - vmin[:, k:]
-        out[:, k] = np.maximum(up.max(axis=1), down.max(axis=1))
+        up = (vmax[k:] - vmin[:-k]).max(axis=0)
+        down = (vmax[:-k] - vmin[k:]).max(axis=0)
+        np.maximum(up, down, out=out[k])
     return out
+
+
+#: Largest table (elements, 128 KB) :func:`scp_parameters_batch_last` builds at once; above it, it loops over ``i``.
+SMALL_TABLE = 1 << 14
+
+#: Relative tolerance below which a sample distance ``d_k = k h_x`` counts as equal to the objective weight
+#: ``w`` in :func:`scp_parameters_scalar` (``w`` is often ``(m/2) h_x`` computed another way). It only
+#: decides which of several optimal ``theta`` is returned; the optimal value does not depend on it.
+SCP_TIE_RTOL = 1e-12
 
 
 def scp_parameters_scalar(
@@ -119,17 +151,33 @@ def scp_parameters_scalar(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Solve the corrected SCP (Eq. 4.5, METHOD §2) exactly for a scalar state, in batch.
 
-    The LP per cell, with ``d_k = k h_x``::
+    The LP per cell, with ``d_k = k h_x`` and ``r_k = E_k + rho``::
 
-        min  weight_theta1 * theta1 + theta2
-        s.t. theta1 * d_k + theta2 >= E_k + rho     for k = 0 .. m-1
+        min  w theta1 + theta2                       (w = weight_theta1)
+        s.t. theta1 d_k + theta2 >= r_k              for k = 0 .. m-1
              0 <= theta1 <= L_x,   theta2 >= 0
 
-    It has two variables, so its optimum is a vertex: ``theta1`` is 0, ``L_x``, the slope through two
-    constraint lines' intersection points ``(d_k, E_k + rho)``, or the slope of such a point seen from
-    ``(0, 0)`` (where ``theta2 >= 0`` is active). We evaluate the objective at every candidate (clipped to
-    the bounds, with the smallest feasible ``theta2``) and take the minimum, so the result is the LP optimum
-    up to rounding; :func:`scp_reference` is the same LP through HiGHS, which the tests compare against.
+    Closed form (ENGINEERING.md "Many tiny LPs"). For a fixed ``theta1`` the best ``theta2`` is
+    ``max_k (r_k - theta1 d_k)`` (``>= r_0 >= 0``, so ``theta2 >= 0`` never binds), and the objective
+    ``g(theta1) = max_k (r_k + theta1 (w - d_k))`` is convex and piecewise linear. Split the points at ``w``:
+    ``Lf(theta) = max_{d_i <= w} (...)`` is non-decreasing in ``theta``, ``Rf(theta) = max_{d_j > w} (...)``
+    strictly decreasing, and ``g = max(Lf, Rf)``. The smallest minimiser of ``g`` over the reals is the
+    smallest ``theta`` with ``Lf >= Rf``, i.e. ``∃ i ∀ j: theta >= s_ij``::
+
+        theta* = min_{d_i <= w} max_{d_j > w} s_ij,     s_ij = (r_j - r_i) / (d_j - d_i)
+
+    — the smallest slope of a line supporting the upper concave envelope of the points ``(d_k, r_k)`` at
+    ``d = w``, whose value there is the optimum (``-inf`` when no point lies right of ``w``). ``g`` is
+    convex, so ``clip(theta*, 0, L_x)`` is the smallest minimiser on ``[0, L_x]``; then ``theta2`` is the
+    smallest feasible one. When the optimum is not unique (``w`` equal to an envelope vertex ``d_k``,
+    decided with :data:`SCP_TIE_RTOL`) the smallest optimal ``theta1`` is returned; a generic LP solver may
+    return another optimal vertex, with the same objective but another radius ``theta1 r_x + theta2``
+    (both sound). :func:`scp_reference` is the same LP through HiGHS; the tests compare the two.
+
+    Cost: one quotient per pair ``d_i <= w < d_j`` (at most ``m^2 / 4`` per cell when the cells of a batch
+    split alike, as equal cells do), with the batch on the contiguous axis, instead of evaluating the
+    objective at every one of the ``O(m^2)`` vertices (``O(m^3)``), which the previous implementation did.
+    Where that implementation's best vertex is the bridge ``s_ij`` it is the same quotient, so the same bits.
 
     Parameters
     ----------
@@ -143,31 +191,68 @@ def scp_parameters_scalar(
     -------
     theta1, theta2 : ndarray, shape (B,)
     """
-    B, m = E.shape
-    d = np.arange(m)[None, :] * h_x[:, None]  # (B, m)
-    rhs = E + rho[:, None]
-    cands = [np.zeros((B, 1)), np.full((B, 1), float(L_x))]
-    iu, ju = np.triu_indices(m, k=1)
-    if iu.size:
-        cands.append((rhs[:, ju] - rhs[:, iu]) / (d[:, ju] - d[:, iu]))
-    if m > 1:
-        cands.append(rhs[:, 1:] / d[:, 1:])
-    a = np.clip(np.concatenate(cands, axis=1), 0.0, float(L_x))  # (B, C)
-    best_obj = np.full(B, np.inf)
-    best_a = np.zeros(B)
-    best_b = np.zeros(B)
-    step = max(1, 4_000_000 // max(1, B * m))
-    for s in range(0, a.shape[1], step):
-        ab = a[:, s : s + step]  # (B, c)
-        b = np.maximum(0.0, np.max(rhs[:, None, :] - ab[:, :, None] * d[:, None, :], axis=2))
-        obj = weight_theta1[:, None] * ab + b
-        j = np.argmin(obj, axis=1)
-        o = obj[np.arange(B), j]
-        better = o < best_obj
-        best_obj = np.where(better, o, best_obj)
-        best_a = np.where(better, ab[np.arange(B), j], best_a)
-        best_b = np.where(better, b[np.arange(B), j], best_b)
-    return best_a, best_b
+    E = np.asarray(E, dtype=float)
+    return scp_parameters_batch_last(np.ascontiguousarray(E.T), h_x, rho, L_x, weight_theta1)
+
+
+def scp_parameters_batch_last(
+    E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`scp_parameters_scalar` with ``E`` of shape ``(m, B)`` (the batch on the contiguous axis)."""
+    m, B = E.shape
+    h_x = np.asarray(h_x, dtype=float)
+    w = np.asarray(weight_theta1, dtype=float)
+    d = np.arange(m)[:, None] * h_x[None, :]  # (m, B), the same products as k * h_x anywhere else
+    r = E + np.asarray(rho, dtype=float)[None, :]
+    left = d <= w * (1.0 + SCP_TIE_RTOL)  # d_0 = 0 <= w: never empty
+    theta = np.full(B, -np.inf)  # no point right of w: theta1 = 0 is optimal (clipped below)
+    has_right = ~left[-1]  # d increases with k: the last point is the first to be right of w
+    if has_right.any():
+        # Only the cells with a point right of w, on their own columns (each cell's LP is its own).
+        cols = slice(None) if has_right.all() else np.flatnonzero(has_right)
+        theta[cols] = _bridge_slopes(r[:, cols], d[:, cols], left[:, cols])
+    theta1 = np.clip(theta, 0.0, float(L_x))
+    theta2 = np.maximum(0.0, np.max(r - theta1[None, :] * d, axis=0))
+    return theta1, theta2
+
+
+def _bridge_slopes(r: np.ndarray, d: np.ndarray, left: np.ndarray) -> np.ndarray:
+    """``min_{i left} max_{j right} (r_j - r_i) / (d_j - d_i)`` per column (see :func:`scp_parameters_scalar`).
+
+    ``r``, ``d``, ``left`` have shape ``(m, C)``; every column has a point right of ``w`` (``~left``), and
+    ``left`` is a prefix of each column (``d`` increases), with ``left[0]`` true.
+    """
+    m, C = r.shape
+    right = ~left
+    lefts = np.flatnonzero(left.any(axis=1))  # indices i left of w in some column (a prefix)
+    j0 = int(np.flatnonzero(right.any(axis=1))[0])  # >= 1
+    r_right = np.where(right, r, -np.inf)  # a non-right j gives slope -inf: it never raises the max
+    i_end = int(lefts[-1]) + 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if i_end * (m - j0) * C <= SMALL_TABLE:
+            # Small batch: every (i, j) at once (a few calls instead of a few per i; the same quotients).
+            s = (r_right[None, j0:] - r[:i_end, None]) / (d[None, j0:] - d[:i_end, None])  # (i, j, C)
+            ahead = np.arange(j0, m)[None, :] > np.arange(i_end)[:, None]  # only j > i is a pair
+            s = np.where(ahead[:, :, None], s, -np.inf).max(axis=1)
+            return np.where(left[:i_end], s, np.inf).min(axis=0)
+        theta = np.full(C, np.inf)
+        num = np.empty((m - j0, C))
+        den = np.empty((m - j0, C))
+        best = np.empty(C)
+        for i in lefts:
+            i = int(i)
+            j = max(i + 1, j0)
+            if j >= m:
+                break
+            k = m - j
+            np.subtract(r_right[j:], r[i], out=num[:k])
+            np.subtract(d[j:], d[i], out=den[:k])
+            np.divide(num[:k], den[:k], out=num[:k])
+            np.max(num[:k], axis=0, out=best)  # max over j right of w of s_ij
+            if i:  # (i = 0 is left everywhere)
+                np.copyto(best, np.inf, where=~left[i])
+            np.minimum(theta, best, out=theta)
+    return theta
 
 
 def scp_reference(

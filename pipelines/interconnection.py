@@ -61,6 +61,7 @@ of the composed state, indexed on that coordinate's state grid) or ``"z0"``; out
 
 from __future__ import annotations
 
+import ast
 import itertools
 import math
 import time
@@ -70,6 +71,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .blackbox import BlackBox
 from .errors import CertificationError, LipschitzError, SpecError
 from .grid import UniformGrid
 from .mdec import NodePlan, mdec
@@ -81,6 +83,9 @@ MAX_CERTIFY_CELLS = 4_000_000
 MAX_NODE_ENTRIES = 50_000_000
 #: Points per call of the black box (bounds memory: a call holds ``(rows, n)`` and ``(rows, p)`` floats).
 EVAL_ROWS = 400_000
+#: Points per call of one output in ``direct`` mode: small enough that the expression's temporaries stay in
+#: cache and are reused by the allocator (large fresh arrays cost page faults on every call).
+DIRECT_ROWS = 131_072
 #: Relative change of ``M_j`` that counts as "depends on this coordinate".
 DEPENDENCE_RTOL = 1e-9
 #: Relative held-out residual above which a map declared linear is refuted.
@@ -400,15 +405,87 @@ class _Sampler:
         self.evaluations += x.shape[0]
         cols = range(self.w_lb.size) if columns is None else columns
         for j in cols:
-            bad = (out[:, j] < self.w_lb[j]) | (out[:, j] > self.w_ub[j])
-            if bad.any():
-                r = int(np.argmax(bad))
-                raise SpecError(
-                    f"interconnection map: internal variable w{j} = {float(out[r, j])!r} at x = {x[r].tolist()} lies "
-                    f"outside its box [{self.w_lb[j]}, {self.w_ub[j]}] (interconnection.internal[{j}]); the map "
-                    "must take its values in the internal boxes: widen that box"
-                )
+            self._check_box(j, out[:, j], lambda r: x[r])
         return out
+
+    def _check_box(self, j: int, values: np.ndarray, point: Callable[[int], np.ndarray]) -> None:
+        bad = (values < self.w_lb[j]) | (values > self.w_ub[j])
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise SpecError(
+                f"interconnection map: internal variable w{j} = {float(values[r])!r} at x = {point(r).tolist()} lies "
+                f"outside its box [{self.w_lb[j]}, {self.w_ub[j]}] (interconnection.internal[{j}]); the map "
+                "must take its values in the internal boxes: widen that box"
+            )
+
+    def column(self, j: int) -> tuple[Callable[[np.ndarray], np.ndarray], bool]:
+        """An evaluator of output ``j`` alone on states given transposed, ``xt`` of shape ``(n, B)`` -> ``(B,)``.
+
+        The values are checked like :meth:`__call__` (finite, inside internal box ``j``). Where the map is a
+        list literal ``[e_0, e_1, ...]`` of elementwise entries, row ``j`` of the map is entry ``j`` evaluated
+        alone (``pipelines.expr`` stacks the entries' values, one row each, each computed by its own compiled
+        closure), so entry ``j`` is compiled on its own (through the same expression compiler, with the
+        map's constants) and the other outputs are not computed. It is also checked to give the map's row
+        ``j`` bit for bit on a few states. Otherwise (a vector expression, a module function, nested lists,
+        any doubt) the whole map is evaluated and column ``j`` kept.
+
+        Returns ``(evaluator, alone)``; ``alone`` says whether entry ``j`` is evaluated by itself.
+        """
+        entry = self._entry(j)
+
+        def whole(xt: np.ndarray) -> np.ndarray:
+            return self(xt.T, columns=[j])[:, j]
+
+        if entry is None:
+            return whole, False
+
+        def alone(xt: np.ndarray) -> np.ndarray:
+            y = entry(xt.T)[:, 0]
+            self.evaluations += y.shape[0]
+            self._check_box(j, y, lambda r: xt[:, r])
+            return y
+
+        return alone, True
+
+    def _entry(self, j: int) -> BlackBox | None:
+        """Entry ``j`` of a list-literal map as a black box of its own, or ``None`` (see :meth:`column`)."""
+        from .spec import is_module_function
+
+        source = self.map.source
+        if is_module_function(source):
+            return None
+        try:
+            text = source.lstrip()
+            body = ast.parse(text, mode="eval").body
+        except (SyntaxError, ValueError, RecursionError, MemoryError):  # pragma: no cover - the map compiled
+            return None
+        if not isinstance(body, (ast.List, ast.Tuple)) or len(body.elts) != self.w_lb.size:
+            return None  # not one elementwise entry per output
+        elt = body.elts[j]
+        if isinstance(elt, (ast.List, ast.Tuple, ast.Starred)):
+            return None
+        segment = ast.get_source_segment(text, elt)
+        if segment is None:  # pragma: no cover
+            return None
+        n = self.lb.size
+        try:
+            box = BlackBox(f"interconnection map (output w{j})", f"({segment})", {"x": n}, 1,
+                           self.network.constants, ())
+        except Exception:  # a vector entry (out_dim != 1), or anything unexpected: evaluate the whole map
+            return None
+        # Bit-for-bit agreement with the whole map on a few states (a local generator: the job's stream of
+        # random numbers is not touched).
+        probe = np.random.default_rng(j).uniform(self.lb, self.ub, (64, n))
+        probe[0] = self.lb
+        probe[1] = self.ub
+        probe[2] = self.centre
+        try:
+            with np.errstate(all="ignore"):
+                # the entry on states laid out as direct_node lays them out (transposed), the map as before
+                same = np.array_equal(box(np.ascontiguousarray(probe.T).T)[:, 0], self.map(probe)[:, j])
+        except Exception:  # e.g. a non-finite value at a probe: let the whole map report it
+            return None
+        return box if same else None
 
 
 def _rel_change(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -625,7 +702,7 @@ def _eps_certify(
     worst = 0.0
     for start in range(0, total, EVAL_ROWS):
         flat = np.arange(start, min(total, start + EVAL_ROWS))
-        idx = np.unravel_index(flat, shape) if shape else ()
+        idx = _unravel(flat, shape)
         X = np.repeat(sample.centre[None], flat.size, axis=0)
         r_max = np.zeros(flat.size)
         lin_r = np.zeros(flat.size)
@@ -639,6 +716,24 @@ def _eps_certify(
         worst = max(worst, float(bound.max(initial=0.0)))
     info["cells"] = total
     return worst + _fp_margin(row, b, xmax), info
+
+
+def _unravel(flat: np.ndarray, shape: Sequence[int]) -> tuple[np.ndarray, ...]:
+    """``np.unravel_index(flat, shape)`` for any number of axes (numpy allows at most 64).
+
+    Row-major, by ``divmod`` from the last axis; an axis of one cell gets index 0 without arithmetic, so a
+    support of 128 coordinates certified on one cell (the scalability example) costs nothing.
+    """
+    flat = np.asarray(flat, dtype=np.int64)
+    out: list[np.ndarray] = []
+    rest = flat
+    for size in reversed(shape):
+        if size == 1:
+            out.append(np.zeros_like(flat))
+        else:
+            rest, q = np.divmod(rest, size)
+            out.append(q)
+    return tuple(reversed(out))
 
 
 def _subgrid_counts(samples: int, s: int) -> list[int]:
@@ -720,6 +815,17 @@ def direct_node(
     the cell is within ``h/2`` of a sample, so ``M_j`` lies in ``[min - m, max + m]`` with
     ``m = L_M ||h/2||_inf + extra`` (``extra``: largest change seen when the non-support coordinates moved).
 
+    The non-support coordinates are held at the centre on the strength of the support validation (all of them
+    resampled at once on ``holdout`` states moved ``M_j`` by at most ``extra``, which is in the margin); how
+    ``M_j`` is evaluated does not touch that argument. Where the map allows it only output ``j`` is evaluated
+    (:meth:`_Sampler.column`: entry ``j`` of a list map, compiled alone), on states laid out transposed,
+    ``(n, points)``, in a buffer whose non-support rows are written once; the points are ordered sample-major
+    (sub-grid point, then cell), so the extremes per cell are reductions over the leading axis. Sample values,
+    map values and extremes are the same numbers as when the whole map was evaluated on ``(points, n)`` rows
+    (the entry is the same compiled closure; IEEE arithmetic and ``sqrt`` do not depend on memory layout, and
+    the tests find identical nodes on maps with ``exp`` and ``tanh`` too); any difference of a transcendental
+    function in the last bit would be covered by the relative margin ``FP_RTOL`` below.
+
     Returns ``(node, largest margin m)``.
     """
     grid = sample.network.composed_state_grid()
@@ -737,22 +843,26 @@ def direct_node(
     lo = np.empty(total, dtype=np.int32)
     hi = np.empty(total, dtype=np.int32)
     worst_margin = 0.0
-    step = max(1, EVAL_ROWS // Q)
+    evaluate, _ = sample.column(j)
+    step = max(1, DIRECT_ROWS // Q)
+    xt_buf = np.empty((sample.lb.size, Q * min(step, total)))
+    xt_buf[...] = sample.centre[:, None]  # non-support coordinates: the box centre, for every block
     for start in range(0, total, step):
         flat = np.arange(start, min(total, start + step))
-        idx = np.unravel_index(flat, shape) if shape else ()
-        X = np.repeat(sample.centre[None], flat.size * Q, axis=0)
-        h_max = np.zeros(flat.size)
+        F = flat.size
+        idx = _unravel(flat, shape)
+        xt = xt_buf[:, : Q * F]
+        h_max = np.zeros(F)
         for d, i in enumerate(support):
             c_lo = bounds[d][0][idx[d], 0]
             width = bounds[d][1][idx[d], 0] - c_lo
             h = width / counts[d]
             h_max = np.maximum(h_max, h)
-            X[:, i] = (c_lo[:, None] + offsets[None, :, d] * width[:, None]).ravel()
-        y = sample(X, columns=[j])[:, j].reshape(flat.size, Q)
+            xt[i].reshape(Q, F)[...] = c_lo[None, :] + offsets[:, d, None] * width[None, :]
+        y = evaluate(xt).reshape(Q, F)
         margin = L * h_max / 2 + extra
         worst_margin = max(worst_margin, float(margin.max(initial=0.0)))
-        vmin, vmax = y.min(axis=1), y.max(axis=1)
+        vmin, vmax = y.min(axis=0), y.max(axis=0)
         fp = FP_RTOL * np.maximum(np.abs(vmin), np.abs(vmax)) + FP_ATOL
         lo[flat], hi[flat] = _clip_range(output_grid, vmin - margin - fp, vmax + margin + fp)
     node = NodeRelation(

@@ -387,3 +387,84 @@ def test_direct_falls_back_to_certify_above_sigma():
     ia = abstract_interconnection(net, np.random.default_rng(0), max_certify_cells=5_000)
     assert ia.output_modes == ("certify",) and [n.output for n in ia.nodes] == ["z0", "z1", "w0"]
     assert violations(net, ia, 20_000, seed=16) == 0
+
+
+# ============================================================================ many coordinates, one output alone
+def test_unravel_beyond_numpys_64_axes():
+    from pipelines.interconnection import _unravel
+
+    for shape in [(3,), (4, 1, 5), (2, 3, 4, 5), (1,) * 5]:
+        flat = np.arange(int(np.prod(shape)))
+        got = _unravel(flat, shape)
+        assert all(np.array_equal(a, b) for a, b in zip(got, np.unravel_index(flat, shape)))
+    shape = (1,) * 40 + (3,) + (1,) * 40 + (2,)
+    got = _unravel(np.arange(6), shape)
+    assert len(got) == 82 and got[40].tolist() == [0, 0, 1, 1, 2, 2] and got[81].tolist() == [0, 1] * 3
+    assert _unravel(np.arange(1), ()) == ()
+
+
+def test_max_of_70_states_is_certified_on_one_cell():
+    """The scalability example's map at N = 70: a support of 70 coordinates (more axes than numpy allows)."""
+    net = network(70, 0, 32, 1, map="max(x)", internal={"lb": 0, "ub": 32, "eta": 1}, samples=200,
+                  alpha=1e-6, sigma=4, error="certify", lipschitz=1.0)
+    ia = abstract_interconnection(net, np.random.default_rng(0))
+    assert ia.supports == (tuple(range(70)),)
+    res = ia.details["certify_resolution"]["w0"]
+    assert res["cells_per_axis"] == [1] * 70 and res["cells"] == 1
+    assert np.isfinite(ia.error_bounds[0])
+    assert violations(net, ia, 2_000, seed=70) == 0
+
+
+SPLIT_MAP = "[sqrt(x[0]), (sqrt(x[0]) + exp(-x[1] / 50)) / 2, 0, tanh(x[2] / 40) + sqrt(x[3]) / 4]"
+
+
+def split_network() -> Network:
+    return network(4, 1, 100, 2.5, map=SPLIT_MAP, internal={"lb": 0, "ub": 10.5, "eta": 0.25}, samples=80,
+                   alpha="cv", sigma=4, error="direct", lipschitz=0.5)
+
+
+def test_direct_nodes_evaluate_one_output_alone_and_are_unchanged(monkeypatch):
+    """Entry j of a list map evaluated by itself gives the node that evaluating the whole map gives."""
+    from pipelines import interconnection as ic
+
+    net = split_network()
+    alone = abstract_interconnection(net, np.random.default_rng(3))
+    sampler = ic._Sampler(net)
+    assert all(sampler.column(j)[1] for j in range(4))
+    monkeypatch.setattr(ic._Sampler, "_entry", lambda self, j: None)
+    assert not ic._Sampler(net).column(1)[1]
+    whole = abstract_interconnection(net, np.random.default_rng(3))
+    assert alone.output_modes == whole.output_modes == ("direct",) * 4
+    for a, b in zip(alone.nodes, whole.nodes):
+        assert a.output == b.output and a.inputs == b.inputs
+        np.testing.assert_array_equal(a.lo, b.lo)
+        np.testing.assert_array_equal(a.hi, b.hi)
+        assert a.error_bound == b.error_bound
+    assert alone.details["evaluations"] == whole.details["evaluations"]
+    assert violations(net, alone, 20_000, seed=5) == 0
+
+
+@pytest.mark.parametrize("map_,p", [("x[0:2]", 2), ("[x[0:2], x[2]]", 3), ("mean(x)", 1)])
+def test_maps_that_are_not_a_list_of_entries_are_evaluated_whole(map_, p):
+    net = network(4, 0, 32, 1, map=map_, internal={"lb": 0, "ub": 32, "eta": 1}, samples=20, error="linear")
+    sampler = __import__("pipelines.interconnection", fromlist=["_Sampler"])._Sampler(net)
+    for j in range(p):
+        evaluate, alone = sampler.column(j)
+        assert not alone
+        xt = np.full((4, 3), 7.0)
+        np.testing.assert_array_equal(evaluate(xt), net.interconnection_map(xt.T)[:, j])
+
+
+def test_an_output_evaluated_alone_is_checked_like_the_whole_map():
+    from pipelines.errors import BlackBoxError
+    from pipelines.interconnection import _Sampler
+
+    net = network(2, 0, 32, 1, map="[x[0] / 2, 2 * sqrt(x[1])]", internal={"lb": 0, "ub": 32, "eta": 1},
+                  samples=50, error="direct", lipschitz=2.0)
+    evaluate, alone = _Sampler(net).column(1)
+    assert alone
+    np.testing.assert_array_equal(evaluate(np.array([[3.0, 3.0], [4.0, 16.0]])), [4.0, 8.0])
+    with pytest.raises(SpecError, match=r"w1 = 34\.0 at x = \[3\.0, 289\.0\] lies outside its box"):
+        evaluate(np.array([[3.0, 3.0], [4.0, 289.0]]))
+    with pytest.raises(BlackBoxError, match=r"output w1.*not finite"):
+        evaluate(np.array([[3.0], [-1.0]]))

@@ -1,12 +1,22 @@
 """Soundness of subsystem abstractions (Algorithm 1): random concrete transitions against the relation."""
 
+import hashlib
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from pipelines.audit import audit_subsystem
 from pipelines.network import build_network
 from pipelines.spec import load_spec
-from pipelines.subsystem import SubsystemRelation, abstract_cells, assemble, chunk_ranges
+from pipelines.subsystem import (
+    STATISTICS_SAMPLE,
+    SubsystemRelation,
+    abstract_cells,
+    assemble,
+    chunk_ranges,
+    statistics_sample,
+)
 
 from .conftest import EXAMPLES
 
@@ -58,7 +68,9 @@ def test_chunking_does_not_change_the_relation():
 def test_growth_bounds_are_ordered_as_the_method_says():
     """hull <= scp (radius objective) <= scp (paper objective) <= lipschitz, in mean successors."""
     sub = _distinct("consensus")[0]
-    _, res = _relation(sub, "scp")
+    L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
+    res = [abstract_cells(sub, a, b, L_x, L_w, "scp", "paper", full_statistics=True)
+           for a, b in chunk_ranges(sub, None)]
     tot = {}
     for r in res:
         for k, (s, c) in r.successors.items():
@@ -95,3 +107,177 @@ def test_a_subsystem_without_internal_inputs():
         rel, _ = _relation(sub, method)
         assert rel.blocking.shape == (21, 3, 1)
         assert audit_subsystem(sub, rel, 50_000, np.random.default_rng(0)).violations == 0
+
+
+# ----------------------------------------------------------------------------- against the implementation before
+def _digest(rel) -> str:
+    h = hashlib.sha256()
+    for a in (rel.lo.astype(np.int32), rel.hi.astype(np.int32), rel.blocking.astype(bool)):
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+#: Relations (digest of lo, hi, blocking) and successor statistics (sum, non-blocking triples) of every distinct
+#: subsystem of the examples, computed by the implementation before the per-cell stage was rewritten (batch-first
+#: samples, the SCP by enumerating all O(m^2) candidate slopes for both objectives). ``small`` has the consensus
+#: agent. The rewrite must give the same bits: these are IEEE operations in the same order on the same values
+#: (maxima and minima are exact in any order), and the SCP's theta is the same slope computed the same way.
+BEFORE = {
+    "consensus:agent[0]": {
+        "digests": {"lipschitz": "51d54e76b3e19eac", "scp": "99c9431e4e866bbb", "scp_radius": "594dcf9fea45463c",
+                    "hull": "831c13afce47224e"},
+        "successors": {"lipschitz": (14951, 5269), "hull": (11341, 5445), "scp": (14535, 5445),
+                       "scp_radius": (13839, 5445)},
+    },
+    "scalability:sys[0]": {
+        "digests": {"lipschitz": "9f8e8be1deffcbe9", "scp": "bf2691569d2b8da9", "scp_radius": "2c987186745ba31f",
+                    "hull": "8831e64616842b99"},
+        "successors": {"lipschitz": (26815, 8646), "hull": (19537, 8679), "scp": (24238, 8646),
+                       "scp_radius": (21983, 8679)},
+    },
+    "tanks:tank1": {
+        "digests": {"lipschitz": "d4b2e8805de0e873", "scp": "d4b2e8805de0e873", "scp_radius": "d4b2e8805de0e873",
+                    "hull": "4f188a810fe82ee4"},
+        "successors": {"lipschitz": (558, 285), "hull": (552, 285), "scp": (558, 285), "scp_radius": (558, 285)},
+    },
+    "tanks:tank2": {
+        "digests": {"lipschitz": "e9b97e2702675d76", "scp": "e9b97e2702675d76", "scp_radius": "e9b97e2702675d76",
+                    "hull": "b4e6d24b7686abad"},
+        "successors": {"lipschitz": (3499, 1750), "hull": (3468, 1752), "scp": (3499, 1750),
+                       "scp_radius": (3499, 1750)},
+    },
+}
+
+
+@pytest.mark.parametrize("key", sorted(BEFORE))
+def test_relations_are_bit_identical_to_the_implementation_before(key):
+    case, name = key.split(":")
+    sub = next(s for s in _distinct(case) if s.name == name)
+    L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
+    for method, objective, chosen in (("lipschitz", "paper", "lipschitz"), ("scp", "paper", "scp"),
+                                      ("scp", "radius", "scp_radius"), ("hull", "paper", "hull")):
+        res = [abstract_cells(sub, a, b, L_x, L_w, method, objective, full_statistics=True)
+               for a, b in chunk_ranges(sub, None)]
+        rel = assemble(res, sub.state_grid.size, method, L_x, L_w)
+        assert _digest(rel) == BEFORE[key]["digests"][chosen], (method, objective)
+        tot = {}
+        for r in res:
+            for k, (a, c) in r.successors.items():
+                t = tot.setdefault(k, [0, 0])
+                t[0] += a
+                t[1] += c
+        assert {k: tuple(v) for k, v in tot.items()} == BEFORE[key]["successors"]
+
+
+class _Recorder:
+    """Wraps a black box and keeps the arrays of its first call (the samples of ``abstract_cells``)."""
+
+    def __init__(self, box):
+        self.box, self.args, self.out = box, None, None
+
+    def __call__(self, *arrays, describe=None):
+        out = self.box(*arrays, describe=describe)
+        if self.args is None:
+            self.args, self.out = arrays, out
+        return out
+
+
+@pytest.mark.parametrize("case,which", [("consensus", 0), ("scalability", 0), ("tanks", 0), ("tanks", 1),
+                                        ("small", 0)])
+def test_scp_relation_matches_the_reference_lp_on_real_cells(case, which):
+    """On a subset of the triples of each example: theta from the reference LP (HiGHS, every sample pair) on
+    the pipeline's own samples, the box C +- min(radius, Lipschitz radius) snapped to cells, must give the
+    relation's lo/hi/blocking exactly; the radii agree to 1e-9."""
+    from pipelines.growth_bound import (
+        lipschitz_radius,
+        pair_maxima_scalar,
+        scp_parameters_scalar,
+        scp_reference,
+        scp_rho,
+        subgrid_counts,
+        widen,
+    )
+
+    sub = _distinct(case)[which]
+    L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
+    xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
+    a, b = chunk_ranges(sub, None)[0]
+    counts = subgrid_counts(sub.spec.samples, sub.n + sub.p)
+    Sx, Sw = counts[0], int(np.prod(counts[1:]))
+    n_u, n_w = ug.size, wg.size
+    B = (b - a) * n_u * n_w
+    rng = np.random.default_rng(len(case) + which)
+    triples = rng.choice(B, size=min(B, 12), replace=False)
+    ci, ui, wi = np.unravel_index(triples, (b - a, n_u, n_w))
+    x_lo, x_hi = xg.clipped_cells(xg.unravel(a + ci))
+    w_lo, w_hi = wg.clipped_cells(wg.unravel(wi))
+    rx, rw = (x_hi - x_lo) / 2, (w_hi - w_lo) / 2
+    hx, hw = 2 * rx / counts[0], 2 * rw / np.asarray(counts[1:], dtype=float)
+    rho = scp_rho(hx, hw, L_x, L_w)
+    lip = lipschitz_radius(rx, rw, L_x, L_w)
+    u = ug.points(ug.unravel(ui))
+    C = sub.dynamics((x_lo + x_hi) / 2, u, (w_lo + w_hi) / 2)[:, 0]
+    for objective in ("paper", "radius"):
+        rec = _Recorder(sub.dynamics)
+        res = abstract_cells(replace(sub, dynamics=rec), a, b, L_x, L_w, "scp", objective)
+        X = rec.args[0].reshape(Sx, Sw, B)
+        V = rec.out.reshape(Sx, Sw, B)
+        for k, t in enumerate(triples):
+            w = np.array([1.0 if objective == "paper" else rx[k, 0]])
+            th1, th2 = scp_reference(X[:, :, t].reshape(-1, 1), V[:, :, t].reshape(-1, 1), float(rho[k]), L_x, w)
+            t1, t2 = scp_parameters_scalar(pair_maxima_scalar(V[None, :, :, t]), hx[k], rho[k : k + 1], L_x, w)
+            assert abs((t1[0] - th1[0, 0]) * rx[k, 0] + t2[0] - th2[0]) <= 1e-9 * max(1.0, th2[0])
+            rad = min(th1[0, 0] * rx[k, 0] + th2[0], lip[k])
+            lo, hi = widen(np.array([[C[k] - rad]]), np.array([[C[k] + rad]]))
+            blocked = bool(lo[0, 0] < xg.lb[0] or hi[0, 0] > xg.ub[0])
+            first, last = xg.cells_touching(lo, hi)
+            assert res.blocking[ci[k], ui[k], wi[k]] == blocked, (objective, t)
+            if not blocked:
+                assert res.lo[ci[k], ui[k], wi[k], 0] == max(first[0, 0], 0), (objective, t)
+                assert res.hi[ci[k], ui[k], wi[k], 0] == min(last[0, 0], xg.size - 1), (objective, t)
+
+
+# ----------------------------------------------------------------------------- sampled statistics
+def test_the_other_scp_objective_is_counted_on_a_fixed_sample():
+    """The objective that does not build the relation is counted on ~STATISTICS_SAMPLE of the triples, the same
+    triples however the cells are chunked; every other count is exact; the estimate is close."""
+    sub = _distinct("consensus")[0]
+    L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
+
+    def totals(chunk_cells, full):
+        tot = {}
+        for a, b in chunk_ranges(sub, chunk_cells):
+            r = abstract_cells(sub, a, b, L_x, L_w, "scp", "paper", full_statistics=full)
+            for k, (s, c) in r.successors.items():
+                t = tot.setdefault(k, [0, 0])
+                t[0] += s
+                t[1] += c
+        return tot
+
+    full, sampled, chunked = totals(None, True), totals(None, False), totals(5, False)
+    assert sampled == chunked
+    for k in ("lipschitz", "hull", "scp"):
+        assert sampled[k] == full[k]
+    s, c = sampled["scp_radius"]
+    assert abs(c - STATISTICS_SAMPLE * sub.triples) < 0.1 * STATISTICS_SAMPLE * sub.triples
+    exact = full["scp_radius"][0] / full["scp_radius"][1]
+    assert abs(s / c - exact) < 0.02 * exact
+    picked = statistics_sample(0, sub.triples)
+    T = sub.triples
+    assert np.array_equal(np.concatenate([statistics_sample(a, min(100, T - a)) + a for a in range(0, T, 100)]), picked)
+
+
+def test_small_and_large_chunks_take_different_paths_to_the_same_bits(monkeypatch):
+    import pipelines.subsystem as subsystem
+
+    sub = _distinct("scalability")[0]
+    L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
+    out = []
+    for small in (0, 1 << 30):
+        monkeypatch.setattr(subsystem, "SMALL_PASS", small)
+        out.append(abstract_cells(sub, 3, 9, L_x, L_w, "scp", "radius"))
+    for f in ("lo", "hi", "blocking"):
+        np.testing.assert_array_equal(getattr(out[0], f), getattr(out[1], f))
+    assert out[0].successors == out[1].successors
+    assert out[0].slope_x == out[1].slope_x and out[0].slope_w == out[1].slope_w
