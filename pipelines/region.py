@@ -110,11 +110,14 @@ def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = 
         concrete.append((lb, ub))
     if region.consensus is not None:
         first, last, step = region.consensus.centers
+        if not all(math.isfinite(v) for v in (first, last, step, region.consensus.radius)):
+            raise SpecError(f"{name}.consensus: centers and radius must be finite numbers")
         if step <= 0 or last < first:
             raise SpecError(f"{name}.consensus.centers: need first <= last and step > 0")
-        count = int(math.floor((last - first) / step * (1 + 1e-12))) + 1
-        if count > 100_000:
-            raise SpecError(f"{name}.consensus.centers: {count} centres, the limit is 100000")
+        span = (last - first) / step * (1 + 1e-12)  # may overflow to inf for a tiny step
+        if not math.isfinite(span) or span >= 100_000:
+            raise SpecError(f"{name}.consensus.centers: more than 100000 centres ((last - first) / step = {span:.3g})")
+        count = int(math.floor(span)) + 1
         for k in range(count):
             phi = first + k * step
             r = region.consensus.radius

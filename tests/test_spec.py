@@ -110,3 +110,18 @@ def test_the_saved_controller_must_be_computed():
         parse_spec(data)
     data["options"]["controller"] = "reach_safe"
     assert parse_spec(data).options.fixed_points == ["reach_safe"]
+
+
+@pytest.mark.parametrize("centers", [[0, 1e308, 1e-308], [0, 31, 1e-9], [0, float("inf"), 1], [float("nan"), 31, 1]])
+def test_consensus_centres_that_overflow_are_a_spec_error(centers):
+    """Found by hypothesis through POST /jobs: a tiny step made the centre count inf (a 500 before)."""
+    import yaml
+
+    from pipelines.job import spec_regions
+    from pipelines.network import build_network
+
+    data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
+    data["specification"]["target"]["consensus"]["centers"] = centers
+    with pytest.raises(SpecError, match="consensus"):
+        spec = parse_spec(data)
+        spec_regions(spec, build_network(spec, None))
