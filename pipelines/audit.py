@@ -113,6 +113,18 @@ def audit_subsystem(sub: Subsystem, rel: SubsystemRelation, count: int, rng: np.
     return AuditResult(checked, violations, skipped, first)
 
 
+def _internal_cells(network: Network, w: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Cells of concrete internal inputs ``w``, shape (B, p) (either cell on a boundary; 0 outside the box),
+    and whether every component lies in its internal box, shape (B,)."""
+    w_idx = np.zeros(w.shape, dtype=np.int64)
+    inside_all = np.ones(w.shape[0], dtype=bool)
+    for j, g in enumerate(network.internal_grids):
+        inside = (w[:, j] >= g.lb[0]) & (w[:, j] <= g.ub[0])
+        w_idx[:, j] = np.where(inside, _either_cell(g, np.clip(w[:, j : j + 1], g.lb[0], g.ub[0]), rng)[:, 0], 0)
+        inside_all &= inside
+    return w_idx, inside_all
+
+
 def audit_interconnection(network: Network, ia, count: int, rng: np.random.Generator) -> AuditResult:
     """Check ``count`` random concrete states: the cell of ``M(x)`` must be in ``M̂(cell(x))`` (Thm 4.7)."""
     grid = network.composed_state_grid()
@@ -125,12 +137,7 @@ def audit_interconnection(network: Network, ia, count: int, rng: np.random.Gener
         x = draw_in_box(grid, b, rng)
         x_idx = _either_cell(grid, x, rng)
         w = network.interconnection_map(x)
-        w_idx = np.empty(w.shape, dtype=np.int64)
-        ok = np.ones(b, dtype=bool)
-        for j, g in enumerate(network.internal_grids):
-            inside = (w[:, j] >= g.lb[0]) & (w[:, j] <= g.ub[0])
-            w_idx[:, j] = np.where(inside, _either_cell(g, np.clip(w[:, j : j + 1], g.lb[0], g.ub[0]), rng)[:, 0], 0)
-            ok &= inside
+        w_idx, ok = _internal_cells(network, w, rng)
         safe_idx = np.where(ok[:, None], w_idx, 0)
         ok &= ia.contains(x_idx, safe_idx)
         checked += b
@@ -200,13 +207,7 @@ def audit_composition(
         x = draw_in_box(grid, b, rng)
         x_idx = _either_cell(grid, x, rng)
         w = network.interconnection_map(x)
-        p = len(network.internal_grids)
-        w_idx = np.zeros((b, p), dtype=np.int64)
-        w_in = np.ones(b, dtype=bool)
-        for j, g in enumerate(network.internal_grids):
-            inside = (w[:, j] >= g.lb[0]) & (w[:, j] <= g.ub[0])
-            w_idx[:, j] = np.where(inside, _either_cell(g, np.clip(w[:, j : j + 1], g.lb[0], g.ub[0]), rng)[:, 0], 0)
-            w_in &= inside
+        w_idx, w_in = _internal_cells(network, w, rng)
         bad_w = ~(w_in & ia.contains(x_idx, w_idx))
         blocked = np.zeros(b, dtype=bool)
         bad_sub = np.zeros(b, dtype=bool)
