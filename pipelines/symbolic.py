@@ -22,8 +22,9 @@ codes ``0 .. K-1`` and saves a bit wherever ``K`` is a power of two (the brief o
 
 Variable order (chosen on purpose, declared in level order, dynamic reordering off: ENGINEERING "dd/CUDD")
 
-* ``"interleaved"`` (the tanks, METHOD §6): one block per subsystem, blocks in the order :func:`block_order`
-  picks (coupled subsystems close together); in a block first the
+* ``"interleaved"`` (the tanks, METHOD §6): one block per subsystem, blocks in the order :func:`reader_order`
+  picks (each below the blocks it reads, chains contiguous) or, for cyclic couplings, :func:`block_order`
+  (coupled subsystems close together); in a block first the
   bits of the internal variables it reads (each preceded by the ``z`` of its MDec tree) unless already
   declared, then its input bits, then current and next bits interleaved (``x{i}_0, xn{i}_0, x{i}_1, ...``).
   Internal variables nobody reads go on top.
@@ -156,11 +157,11 @@ class SubsystemLayout:
                    sub.state_offset, sub.name)
 
 
-def dependency_edges(layouts: Sequence[SubsystemLayout], nodes: Sequence["NodeRelation"]) -> set[tuple[int, int]]:
-    """Pairs of subsystems (positions in ``layouts``) coupled through the interconnection.
+def dependency_arcs(layouts: Sequence[SubsystemLayout], nodes: Sequence["NodeRelation"]) -> set[tuple[int, int]]:
+    """Directed couplings ``(reader, read)`` between subsystems (positions in ``layouts``).
 
-    Subsystem ``i`` is coupled to ``j`` when ``i`` reads an internal variable whose MDec tree reads a state
-    coordinate of ``j`` (``i != j``); pairs are unordered, ``(min, max)``.
+    Subsystem ``i`` reads ``j`` when it reads an internal variable whose MDec tree reads a state coordinate of
+    ``j`` (``i != j``).
     """
     feeds: dict[str, set[str]] = {}
     for node in nodes:
@@ -177,14 +178,54 @@ def dependency_edges(layouts: Sequence[SubsystemLayout], nodes: Sequence["NodeRe
         return out
 
     owner = {c: k for k, s in enumerate(layouts) for c in s.coords}
-    edges: set[tuple[int, int]] = set()
+    arcs: set[tuple[int, int]] = set()
     for i, s in enumerate(layouts):
         for j in s.reads:
             for c in x_support(f"w{j}"):
                 k = owner.get(c)
                 if k is not None and k != i:
-                    edges.add((min(i, k), max(i, k)))
-    return edges
+                    arcs.add((i, k))
+    return arcs
+
+
+def dependency_edges(layouts: Sequence[SubsystemLayout], nodes: Sequence["NodeRelation"]) -> set[tuple[int, int]]:
+    """:func:`dependency_arcs` as unordered pairs ``(min, max)``."""
+    return {(min(a, b), max(a, b)) for a, b in dependency_arcs(layouts, nodes)}
+
+
+def reader_order(n: int, arcs: set[tuple[int, int]]) -> list[int] | None:
+    """A topological order of ``n`` blocks (each after the blocks it reads) that follows the readers.
+
+    Kahn's algorithm where, among the blocks whose inputs are all placed, the next is one that reads the most
+    recently placed block (ties: lowest index): chains of the network (tank 1 -> 2 -> 3 -> 8, ...) stay
+    contiguous and every block sits below what it reads. ``None`` when the couplings have a cycle.
+
+    Why, measured on the 10 tanks (safety fixed point, relations restricted to the safe set, machine idle):
+    this order 0,1,2,7,3,4,6,5,8,9 took 33 s; the minimum linear arrangement of :func:`block_order`
+    (0,1,2,7,9,8,5,3,4,6, length 22) 58 s; over the first 12 iterations other topological orders took 1.5-3x
+    and non-topological ones 1.6-9x (one ran out of time). The iterates of the safety game relate each tank to
+    the tanks upstream of it, which this order keeps above it.
+    """
+    reads: dict[int, set[int]] = {k: set() for k in range(n)}
+    readers: dict[int, list[int]] = {k: [] for k in range(n)}
+    for a, b in arcs:
+        reads[a].add(b)
+        readers[b].append(a)
+    waiting = {k: len(reads[k]) for k in range(n)}
+    ready = sorted(k for k in range(n) if waiting[k] == 0)
+    out: list[int] = []
+    while ready:
+        last = out[-1] if out else None
+        follow = [k for k in ready if last is not None and last in reads[k]]
+        k = min(follow) if follow else ready[0]
+        ready.remove(k)
+        out.append(k)
+        for r in readers[k]:
+            waiting[r] -= 1
+            if waiting[r] == 0:
+                ready.append(r)
+        ready.sort()
+    return out if len(out) == n else None
 
 
 def block_order(n: int, edges: set[tuple[int, int]]) -> list[int]:
@@ -288,7 +329,8 @@ class SymbolicModel:
         JSON-ready grid descriptions, only carried into controller headers.
     blocks : sequence of int, optional
         Order of the subsystems' blocks in the variable order (positions in ``subsystems``; default network
-        order). :meth:`from_network` chooses it with :func:`block_order` for the ``interleaved`` order.
+        order). :meth:`from_network` chooses it for the ``interleaved`` order: :func:`reader_order` when the
+        couplings are acyclic, else :func:`block_order`.
     """
 
     def __init__(
@@ -351,7 +393,12 @@ class SymbolicModel:
         """A model for a network and (optionally) its interconnection abstraction's intermediate variables."""
         nodes = interconnection.nodes if interconnection is not None else ()
         layouts = [SubsystemLayout.of(s) for s in network.subsystems]
-        blocks = block_order(len(layouts), dependency_edges(layouts, nodes)) if order == "interleaved" else None
+        blocks = None
+        if order == "interleaved":
+            arcs = dependency_arcs(layouts, nodes)
+            blocks = reader_order(len(layouts), arcs)
+            if blocks is None:  # cyclic couplings: no block can sit below all it reads
+                blocks = block_order(len(layouts), {(min(a, b), max(a, b)) for a, b in arcs})
         z_sizes = {n.output: n.output_grid.size for n in nodes if n.output.startswith("z")}
         grids = {
             "state": [s.state_grid.describe() for s in network.subsystems],

@@ -31,7 +31,9 @@ Loops that need the controller only at convergence use :meth:`Game.predecessors`
 ``and_exists``, never materialising ``CPre``).
 
 Measured (2-core machine, dd 0.6.0 / CUDD 3.0.0): 10 tanks, scp bound, Reach(Safe(φ)) 102 s (safety 24
-iterations, 100 s; widest-last schedule and materialised CPre: 340 s); hull bound 42 s. Consensus with shared
+iterations, 100 s; widest-last schedule and materialised CPre: 340 s); hull bound 42 s. Then the safety loop
+on relations restricted to the safe set (:meth:`Game.within`) and the blocks in :func:`~.symbolic.reader_order`:
+safety 28-34 s, Reach(Safe(φ)) with its explicit controller ~32 s. Consensus with shared
 ``w``: N = 4 in 4.3 s, N = 6 in 56 s (1 GB).
 """
 
@@ -42,7 +44,7 @@ import logging
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple, Sequence
 
 from dd import cudd
 
@@ -50,6 +52,16 @@ from .symbolic import Function, SymbolicModel
 
 if TYPE_CHECKING:  # pragma: no cover
     from .job import AbstractionResult
+
+Chain = list[tuple[Function, list[str]]]  # (relation, next-state bits it quantifies), in schedule order
+
+
+class Within(NamedTuple):
+    """The chain and the admissible pairs restricted to a set of states (:meth:`Game.within`)."""
+
+    chain: Chain
+    admissible: Function
+
 
 METHODS = ("auto", "per_subsystem", "shared")
 CHAIN_ORDERS = ("greedy", "widest_last", "network")
@@ -274,20 +286,43 @@ class Game:
         self.chain = schedule(chain, set(m.xn_bits), bdd, self.chain_order)
 
     # ------------------------------------------------------------------ CPre
-    def _bad_successor(self, Z: Function) -> Function:
+    def within(self, S: Function) -> Within:
+        """``CPre`` ingredients restricted to the current states of ``S`` (exact on ``S`` only).
+
+        Each relation is conjoined with ``S`` projected on the current-state coordinates it reads: for a state
+        ``x̂ ∈ S`` those coordinates are the ones of some state of ``S``, so ``∧_i (R_i ∧ ∃(x̂ ∉ supp R_i). S) =
+        ∧_i R_i`` there, and the admissible pairs are conjoined with ``S``. Every ``CPre`` and predecessor
+        computed with the result is exact on ``S`` and empty outside it. Loops whose iterates stay inside ``S``
+        (the safety fixed point) pass it: on the 10 tanks the safety fixed point went 58 s -> 33 s (the
+        projections of a box are boxes; restricting to the projections of each iterate instead measured 44 s;
+        restricting the admissible pairs too is within the noise, 30-34 s either way).
+        """
+        bdd, m = self.bdd, self.model
+        x_bits = set(m.x_bits)
+        chain = []
+        for rel, xn_bits in self.chain:
+            outside_support = sorted(x_bits - set(bdd.support(rel)))
+            chain.append((rel & bdd.exist(outside_support, S), xn_bits))
+        return Within(chain, self.admissible & S)
+
+    def _bad_successor(self, Z: Function, chain: Chain) -> Function:
         """``∃x'. (∧_i R_i ∧ ¬Z')`` chained one subsystem at a time (``R_i`` = T̃_i or T_i)."""
         acc = ~self.model.to_next(Z)
-        for rel, xn_bits in self.chain:
+        for rel, xn_bits in chain:
             acc = cudd.and_exists(acc, rel, xn_bits)
         return acc
 
-    def cpre(self, Z: Function) -> Function:
-        """``CPre(Z)`` over current-state and input bits (see the module docstring)."""
+    def cpre(self, Z: Function, within: Within | None = None) -> Function:
+        """``CPre(Z)`` over current-state and input bits (see the module docstring).
+
+        ``within``: :meth:`within` ``(S)`` to compute it on ``S`` only (default: everywhere).
+        """
+        chain, admissible = (self.chain, self.admissible) if within is None else within
         with self.model.guard("computing CPre"):
-            bad = self._bad_successor(Z)
+            bad = self._bad_successor(Z, chain)
             if self.method == "shared":
                 bad = cudd.and_exists(self.M, bad, self.w_bits)  # the bottleneck step (METHOD §6)
-            return self.admissible & ~bad
+            return admissible & ~bad
 
     def cpre_at(self, state: Mapping[str, bool], Z_next: Function) -> Function:
         """``CPre(Z)`` at one state: a function of the input bits only.
@@ -318,20 +353,23 @@ class Game:
         """``∃u. cpre``: states with some good input."""
         return self.bdd.exist(self.u_bits, cpre)
 
-    def predecessors(self, Z: Function, outside: Function | None = None) -> Function:
+    def predecessors(
+        self, Z: Function, outside: Function | None = None, within: Within | None = None
+    ) -> Function:
         """``∃u. CPre(Z)`` without materialising ``CPre(Z)`` (one ``and_exists`` over the inputs).
 
         Fixed points that need the controller only at convergence use this in their loop. With ``outside``
         the result is exact only on states in ``outside`` (a reach loop passes ``¬Z``: states already won need
         no answer); the shared ``∃w.M̂ ∧ ...`` step then works on ``M̂ ∧ outside``, which measured 20 % less
-        time on consensus N = 5.
+        time on consensus N = 5. ``within``: as in :meth:`cpre`.
         """
+        chain, admissible = (self.chain, self.admissible) if within is None else within
         with self.model.guard("computing CPre"):
-            bad = self._bad_successor(Z)
+            bad = self._bad_successor(Z, chain)
             if self.method == "shared":
                 M = self.M if outside is None else self.M & outside
                 bad = cudd.and_exists(M, bad, self.w_bits)
-            return cudd.and_exists(self.admissible, ~bad, self.u_bits)
+            return cudd.and_exists(admissible, ~bad, self.u_bits)
 
 
 def schedule(
@@ -407,16 +445,17 @@ def safe(game: Game, S: Function, *, layered: bool = False) -> SynthesisResult:
     """
     meter = _Meter(game.model, "safe")
     S = S & game.model.x_domain
+    inside = game.within(S)  # every iterate is inside S
     Z = S
     while True:
-        Zn = S & game.predecessors(Z)
+        Zn = S & game.predecessors(Z, within=inside)
         meter.tick()
         if Zn == Z:
             break
         Z = Zn
     if layered:
         return _result(game, "safe", Z, None, meter, layers=(Z,), stay=True)
-    return _result(game, "safe", Z, Z & game.cpre(Z), meter)
+    return _result(game, "safe", Z, Z & game.cpre(Z, inside), meter)
 
 
 @_guarded

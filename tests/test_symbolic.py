@@ -325,6 +325,28 @@ def test_block_order_minimises_the_linear_arrangement_of_coupled_subsystems():
     assert length(block_order(40, ring), ring) <= 2 * 39  # a ring laid out without long jumps
 
 
+def test_reader_order_puts_every_block_below_what_it_reads_and_keeps_chains_together():
+    from pipelines.symbolic import reader_order
+
+    # (reader, read) of the 10 tanks (positions 0..9 = tanks 1..10)
+    tanks = {(1, 0), (2, 0), (2, 1), (4, 3), (5, 2), (5, 3), (5, 4), (5, 6), (6, 4), (7, 2), (8, 5), (8, 7),
+             (9, 7), (9, 8)}
+    order = reader_order(10, tanks)
+    assert order == [0, 1, 2, 7, 3, 4, 6, 5, 8, 9]  # the chains 1-2-3-8 and 4-5-7-6, then 9 and 10
+    pos = {v: i for i, v in enumerate(order)}
+    assert all(pos[a] > pos[b] for a, b in tanks)
+    assert reader_order(4, set()) == [0, 1, 2, 3]
+    assert reader_order(3, {(0, 1), (1, 2), (2, 0)}) is None  # a cycle: no topological order
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # random DAGs: always a topological permutation
+        n = int(rng.integers(2, 12))
+        perm = rng.permutation(n)
+        arcs = {(int(perm[a]), int(perm[b])) for a in range(n) for b in range(a) if rng.random() < 0.3}
+        order = reader_order(n, arcs)
+        pos = {v: i for i, v in enumerate(order)}
+        assert sorted(order) == list(range(n)) and all(pos[a] > pos[b] for a, b in arcs)
+
+
 def test_block_order_is_kept_in_the_header(tmp_path):
     lay = [SubsystemLayout(i, (3,), 2, (), f"k{i}", i, f"s{i}") for i in range(3)]
     m = SymbolicModel(lay, [], order="interleaved", blocks=[2, 0, 1])

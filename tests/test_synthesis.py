@@ -346,6 +346,26 @@ def test_shared_cpre_equals_per_subsystem_cpre_where_both_apply(seed):
             np.testing.assert_array_equal(states_vector(g.model, g.predecessors(bZ), ex), C.any(axis=1))
 
 
+@pytest.mark.parametrize("seed", range(8))
+def test_cpre_within_a_set_is_exact_there_and_empty_elsewhere(seed):
+    """``Game.within(S)`` restricts the relations to the projections of ``S``: CPre and the predecessors are
+    then ``CPre ∧ S`` exactly, for every ``Z`` (not only ``Z ⊆ S``), in both CPre methods."""
+    rng = np.random.default_rng(900 + seed)
+    shared = bool(seed % 2)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, ["interleaved", "shared_top"][seed % 4 // 2])
+    m = game.model
+    for _ in range(4):
+        S, Z = random_set(rng, ex, 0.7), random_set(rng, ex, 0.6)
+        bS, bZ = (m.state_set(np.array(ex.states)[v]) for v in (S, Z))
+        inside = game.within(bS)
+        C = controller_matrix(m, game.cpre(bZ, inside), ex)
+        np.testing.assert_array_equal(C, ex.cpre(Z) & S[:, None])
+        np.testing.assert_array_equal(states_vector(m, game.predecessors(bZ, within=inside), ex),
+                                      ex.cpre(Z).any(axis=1) & S)
+
+
 def test_per_subsystem_method_is_refused_for_a_shared_internal_variable():
     net = random_net(np.random.default_rng(1), shared=True)
     with pytest.raises(ValueError, match="read by at most one subsystem"):
