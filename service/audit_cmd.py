@@ -12,7 +12,7 @@ the Zarr or ``.npz`` relations, ``interconnection.npz``, the controller files), 
   stepped with its share of it (:func:`pipelines.audit.audit_composition`);
 * the controller, if the job has one: closed-loop runs of the concrete system under it from random states of its
   domain (and the spec's initial states inside it); each must satisfy the specification
-  (:func:`pipelines.closed_loop.simulate`).
+  (:func:`pipelines.closed_loop.simulate_many`).
 
 It prints a table, writes ``DIR/audit.json`` and exits with status 3 if anything was violated (2 for a user
 error: a missing or damaged file, named).
@@ -39,7 +39,7 @@ AUDIT_FILE = "audit.json"
 
 def _closed_loop(arts: Any, runs: int, rng: np.random.Generator) -> dict[str, Any]:
     """Closed-loop runs of the concrete system under the job's stored controller."""
-    from pipelines.closed_loop import simulate
+    from pipelines.closed_loop import simulate_many
     from pipelines.controller import load_controller
     from pipelines.job import spec_regions
     from pipelines.spec import parse_spec, spec_hash
@@ -67,8 +67,9 @@ def _closed_loop(arts: Any, runs: int, rng: np.random.Generator) -> dict[str, An
     violations = 0
     first = None
     t0 = time.perf_counter()
-    for origin, x0 in starts:
-        run = simulate(network, controller.inputs, x0, int(steps), rng, kind, target, avoid)
+    X0 = np.array([x0 for _, x0 in starts]).reshape(len(starts), network.state_dim)
+    for (origin, x0), run in zip(starts, simulate_many(network, controller.inputs, X0, int(steps), rng, kind,
+                                                       target, avoid)):
         if run.violation:
             violations += 1
             first = first or f"from {x0.tolist()} ({origin}): {run.violation}"
