@@ -122,7 +122,8 @@ def simulate_many(
     Every run is the run :func:`simulate` defines (same checks, same stopping rules); the black boxes are
     evaluated once per step for all runs still going, which is what made 100 tank runs cost 7 s one at a time
     (eleven expression evaluations per step and run). Inputs are drawn run by run, in row order, from ``rng``:
-    with one row this is exactly :func:`simulate`. ``progress(step, steps)`` is called after each step.
+    with one row this is exactly :func:`simulate`. ``progress(step, steps)`` is called after each step and
+    with ``(steps, steps)`` at the end, also when every run ended early.
     """
     grid = network.composed_state_grid()
     lb, ub = np.asarray(grid.lb), np.asarray(grid.ub)
@@ -179,8 +180,10 @@ def simulate_many(
                 us[r].append(u)
                 xs[r].append(xn)
                 inside[r].append(f)
-        if progress is not None:
+        if progress is not None and k + 1 < steps:
             progress(k + 1, steps)
+    if progress is not None:  # also when every run ended early
+        progress(steps, steps)
     return [_finish(np.array(xs[r]), us[r], np.array(inside[r]), violation[r], policy is not None, kind, steps, m)
             for r in range(R)]
 

@@ -99,8 +99,11 @@ def test_runs_in_lockstep_are_the_runs_one_at_a_time(small_job, kind):
     target = spec_regions(spec, net)["target"]
     rng = np.random.default_rng(7)
     X0 = np.vstack([rng.uniform(0, 32, (25, 2)), [[40.0, 1.0]], spec.options.initial_states])
-    many = simulate_many(net, c, X0, 30, np.random.default_rng(0), kind, target=target, choose="first")
+    calls = []
+    many = simulate_many(net, c, X0, 30, np.random.default_rng(0), kind, target=target, choose="first",
+                         progress=lambda k, n: calls.append((k, n)))
     assert len(many) == X0.shape[0]
+    assert calls[-1] == (30, 30) and [k for k, _ in calls] == sorted(k for k, _ in calls)  # ends at 1.0
     stopped = 0
     for x0, run in zip(X0, many):
         one = simulate(net, c, x0, 30, np.random.default_rng(0), kind, target=target, choose="first")
