@@ -515,6 +515,7 @@ def cobuchi(game: Game, phi: Function) -> SynthesisResult:
     m = game.model
     meter = _Meter(m, "cobuchi")
     phi = phi & m.x_domain
+    on_phi = game.within(phi)  # the ν part is needed on φ only
     X = game.bdd.false
     controller = game.bdd.false
     while True:
@@ -522,14 +523,14 @@ def cobuchi(game: Game, phi: Function) -> SynthesisResult:
         preX = game.pre(CX)
         Y = m.x_domain
         while True:
-            Yn = (phi & game.predecessors(Y)) | preX
+            Yn = game.predecessors(Y, within=on_phi) | preX
             meter.tick(inner=True)
             if Yn == Y:
                 break
             Y = Yn
         meter.tick()
         if Y != X:
-            controller |= (Y & ~X) & ((phi & game.cpre(Y)) | CX)
+            controller |= (Y & ~X) & (game.cpre(Y, on_phi) | CX)
         if Y == X:
             break
         X = Y
