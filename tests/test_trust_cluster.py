@@ -37,7 +37,6 @@ from pipelines.job import run_abstraction
 from pipelines.spec import parse_spec
 from service.cli import main
 from service.execute import execute_job
-from workers.cluster import connect
 from workers.errors import StoreError, TaskTimeoutError
 from workers.runner import run_job
 
@@ -55,18 +54,6 @@ def spec_of(dynamics: str | None = None, chunk_cells: int | None = 4, sub: dict 
     data["options"] = {**data.get("options", {}), "chunk_cells": chunk_cells, "audit_transitions": 0,
                        "closed_loop_runs": 3, **options}
     return parse_spec(data)
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    with connect(workers=2) as conn:
-        yield conn
-
-
-@pytest.fixture
-def client(cluster):
-    yield cluster.client
-    cluster.client.wait_for_workers(2, timeout=240)
 
 
 @pytest.fixture(scope="module")

@@ -121,19 +121,7 @@ def wait_idle(client, timeout: float = 30.0) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- fixtures
-@pytest.fixture(scope="module")
-def cluster():
-    with connect(workers=2) as conn:
-        yield conn
-
-
-@pytest.fixture
-def client(cluster):
-    yield cluster.client
-    # A fault test may have killed workers: give the next test two again.
-    cluster.client.wait_for_workers(2, timeout=240)
-
-
+# cluster and client: tests/conftest.py
 @pytest.fixture(scope="module")
 def small_reference():
     spec = small_spec()
