@@ -216,12 +216,22 @@ class JobStore:
         row.last_seq = (row.last_seq or 0) + 1
         s.add(EventRow(job_id=row.id, seq=row.last_seq, kind=kind, data=data, created_at=utcnow()))
 
-    def _write(self, job_id: str, change: Callable[[Session, JobRow], str | None]) -> JobRecord | None:
-        """Apply ``change`` to a job row in one transaction; a ``"status"`` result adds a status event."""
+    def _write(
+        self, job_id: str, change: Callable[[Session, JobRow], str | None], new: JobRow | None = None
+    ) -> JobRecord | None:
+        """Apply ``change`` to a job row in one transaction; a ``"status"`` result adds a status event.
+
+        With ``new`` the row is inserted first (``create``); otherwise a missing job gives ``None``.
+        """
         with self._lock, Session(self.engine) as s, s.begin():
-            row = s.get(JobRow, job_id)
-            if row is None:
-                return None
+            if new is not None:
+                s.add(new)
+                s.flush()
+                row = new
+            else:
+                row = s.get(JobRow, job_id)
+                if row is None:
+                    return None
             if change(s, row) == "status":
                 s.flush()
                 self._add_event(s, row, "status", self._snapshot(JobRecord.of(row)))
@@ -232,15 +242,10 @@ class JobStore:
 
     def create(self, job_id: str, name: str, spec_json: str) -> JobRecord:
         """A new queued job and its first status event."""
-        with self._lock, Session(self.engine) as s, s.begin():
-            row = JobRow(id=job_id, name=name, status="queued", spec=spec_json, created_at=utcnow(), stages={},
-                         figures=[], attempts=0, cancel_requested=False, last_seq=0)
-            s.add(row)
-            s.flush()
-            self._add_event(s, row, "status", self._snapshot(JobRecord.of(row)))
-            s.flush()
-            rec = JobRecord.of(row)
-        self._seq[job_id] = rec.last_seq
+        row = JobRow(id=job_id, name=name, status="queued", spec=spec_json, created_at=utcnow(), stages={},
+                     figures=[], attempts=0, cancel_requested=False, last_seq=0)
+        rec = self._write(job_id, lambda s, r: "status", new=row)
+        assert rec is not None  # inserted, never missing
         return rec
 
     def set_status(
