@@ -320,6 +320,12 @@ class InterconnectionAbstraction:
                     width = np.where(any_, last - first + 1, 0)
                     fixed.append(None)
                     z_parts.append((k, m, first, width))
+            if not z_parts:  # one range per row: compare, no difference array (np.add.at was most of the audit)
+                lo = np.broadcast_to(node.lo[tuple(fixed)], (B,))
+                hi = np.broadcast_to(node.hi[tuple(fixed)], (B,))
+                cells = np.arange(size)
+                masks[node.output] = (cells >= lo[:, None]) & (cells <= hi[:, None])
+                continue
             widths = [int(w.max(initial=0)) for _, _, _, w in z_parts]
             if math.prod(widths) > MAX_COMBINATIONS:
                 raise ValueError(
@@ -338,9 +344,10 @@ class InterconnectionAbstraction:
                 hi = np.broadcast_to(node.hi[tuple(idx)], (B,))
                 valid &= lo <= hi
                 r = rows[valid]
-                # Difference array: +1 at lo, -1 after hi; a positive prefix sum marks the union of ranges.
-                np.add.at(diff, (r, lo[valid]), 1)
-                np.add.at(diff, (r, hi[valid] + 1), -1)
+                # Difference array: +1 at lo, -1 after hi; a positive prefix sum marks the union of ranges. Each row
+                # appears once per offset, so plain fancy-index updates are exact (no np.add.at needed).
+                diff[r, lo[valid]] += 1
+                diff[r, hi[valid] + 1] -= 1
             masks[node.output] = np.cumsum(diff, axis=1)[:, :size] > 0
         return masks
 

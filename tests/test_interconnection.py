@@ -9,6 +9,7 @@ checked.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 
 import numpy as np
@@ -287,6 +288,33 @@ def test_consensus_nodes_and_intermediate_grids(consensus):
     assert ia.error_bounds[0] < 1e-9
     d = ia.describe()
     assert d["supports"] == [list(range(8))] and len(d["nodes"]) == 3
+
+
+def _allowed_by_enumeration(ia: InterconnectionAbstraction, x: np.ndarray) -> list[set[int]]:
+    """``M̂(x̂)`` per output for one row, by enumerating every intermediate cell (``∃z. ∧ R_node``)."""
+    allowed: dict[str, set[int]] = {}
+    for node in ia.nodes:
+        choices = [[int(x[int(name[1:])])] if name.startswith("x") else sorted(allowed[name]) for name in node.inputs]
+        cells: set[int] = set()
+        for combo in itertools.product(*choices):
+            lo, hi = int(node.lo[combo]), int(node.hi[combo])
+            cells.update(range(lo, hi + 1))
+        allowed[node.output] = cells
+    return [allowed[f"w{j}"] for j in range(ia.p)]
+
+
+@pytest.mark.parametrize("case", ["consensus", "tanks_direct"])
+def test_allowed_cells_equal_an_enumeration_of_the_node_relations(case, request):
+    """The vectorised masks (difference arrays over intermediate cells, range compares for x-only nodes) against
+    a per-row enumeration of every intermediate cell."""
+    net, ia = request.getfixturevalue(case)
+    rng = np.random.default_rng(21)
+    x_idx = np.column_stack([rng.integers(0, k, 150) for k in net.composed_state_grid().shape])
+    masks = ia.allowed_cells(x_idx)
+    for b in range(x_idx.shape[0]):
+        expect = _allowed_by_enumeration(ia, x_idx[b])
+        for j in range(ia.p):
+            assert set(np.flatnonzero(masks[j][b]).tolist()) == expect[j], (b, j)
 
 
 def test_describe_is_json_and_allowed_cells_agree_with_contains(consensus):
