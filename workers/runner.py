@@ -8,7 +8,7 @@ tasks complete (``as_completed``), so progress events are live and a crash loses
 
 Chunk size
 ----------
-A task is one chunk of state cells: ``options.chunk_cells`` if the spec sets it, else ``TASK_POINTS`` = 4e6
+A task is one chunk of state cells: ``options.chunk_cells`` if the spec sets it, else ``TASK_POINTS`` = 2e7
 black-box evaluations per task (the in-process default is 2e6). Measured with
 ``bench/runner.py`` on this kind of loaded 2-core machine (LocalCluster, 2 single-threaded worker processes;
 trust ratios, not absolute times):
@@ -18,13 +18,13 @@ trust ratios, not absolute times):
   reading the chunk back in the runner.
 * pipelined (82 one-cell tasks on 2 workers; worker time not spent computing, per task): 24-28 ms. On 2 cores
   the scheduler and the runner share the CPUs with the workers.
-* compute of a default-sized chunk (2e6 evaluations): 0.26-0.73 s over the examples (130-360 ns per
-  evaluation, all four growth bounds included; cheapest: small.yaml's agent with few samples per cell).
-  Peak memory of such a task ~50 MB per 1e6 evaluations for a 1-D state.
 
-So the overhead is 2-6 % of a default task serially and up to ~10 % pipelined on 2 cores for the cheapest
-black boxes: 2e6 is at the edge of the < 5 % goal. The runner uses 4e6 evaluations per task
-(>= 0.5 s everywhere measured, overhead <= 5 % pipelined, ~300 MB per task). Smaller
+The per-cell stage then cost 130-360 ns per evaluation and 4e6 evaluations per task kept the overhead <= 5 %.
+Since the closed-form SCP (11-23 ns per evaluation, ``bench/run.py --cases floor``) a 4e6-evaluation task took
+~0.05-0.1 s, a quarter to a half of it overhead: on ``examples/stress.yaml`` (2026-11-23, same machine and hour)
+two workers were 1.55x one worker with 4e6 and 1.69x with 2e7 (per-cell stage 95.0 s vs 56.2 s; CPU 104 s vs
+108 s, so nearly CPU-bound), at a peak RSS of 1.02 GB (one worker) and 1.72 GB (two workers, process tree)
+against 0.65 and 1.08 GB: ~30 MB per 1e6 evaluations of a 1-D state, ~600 MB per task. Smaller
 chunks (``options.chunk_cells``) cost proportionally more: a one-cell task of ~2-30 ms is mostly overhead. A
 subsystem smaller than one chunk (the tank case: 41 state cells, ~0.03 s) is one task.
 
@@ -60,7 +60,7 @@ from .store import RelationStore, group_name
 from .tasks import abstract_chunk
 
 #: Black-box evaluations per task (see "Chunk size" above).
-TASK_POINTS = 4_000_000
+TASK_POINTS = 20_000_000
 
 
 @dataclass
