@@ -142,7 +142,7 @@ def simulate_many(
         X = np.array([xs[r][-1] for r in live])
         now_in = np.array([inside[r][-1] for r in live])
         out_of_box = np.any((X < lb) | (X > ub), axis=1)
-        in_avoid = _cells_in(grid, avoid, X) if avoid is not None else np.zeros(live.size, dtype=bool)
+        in_avoid = _cells_in(grid, avoid, X)
         stepping, U = [], []
         for j, r in enumerate(live):
             if kind in ("reach", "reach_avoid") and policy is not None and now_in[j]:

@@ -188,11 +188,6 @@ def dependency_arcs(layouts: Sequence[SubsystemLayout], nodes: Sequence["NodeRel
     return arcs
 
 
-def dependency_edges(layouts: Sequence[SubsystemLayout], nodes: Sequence["NodeRelation"]) -> set[tuple[int, int]]:
-    """:func:`dependency_arcs` as unordered pairs ``(min, max)``."""
-    return {(min(a, b), max(a, b)) for a, b in dependency_arcs(layouts, nodes)}
-
-
 def reader_order(n: int, arcs: set[tuple[int, int]]) -> list[int] | None:
     """A topological order of ``n`` blocks (each after the blocks it reads) that follows the readers.
 
