@@ -350,7 +350,8 @@ def run_synthesis(
     kind = spec.specification.kind
     t0 = time.perf_counter()
     progress("synthesis", 0, 1, "building BDDs and solving")
-    game, results, syn_report = synthesize(abstraction, reach_and_stay_methods=tuple(opts.fixed_points))
+    game, results, syn_report = synthesize(abstraction, reach_and_stay_methods=tuple(opts.fixed_points),
+                                           processes=opts.synthesis_processes)
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
     main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))

@@ -178,6 +178,19 @@ class OptionsSpec(_Model):
         description="seconds one cluster task (a chunk of cells) may run before the job fails as hung; null: no "
         "limit. Not part of the spec's hash: changing it keeps the stored chunks (resume)",
     )
+    synthesis_processes: int | Literal["auto"] = Field(
+        default="auto",
+        description="processes for the synthesis fixed points, this one included (the state space is split among "
+        "them; results are identical): 'auto' = the CPUs this process may use, at most 4; 1 = one process. Not "
+        "part of the spec's hash",
+    )
+
+    @field_validator("synthesis_processes")
+    @classmethod
+    def _processes(cls, v):
+        if v != "auto" and not 1 <= v <= 64:
+            raise ValueError(f"options.synthesis_processes must be 'auto' or 1 to 64, got {v}")
+        return v
 
     @model_validator(mode="after")
     def _controller_is_computed(self):
@@ -274,8 +287,9 @@ def spec_hash(spec: JobSpec) -> str:
     """A stable hash of everything that determines the abstraction (used to refuse stale stores)."""
     import hashlib
 
-    # task_timeout changes how long a task may run, not what it computes: a job that timed out must resume.
-    canonical = json.dumps(spec.model_dump(mode="json", exclude={"options": {"task_timeout"}}), sort_keys=True,
+    # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
+    # timed out must resume.
+    canonical = json.dumps(spec.model_dump(mode="json", exclude={"options": {"task_timeout", "synthesis_processes"}}), sort_keys=True,
                            separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 

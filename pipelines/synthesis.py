@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -182,6 +183,11 @@ class Game:
         subsystem. Both are exact; ``shared`` is valid for every network.
     chain_order : {'greedy', 'widest_last', 'network'}
         Order in which the relations are conjoined into ``¬Z'`` (see :func:`schedule`).
+    processes : int
+        Processes for :meth:`predecessors` (this one included); ``1``: no helper processes.
+    parallel_after : float
+        Seconds one single-process :meth:`predecessors` call must take before the helpers start (starting
+        one costs ~0.5 s; small games never need them). ``0``: from the second call on.
     """
 
     def __init__(
@@ -192,7 +198,15 @@ class Game:
         interconnection: Mapping[int, Function],
         method: str = "auto",
         chain_order: str = "greedy",
+        processes: int = 1,
+        parallel_after: float = 1.0,
     ) -> None:
+        if processes < 1:
+            raise ValueError(f"processes must be at least 1, got {processes}")
+        self.processes = int(processes)
+        self.parallel_after = float(parallel_after)
+        self._pool: Any = None
+        self._last_pool: Any = None
         if chain_order not in CHAIN_ORDERS:
             raise ValueError(f"chain_order must be one of {CHAIN_ORDERS}, got {chain_order!r}")
         self.chain_order = chain_order
@@ -236,6 +250,8 @@ class Game:
         max_memory: int | None = None,
         share: str = "rename",
         chain_order: str = "greedy",
+        processes: int = 1,
+        parallel_after: float = 1.0,
     ) -> "Game":
         """Build the model, the relations and the interconnection of an abstraction job.
 
@@ -252,7 +268,7 @@ class Game:
         model = SymbolicModel.from_network(net, abstraction.interconnection, order=order, max_memory=max_memory)
         T, NB = model.subsystem_relations(abstraction.relations, share=share)
         parts = model.interconnection_parts(abstraction.interconnection.nodes)
-        return cls(model, T, NB, parts, method, chain_order)
+        return cls(model, T, NB, parts, method, chain_order, processes, parallel_after)
 
     def _prepare_per_subsystem(self) -> None:
         m, bdd = self.model, self.bdd
@@ -354,22 +370,85 @@ class Game:
         return self.bdd.exist(self.u_bits, cpre)
 
     def predecessors(
-        self, Z: Function, outside: Function | None = None, within: Within | None = None
+        self, Z: Function, outside: Function | None = None, within: Within | None = None,
+        part: Function | None = None,
     ) -> Function:
         """``∃u. CPre(Z)`` without materialising ``CPre(Z)`` (one ``and_exists`` over the inputs).
 
         Fixed points that need the controller only at convergence use this in their loop. With ``outside``
         the result is exact only on states in ``outside`` (a reach loop passes ``¬Z``: states already won need
         no answer); the shared ``∃w.M̂ ∧ ...`` step then works on ``M̂ ∧ outside``, which measured 20 % less
-        time on consensus N = 5. ``within``: as in :meth:`cpre`.
+        time on consensus N = 5. ``within``: as in :meth:`cpre`. ``part``: a set of current states; the
+        result is ``part ∧ ∃u.CPre(Z)``, computed on that part only.
+
+        With ``processes > 1`` a call that is not given a ``part`` runs in parts in several processes
+        (:class:`~.parallel_cpre.PartitionedPredecessors`) once one call here took ``parallel_after`` seconds.
         """
+        if part is None and self._pool is not None:
+            return self._pool(Z, outside, within)
         chain, admissible = (self.chain, self.admissible) if within is None else within
+        t0 = time.perf_counter()
         with self.model.guard("computing CPre"):
-            bad = self._bad_successor(Z, chain)
-            if self.method == "shared":
-                M = self.M if outside is None else self.M & outside
-                bad = cudd.and_exists(M, bad, self.w_bits)
-            return cudd.and_exists(admissible, ~bad, self.u_bits)
+            result = predecessors_of(self.model, chain, admissible, getattr(self, "M", None),
+                                     getattr(self, "w_bits", []), self.u_bits, Z, outside, part)
+        if part is None and self.processes > 1 and time.perf_counter() - t0 >= self.parallel_after:
+            from .parallel_cpre import PartitionedPredecessors
+
+            self._pool = PartitionedPredecessors(self, self.processes)
+        return result
+
+    def close(self) -> None:
+        """Stop the helper processes of the partitioned ``∃u.CPre``, if any were started (idempotent)."""
+        if self._pool is not None:
+            self._pool.close()
+            self._last_pool, self._pool = self._pool, None
+
+    @property
+    def parallel(self) -> dict[str, Any]:
+        """How the partitioned ``∃u.CPre`` ran (empty if it never started): calls, digit, cuts, seconds per part."""
+        p = self._pool if self._pool is not None else self._last_pool
+        if p is None:
+            return {}
+        return {"processes": len(p.cuts) + 1, "calls": p.calls, "digit": p.digit, "cuts": list(p.cuts),
+                "last_seconds": [round(s, 3) for s in p.seconds]}
+
+
+def resolve_processes(processes: int | str) -> int:
+    """``'auto'``: the CPUs this process may use, at most 4 (each part adds ~5-15 % work); else the int itself."""
+    if processes == "auto":
+        try:
+            cpus = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover - not Linux
+            cpus = os.cpu_count() or 1
+        return max(1, min(cpus, 4))
+    if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
+        raise ValueError(f"processes must be 'auto' or a positive int, got {processes!r}")
+    return processes
+
+
+def predecessors_of(
+    model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, w_bits: Sequence[str],
+    u_bits: Sequence[str], Z: Function, outside: Function | None = None, part: Function | None = None,
+) -> Function:
+    """``part ∧ ∃u.CPre(Z)`` from the CPre ingredients (:meth:`Game.predecessors`; ``M`` for the shared method).
+
+    ``part`` (current states) is conjoined into the chain's first operand, the ``∃w`` step and the admissible
+    pairs; it reads current-state bits only, so it commutes with every quantification and the result is
+    exact on it. A function of the ingredients (not a method) because helper processes
+    (:mod:`.parallel_cpre`) run it on their own copies.
+    """
+    acc = ~model.to_next(Z)
+    if part is not None:
+        acc &= part
+        admissible = admissible & part
+    for rel, xn_bits in chain:
+        acc = cudd.and_exists(acc, rel, xn_bits)
+    if M is not None:
+        care = M if outside is None else M & outside
+        if part is not None:
+            care &= part
+        acc = cudd.and_exists(care, acc, list(w_bits))
+    return cudd.and_exists(admissible, ~acc, list(u_bits))
 
 
 def schedule(
@@ -580,8 +659,12 @@ def synthesize(
     reach_and_stay_methods: Sequence[str] = ("cobuchi", "reach_safe"),
     chain_order: str = "greedy",
     controller_form: str = "auto",
+    processes: int | str = 1,
 ) -> tuple[Game, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
+
+    ``processes``: for the fixed points' ``∃u.CPre`` (:meth:`Game.predecessors`), an int or ``'auto'``
+    (:func:`resolve_processes`); the helper processes stop before this returns.
 
     ``controller_form``: ``explicit`` (a BDD over states and inputs), ``layered`` (:class:`SynthesisResult`
     ``layers``) or ``auto``, which is ``layered`` for the shared-``w`` CPre: there the explicit controller is
@@ -599,7 +682,7 @@ def synthesize(
 
     t0 = time.perf_counter()
     game = Game.from_abstraction(abstraction, order=order, method=method, max_memory=max_memory,
-                                 chain_order=chain_order)
+                                 chain_order=chain_order, processes=resolve_processes(processes))
     build = time.perf_counter() - t0
     m = game.model
     spec = abstraction.spec.specification
@@ -611,14 +694,17 @@ def synthesize(
     if controller_form not in ("auto", "explicit", "layered"):
         raise ValueError(f"controller_form must be auto, explicit or layered, got {controller_form!r}")
     layered = controller_form == "layered" or (controller_form == "auto" and game.method == "shared")
-    if spec.kind == "safe":
-        results = {"safe": safe(game, region("safe"), layered=layered)}
-    elif spec.kind == "reach":
-        results = {"reach": reach(game, region("target"), layered=layered)}
-    elif spec.kind == "reach_avoid":
-        results = {"reach_avoid": reach_avoid(game, region("target"), region("avoid"), layered=layered)}
-    else:
-        results = reach_and_stay(game, region("target"), reach_and_stay_methods, layered=layered)
+    try:
+        if spec.kind == "safe":
+            results = {"safe": safe(game, region("safe"), layered=layered)}
+        elif spec.kind == "reach":
+            results = {"reach": reach(game, region("target"), layered=layered)}
+        elif spec.kind == "reach_avoid":
+            results = {"reach_avoid": reach_avoid(game, region("target"), region("avoid"), layered=layered)}
+        else:
+            results = reach_and_stay(game, region("target"), reach_and_stay_methods, layered=layered)
+    finally:
+        game.close()
     stats = m.stats()
     report = {
         "order": m.order,
@@ -630,6 +716,7 @@ def synthesize(
         "relation_nodes": [t.dag_size for t in game.T],
         "interconnection_nodes": {f"w{j}": p.dag_size for j, p in game.parts.items()},
         "results": {k: r.summary() for k, r in results.items()},
+        "parallel": game.parallel,
         "bdd": stats,
     }
     return game, results, report

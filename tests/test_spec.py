@@ -125,3 +125,26 @@ def test_consensus_centres_that_overflow_are_a_spec_error(centers):
     with pytest.raises(SpecError, match="consensus"):
         spec = parse_spec(data)
         spec_regions(spec, build_network(spec, None))
+
+
+@pytest.mark.parametrize("value, ok", [("auto", True), (1, True), (4, True), (0, False), (-2, False), (65, False),
+                                       ("many", False), (2.5, False)])
+def test_synthesis_processes_option(value, ok):
+    data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
+    data.setdefault("options", {})["synthesis_processes"] = value
+    if ok:
+        assert parse_spec(yaml.safe_dump(data)).options.synthesis_processes == value
+    else:
+        with pytest.raises(SpecError, match="synthesis_processes"):
+            parse_spec(yaml.safe_dump(data))
+
+
+def test_synthesis_processes_is_not_part_of_the_spec_hash():
+    from pipelines.spec import spec_hash
+
+    data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
+    base = spec_hash(parse_spec(yaml.safe_dump(data)))
+    data.setdefault("options", {})["synthesis_processes"] = 1
+    assert spec_hash(parse_spec(yaml.safe_dump(data))) == base
+    data["options"]["seed"] = 1
+    assert spec_hash(parse_spec(yaml.safe_dump(data))) != base

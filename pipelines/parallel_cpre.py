@@ -1,0 +1,358 @@
+"""``∃u.CPre(Z)`` on parts of the state space at once, one part per process (issue 6).
+
+CUDD is single-threaded and the fixed points spend nearly all of synthesis in ``∃u.CPre`` (10 tanks: the 24
+safety iterations; consensus N = 8: the 9 reach iterations, ~450 s). :class:`PartitionedPredecessors` splits
+the current states into ranges of one digit and computes each range in its own process: the first here, the
+others in helper processes that hold a copy of the chain.
+
+Exactness: for a set ``H`` of current states, ``H ∧ ∃u.CPre(Z)`` is computed exactly by conjoining ``H`` into
+the chain's first operand, the shared ``∃w`` step and the admissible pairs (:meth:`.Game.predecessors`'s
+``part``): ``H`` reads current-state bits only, so it commutes with ``∃x'``, ``∃w`` and ``∃u``. The ranges
+partition every code of the digit (the last one includes the codes past the grid), so the union of the parts
+is ``∃u.CPre(Z)`` itself. Tested against the one-process result, fixed points included.
+
+The digit is the top-most current-state digit of the variable order: CUDD's recursion splits there first, so
+the parts share little work. Measured, summing the parts' times against the whole: consensus N = 6 1.0-1.17x,
+10 tanks 1.03x (a digit lower in the order cost up to 2x). The work is not uniform over the digit's cells
+(tanks: split at the middle of the safe range, 8.6 s against 4.9 s), so after every call a per-cell estimate of
+the work is scaled to the measured time of each range (:func:`update_density`) and the cuts move to its
+equal-work quantiles.
+
+Transport: BDDs as DDDMP files in a private temporary directory; a helper declares the variables from the
+model's header (:meth:`.SymbolicModel.from_header`), so levels match. Messages are pickled tuples of strings
+and numbers on two pipes; helpers are ``python -m pipelines.parallel_cpre`` child processes (not
+``multiprocessing``'s spawn, which would re-run the caller's ``__main__`` script).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import weakref
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+from .errors import CompabsError
+from .symbolic import BDDMemoryError, Function, SymbolicModel
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .synthesis import Game, Within
+
+log = logging.getLogger(__name__)
+
+READY_TIMEOUT = 120.0
+"""Seconds a helper may take to start (import numpy, dd and the model) before synthesis gives up on it."""
+
+
+class HelperError(CompabsError):
+    """A helper process failed or died; the message says which and why."""
+
+
+def update_density(density: np.ndarray, bounds: Sequence[tuple[int, int]], seconds: Sequence[float]) -> np.ndarray:
+    """Scale a per-cell work estimate so that each range's sum is the time it took (its shape within a range kept).
+
+    Parameters
+    ----------
+    density : ndarray, shape (cells,)
+        Seconds per cell of the digit, the previous estimate (uniform at first).
+    bounds : sequence of (int, int)
+        Ranges ``[lo, hi]`` of digit codes, in order; the last may extend past the cells.
+    seconds : sequence of float
+        Time each range took, same length.
+
+    Returns
+    -------
+    ndarray, shape (cells,)
+        The new estimate. Moving cuts over the iterations of a fixed point refines the shape: consensus work
+        sits on a few cells of the top agent (the consensus centre), which a uniform estimate per range sends
+        back and forth across the cut.
+    """
+    out = np.array(density, dtype=float)
+    cells = out.size
+    for (lo, hi), s in zip(bounds, seconds):
+        hi = min(hi, cells - 1)
+        if hi < lo:
+            continue
+        s = max(float(s), 1e-6)  # an instant range still gets cells
+        seg = out[lo:hi + 1]
+        total = seg.sum()
+        out[lo:hi + 1] = seg * (s / total) if total > 0 else s / (hi - lo + 1)
+    return out
+
+
+def equal_work_cuts(density: np.ndarray, parts: int) -> list[int]:
+    """``parts - 1`` cuts that give each range the same share of ``density`` (seconds per cell).
+
+    Returns strictly increasing cuts in ``1 .. cells - 1`` (range ``k`` starts at cut ``k - 1``), each at the
+    cell boundary nearest its quantile.
+    """
+    cum = np.cumsum(np.asarray(density, dtype=float))
+    cells = cum.size
+    cuts: list[int] = []
+    for k in range(1, parts):
+        c = int(np.argmin(np.abs(cum[:-1] - cum[-1] * k / parts))) + 1  # range k starts after the nearest cell
+        lowest = (cuts[-1] + 1) if cuts else 1
+        cuts.append(min(max(c, lowest), cells - (parts - k)))
+    return cuts
+
+
+class _Helper:
+    """One helper process and its two pipes."""
+
+    def __init__(self, head: dict, max_memory: int | None, index: int) -> None:
+        self.index = index
+        to_child_r, to_child_w = os.pipe()
+        from_child_r, from_child_w = os.pipe()
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parent.parent)  # the directory holding the pipelines package
+        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "pipelines.parallel_cpre", str(to_child_r), str(from_child_w)],
+            pass_fds=(to_child_r, from_child_w), env=env, stdin=subprocess.DEVNULL,
+        )
+        os.close(to_child_r)
+        os.close(from_child_w)
+        self.out = Connection(to_child_w, readable=False)
+        self.inp = Connection(from_child_r, writable=False)
+        self.send(("start", head, max_memory))
+        self.ready = False
+
+    def send(self, msg: tuple) -> None:
+        try:
+            self.out.send(msg)
+        except OSError as exc:
+            raise HelperError(f"synthesis helper {self.index} is gone ({self._status()}: {exc}); if it ran out of "
+                              "memory, run synthesis in one process (options.synthesis_processes: 1)") from None
+
+    def recv(self, timeout: float | None = None) -> tuple:
+        try:
+            if timeout is not None and not self.inp.poll(timeout):
+                raise HelperError(f"synthesis helper {self.index} did not answer within {timeout:g} s")
+            msg = self.inp.recv()
+        except (EOFError, OSError):
+            raise HelperError(f"synthesis helper {self.index} died ({self._status()}); if it ran out of memory, "
+                              "run synthesis in one process (options.synthesis_processes: 1)") from None
+        if msg[0] == "error":
+            _, kind, text = msg
+            if kind == "BDDMemoryError":
+                raise BDDMemoryError(f"synthesis helper {self.index}: {text}")
+            raise HelperError(f"synthesis helper {self.index} failed: {kind}: {text}")
+        return msg
+
+    def wait_ready(self) -> None:
+        if not self.ready:
+            self.recv(READY_TIMEOUT)
+            self.ready = True
+
+    def _status(self) -> str:
+        code = self.proc.poll()
+        return "still running" if code is None else f"exit code {code}"
+
+    def close(self) -> None:
+        for f in (lambda: self.out.send(None), self.out.close, self.inp.close):
+            try:
+                f()
+            except OSError:
+                pass
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def _shutdown(helpers: list[_Helper], tmp: str) -> None:
+    for h in helpers:
+        h.close()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+class PartitionedPredecessors:
+    """``∃u.CPre(Z)`` of a :class:`.Game` computed in ``processes`` parts at once (see the module docstring).
+
+    Parameters
+    ----------
+    game : Game
+    processes : int
+        Parts, this process included (>= 2): ``processes - 1`` helpers start now, in the background.
+
+    Call it like :meth:`.Game.predecessors`; :meth:`close` (or garbage collection) stops the helpers.
+    ``cuts`` and ``seconds`` show the current cuts and the last call's time per part.
+    """
+
+    def __init__(self, game: "Game", processes: int) -> None:
+        if processes < 2:
+            raise ValueError(f"PartitionedPredecessors needs at least 2 processes, got {processes}")
+        m = game.model
+        self.game = game
+        self.digit = next(v.rsplit("_", 1)[0] for v in m.variables if v.startswith("x") and not v.startswith("xn"))
+        self.cells = m.sizes[self.digit]
+        self.codes = 1 << len(m.bits[self.digit])
+        parts = min(processes, self.cells)
+        self._density = np.ones(self.cells)
+        self._cuts = equal_work_cuts(self._density, parts)
+        self._seconds: list[float] = []
+        self._calls = 0
+        self._tmp = tempfile.mkdtemp(prefix="compabs-cpre-")
+        head = m.header()
+        share = None if m.max_memory is None else m.max_memory // parts
+        self._helpers = [_Helper(head, share, k) for k in range(1, parts)]
+        self._problem: Any = None  # the Within (or "all") the helpers hold
+        self._files = 0
+        self._finalizer = weakref.finalize(self, _shutdown, self._helpers, self._tmp)
+
+    @property
+    def cuts(self) -> list[int]:
+        """First code of every part but the first (they move after each call)."""
+        return list(self._cuts)
+
+    @property
+    def seconds(self) -> list[float]:
+        """Seconds each part took in the last call (this process first)."""
+        return list(self._seconds)
+
+    @property
+    def calls(self) -> int:
+        return self._calls
+
+    @property
+    def helpers(self) -> list[subprocess.Popen]:
+        """The helper processes (for monitoring; :meth:`close` stops them)."""
+        return [h.proc for h in self._helpers]
+
+    # ------------------------------------------------------------------ plumbing
+    def _path(self) -> str:
+        self._files += 1
+        return os.path.join(self._tmp, f"{self._files}.dddmp")
+
+    def _dump(self, f: Function) -> str:
+        path = self._path()
+        with self.game.model.guard("writing a BDD for a synthesis helper"):
+            self.game.bdd.dump(path, [f])
+        return path
+
+    def _load(self, path: str) -> Function:
+        with self.game.model.guard("reading a synthesis helper's BDD"):
+            (f,) = self.game.bdd.load(path)
+        os.unlink(path)
+        return f
+
+    def bounds(self) -> list[tuple[int, int]]:
+        """The parts' ranges of digit codes, ``[lo, hi]`` (the last one up to the largest code)."""
+        edges = [0, *self._cuts, self.codes]
+        return [(a, b - 1) for a, b in zip(edges, edges[1:])]
+
+    def _send_problem(self, within: "Within | None") -> None:
+        key = "all" if within is None else within
+        if self._problem is key:
+            return
+        g = self.game
+        chain, admissible = (g.chain, g.admissible) if within is None else within
+        roots = [rel for rel, _ in chain] + [admissible] + ([g.M] if g.method == "shared" else [])
+        files = [self._dump(f) for f in roots]
+        msg = ("problem", files, [list(xn) for _, xn in chain], g.method, list(g.u_bits),
+               list(getattr(g, "w_bits", [])))
+        for h in self._helpers:
+            h.wait_ready()
+            h.send(msg)
+        for h in self._helpers:
+            h.recv()
+        for f in files:
+            os.unlink(f)
+        self._problem = key
+
+    # ------------------------------------------------------------------ the call
+    def __call__(self, Z: Function, outside: Function | None = None, within: "Within | None" = None) -> Function:
+        g, m = self.game, self.game.model
+        self._send_problem(within)
+        z_file = self._dump(Z)
+        o_file = None if outside is None else self._dump(outside)
+        bounds = self.bounds()
+        for h, (lo, hi) in zip(self._helpers, bounds[1:]):
+            h.send(("pred", z_file, o_file, self.digit, lo, hi, self._path()))
+        t0 = time.perf_counter()
+        result = g.predecessors(Z, outside, within, part=m.interval(self.digit, *bounds[0]))
+        seconds = [time.perf_counter() - t0]
+        for h in self._helpers:
+            _, path, s = h.recv()
+            result |= self._load(path)
+            seconds.append(s)
+        for f in filter(None, (z_file, o_file)):
+            os.unlink(f)
+        self._seconds = seconds
+        self._calls += 1
+        self._density = update_density(self._density, bounds, seconds)
+        self._cuts = equal_work_cuts(self._density, len(bounds))
+        log.info("parallel CPre: parts %s took %s s; next cuts %s", bounds, [round(s, 2) for s in seconds], self._cuts)
+        return result
+
+    def close(self) -> None:
+        """Stop the helpers and remove the temporary files (idempotent)."""
+        self._finalizer()
+
+
+# ====================================================================================== the helper's side
+def _serve(inp: Connection, out: Connection) -> None:
+    """Answer ``problem`` and ``pred`` messages until ``None`` or end of input."""
+    from .synthesis import predecessors_of
+
+    model: SymbolicModel | None = None
+    problem: tuple | None = None
+    while True:
+        try:
+            msg = inp.recv()
+        except EOFError:
+            return
+        if msg is None:
+            return
+        try:
+            if msg[0] == "start":
+                _, head, max_memory = msg
+                model = SymbolicModel.from_header(head, max_memory)
+                out.send(("ready",))
+            elif msg[0] == "problem":
+                assert model is not None
+                _, files, xn_lists, method, u_bits, w_bits = msg
+                with model.guard("reading the chain"):
+                    roots = [model.bdd.load(f)[0] for f in files]
+                n = len(xn_lists)
+                chain = list(zip(roots[:n], xn_lists))
+                M = roots[n + 1] if method == "shared" else None
+                problem = (chain, roots[n], M, u_bits, w_bits)
+                out.send(("ok",))
+            elif msg[0] == "pred":
+                assert model is not None and problem is not None
+                _, z_file, o_file, digit, lo, hi, result_file = msg
+                t0 = time.perf_counter()
+                with model.guard("computing a part of CPre"):
+                    Z = model.bdd.load(z_file)[0]
+                    outside = None if o_file is None else model.bdd.load(o_file)[0]
+                    chain, admissible, M, u_bits, w_bits = problem
+                    P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside,
+                                        model.interval(digit, lo, hi))
+                    model.bdd.dump(result_file, [P])
+                del Z, outside, P
+                out.send(("ok", result_file, time.perf_counter() - t0))
+            else:
+                raise ValueError(f"unknown message {msg[0]!r}")
+        except Exception as exc:  # reported to the parent, which raises it
+            out.send(("error", type(exc).__name__, str(exc)))
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = list(sys.argv[1:] if argv is None else argv)
+    inp = Connection(int(args[0]), writable=False)
+    out = Connection(int(args[1]), readable=False)
+    _serve(inp, out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+"""The partitioned ``∃u.CPre`` (pipelines/parallel_cpre.py): real helper processes, exact results."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from pipelines.parallel_cpre import HelperError, PartitionedPredecessors, equal_work_cuts, update_density
+from pipelines.synthesis import cobuchi, reach, safe
+from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
+
+
+def test_equal_work_cuts_split_the_work_evenly():
+    assert equal_work_cuts(np.ones(20), 2) == [10]
+    assert equal_work_cuts(np.ones(15), 3) == [5, 10]
+    assert equal_work_cuts(np.r_[np.full(10, 0.9), np.full(10, 0.1)], 2) == [6]
+
+
+def test_equal_work_cuts_keep_every_part_nonempty():
+    assert equal_work_cuts(np.array([100.0, 0.0, 0.0]), 3) == [1, 2]
+    assert equal_work_cuts(np.array([0.0, 0.0, 100.0]), 3) == [1, 2]
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        cells = int(rng.integers(2, 40))
+        parts = min(int(rng.integers(2, 5)), cells)
+        cuts = equal_work_cuts(rng.random(cells) ** 4, parts)
+        assert len(cuts) == parts - 1
+        assert all(1 <= c <= cells - 1 for c in cuts)
+        assert all(a < b for a, b in zip(cuts, cuts[1:]))
+
+
+def test_update_density_matches_each_range_to_its_time():
+    d = update_density(np.ones(20), [(0, 9), (10, 31)], [9.0, 1.0])  # the last range past the cells
+    np.testing.assert_allclose([d[:10].sum(), d[10:].sum()], [9.0, 1.0])
+    assert equal_work_cuts(d, 2) == [6]
+    # a hot cell moved across the cut: its share is remembered, so the cut settles instead of oscillating
+    truth = np.ones(20)
+    truth[9] = 5.0
+    d, cuts = np.ones(20), [10]
+    seen = []
+    for _ in range(8):
+        bounds = [(0, cuts[0] - 1), (cuts[0], 31)]
+        d = update_density(d, bounds, [truth[a:b + 1].sum() for a, b in bounds])
+        cuts = equal_work_cuts(d, 2)
+        seen.append(cuts[0])
+    best = min(range(1, 20), key=lambda c: max(truth[:c].sum(), truth[c:].sum()))
+    assert seen[-3:] == [best] * 3, seen
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+@pytest.mark.parametrize("seed", range(3))
+def test_partitioned_predecessors_equal_the_explicit_ones(seed, shared):
+    """Every part count and cut position gives ``∃u.CPre(Z)`` exactly: whole, ``within`` a set, and on
+    ``outside`` (where that argument promises exactness)."""
+    rng = np.random.default_rng(3000 + 10 * seed + shared)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, ["interleaved", "shared_top"][seed % 2])
+    m = game.model
+    pool = PartitionedPredecessors(game, 3)
+    try:
+        assert pool.cells == m.sizes[pool.digit]
+        for k in range(6):
+            if k and pool.cells > 2:  # every cut position the balancing could choose
+                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
+            Z, S, O = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
+            bZ, bS, bO = (m.state_set(np.array(ex.states)[v]) for v in (Z, S, O))
+            want = ex.cpre(Z).any(axis=1)
+            np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
+            np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
+            got = states_vector(m, pool(bZ, outside=bO), ex)
+            np.testing.assert_array_equal(got & O, want & O)
+        assert pool.calls == 18 and len(pool.seconds) == len(pool.cuts) + 1
+    finally:
+        pool.close()
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+def test_fixed_points_with_helpers_equal_the_one_process_ones(shared):
+    rng = np.random.default_rng(77 + shared)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    one = build(net, "shared_top" if shared else "interleaved")
+    two = build(net, "shared_top" if shared else "interleaved")
+    two.processes, two.parallel_after = 2, 0.0  # helpers from the second call on
+    S, T, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.6))
+    try:
+        for g in (one, two):
+            g.results = []
+            bS, bT, bphi = (g.model.state_set(np.array(ex.states)[v]) for v in (S, T, phi))
+            g.results.append(safe(g, bS, layered=True).domain)
+            g.results.append(reach(g, bT, layered=True).domain)
+            g.results.append(cobuchi(g, bphi).domain)
+        for a, b in zip(one.results, two.results):
+            np.testing.assert_array_equal(states_vector(one.model, a, ex), states_vector(two.model, b, ex))
+        assert two.parallel["calls"] > 0 and one.parallel == {}
+    finally:
+        two.close()
+    assert two.parallel["calls"] > 0  # still reported after close
+
+
+def test_close_stops_the_helpers_and_removes_the_files():
+    game = build(random_net(np.random.default_rng(5), True), "shared_top")
+    pool = PartitionedPredecessors(game, 2)
+    pool(game.model.x_domain)
+    procs, tmp = pool.helpers, pool._tmp
+    assert all(p.poll() is None for p in procs) and os.path.isdir(tmp)
+    pool.close()
+    pool.close()  # idempotent
+    assert all(p.poll() is not None for p in procs)
+    assert not os.path.exists(tmp)
+
+
+def test_a_helper_that_dies_is_a_clear_error():
+    game = build(random_net(np.random.default_rng(6), False), "interleaved")
+    pool = PartitionedPredecessors(game, 2)
+    try:
+        pool(game.model.x_domain)
+        pool.helpers[0].kill()
+        pool.helpers[0].wait()
+        with pytest.raises(HelperError, match=r"synthesis helper 1 (died|is gone).*synthesis_processes"):
+            pool(game.model.x_domain)
+    finally:
+        pool.close()
+
+
+def test_processes_must_be_positive():
+    net = random_net(np.random.default_rng(7), False)
+    with pytest.raises(ValueError, match="processes must be at least 1"):
+        game = build(net, "interleaved")
+        type(game)(game.model, game.T, game.NB, game.parts, processes=0)
+    with pytest.raises(ValueError, match="at least 2 processes"):
+        PartitionedPredecessors(build(net, "interleaved"), 1)
+
+
+def test_resolve_processes():
+    from pipelines.synthesis import resolve_processes
+
+    assert 1 <= resolve_processes("auto") <= min(4, os.cpu_count() or 1)
+    assert resolve_processes(3) == 3
+    for bad in (0, -1, True, "two", 1.5):
+        with pytest.raises(ValueError, match="processes must be"):
+            resolve_processes(bad)
