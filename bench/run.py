@@ -216,7 +216,7 @@ def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
     rel = syn.get("relation_seconds") or {}
     emit({"type": "info", "stage_seconds": extra.get("stage_seconds", {}), "domain_states": extra.get("domain_states"),
           "synthesis": _jsonable({
-              **{k: syn.get(k) for k in ("order", "method", "build_seconds", "cpre_setup_seconds", "results", "bdd")},
+              **{k: syn.get(k) for k in ("order", "method", "build_seconds", "cpre_setup_seconds", "results", "bdd", "parallel")},
               "relation_build_seconds": sum(v for k, v in rel.items() if k.startswith("T")),
               "interconnection_build_seconds": rel.get("interconnection"),
           }),

@@ -128,6 +128,10 @@ class Controller:
         return self._bdd.dag_size
 
 
+INPUT_CACHE = 100_000
+"""Cells whose input sets a :class:`LayeredController` keeps (each a BDD over the input bits only)."""
+
+
 class LayeredController(Controller):
     """A progress controller kept as layers and evaluated on line (:class:`~pipelines.synthesis.SynthesisResult`).
 
@@ -168,6 +172,7 @@ class LayeredController(Controller):
         game.M, game.w_bits = M, model.w_bits
         self._game = game
         self._next: dict[int, object] = {}
+        self._inputs: dict[tuple[int, ...], object] = {}
         super().__init__(model, self._layers[-1], meta)
         self._domain = self._layers[-1]
 
@@ -194,16 +199,27 @@ class LayeredController(Controller):
         return None  # pragma: no cover - the last layer holds it
 
     def input_set(self, idx: np.ndarray):
+        """As :meth:`Controller.input_set`; answers are kept per cell (at most ``INPUT_CACHE`` cells), since
+        closed-loop runs that have reached the invariant revisit the same cells."""
+        key = tuple(int(v) for v in idx)
+        hit = self._inputs.get(key)
+        if hit is not None:
+            return hit
         m = self._model
         k = self.layer_of(idx)
         if k is None:
-            return m.bdd.false
-        if k == 0 and not self._stay:
-            return m.u_domain
-        src = 0 if k == 0 else k - 1
-        if src not in self._next:
-            self._next[src] = m.to_next(self._layers[src])
-        return self._game.cpre_at(m.state_assignment([int(v) for v in idx]), self._next[src])
+            out = m.bdd.false
+        elif k == 0 and not self._stay:
+            out = m.u_domain
+        else:
+            src = 0 if k == 0 else k - 1
+            if src not in self._next:
+                self._next[src] = m.to_next(self._layers[src])
+            out = self._game.cpre_at(m.state_assignment(list(key)), self._next[src])
+        if len(self._inputs) >= INPUT_CACHE:
+            self._inputs.clear()
+        self._inputs[key] = out
+        return out
 
     def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
         roots = [self._admissible, *(r for r, _ in self._chain), *self._layers]

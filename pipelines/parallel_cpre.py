@@ -272,6 +272,7 @@ class PartitionedPredecessors:
     # ------------------------------------------------------------------ the call
     def __call__(self, Z: Function, outside: Function | None = None, within: "Within | None" = None) -> Function:
         g, m = self.game, self.game.model
+        t_start = time.perf_counter()
         self._send_problem(within)
         z_file = self._dump(Z)
         o_file = None if outside is None else self._dump(outside)
@@ -281,6 +282,7 @@ class PartitionedPredecessors:
         t0 = time.perf_counter()
         result = g.predecessors(Z, outside, within, part=m.interval(self.digit, *bounds[0]))
         seconds = [time.perf_counter() - t0]
+        t_mine = time.perf_counter()
         for h in self._helpers:
             _, path, s = h.recv()
             result |= self._load(path)
@@ -291,7 +293,9 @@ class PartitionedPredecessors:
         self._calls += 1
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = equal_work_cuts(self._density, len(bounds))
-        log.info("parallel CPre: parts %s took %s s; next cuts %s", bounds, [round(s, 2) for s in seconds], self._cuts)
+        log.info("parallel CPre: parts %s took %s s; next cuts %s; call %.2f s, before %.2f s, after %.2f s", bounds,
+                 [round(s, 2) for s in seconds], self._cuts, time.perf_counter() - t_start, t0 - t_start,
+                 time.perf_counter() - t_mine)
         return result
 
     def close(self) -> None:

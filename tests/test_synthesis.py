@@ -461,6 +461,7 @@ def test_layered_controllers_equal_explicit_ones_cell_for_cell(seed, shared, tmp
         assert isinstance(ctrl, LayeredController)
         want = controller_matrix(m, explicit.controller, ex)
         np.testing.assert_array_equal(layered_matrix(ctrl, ex), want, err_msg=name)
+        np.testing.assert_array_equal(layered_matrix(ctrl, ex), want, err_msg=f"{name}, cached input sets")
         for xf in rng.choice(ex.nX, size=min(ex.nX, 8), replace=False):  # one input drawn = one of the listed
             x = np.array(ex.states[xf], dtype=float)
             drawn, first = ctrl.choose(x, rng), ctrl.choose(x, rng, "first")
