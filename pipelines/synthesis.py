@@ -34,7 +34,8 @@ Measured (2-core machine, dd 0.6.0 / CUDD 3.0.0): 10 tanks, scp bound, Reach(Saf
 iterations, 100 s; widest-last schedule and materialised CPre: 340 s); hull bound 42 s. Then the safety loop
 on relations restricted to the safe set (:meth:`Game.within`) and the blocks in :func:`~.symbolic.reader_order`:
 safety 28-34 s, Reach(Safe(φ)) with its explicit controller ~32 s. Consensus with shared
-``w``: N = 4 in 4.3 s, N = 6 in 56 s (1 GB).
+``w``: N = 4 in 4.3 s, N = 6 in 56 s (1 GB); N = 8 safe + reach 404 s in one process, 320 s with the
+``∃u.CPre`` split over two processes (:mod:`.parallel_cpre`, ``Game(processes=2)``).
 """
 
 from __future__ import annotations
@@ -664,7 +665,7 @@ def synthesize(
     """Encode an abstraction, solve its specification, and report.
 
     ``processes``: for the fixed points' ``∃u.CPre`` (:meth:`Game.predecessors`), an int or ``'auto'``
-    (:func:`resolve_processes`, for the shared-``w`` method only: consensus N = 8 safe + reach 450 s -> 320 s
+    (:func:`resolve_processes`, for the shared-``w`` method only: consensus N = 8 safe + reach 404 s -> 320 s
     with 2; the tanks' per-subsystem CPre gained nothing); the helper processes stop before this returns.
 
     ``controller_form``: ``explicit`` (a BDD over states and inputs), ``layered`` (:class:`SynthesisResult`
