@@ -192,7 +192,9 @@ class PartitionedPredecessors:
         if processes < 2:
             raise ValueError(f"PartitionedPredecessors needs at least 2 processes, got {processes}")
         m = game.model
-        self.game = game
+        # A weak reference: the game holds the pool, and a cycle through CUDD objects would leave their
+        # destruction order to the garbage collector (dd refuses to free a manager with live nodes).
+        self._game = weakref.ref(game)
         self.digit = next(v.rsplit("_", 1)[0] for v in m.variables if v.startswith("x") and not v.startswith("xn"))
         self.cells = m.sizes[self.digit]
         self.codes = 1 << len(m.bits[self.digit])
@@ -208,6 +210,13 @@ class PartitionedPredecessors:
         self._problem: Any = None  # the Within (or "all") the helpers hold
         self._files = 0
         self._finalizer = weakref.finalize(self, _shutdown, self._helpers, self._tmp)
+
+    @property
+    def game(self) -> "Game":
+        game = self._game()
+        if game is None:
+            raise RuntimeError("the Game of this PartitionedPredecessors is gone")
+        return game
 
     @property
     def cuts(self) -> list[int]:
@@ -271,6 +280,15 @@ class PartitionedPredecessors:
 
     # ------------------------------------------------------------------ the call
     def __call__(self, Z: Function, outside: Function | None = None, within: "Within | None" = None) -> Function:
+        """``∃u.CPre(Z)`` as :meth:`.Game.predecessors` computes it. Any error stops the helpers first (their
+        pending answers would otherwise be read by the next call), so the pool is unusable after one."""
+        try:
+            return self._call(Z, outside, within)
+        except BaseException:
+            self.close()
+            raise
+
+    def _call(self, Z: Function, outside: Function | None, within: "Within | None") -> Function:
         g, m = self.game, self.game.model
         t_start = time.perf_counter()
         self._send_problem(within)
@@ -348,7 +366,10 @@ def _serve(inp: Connection, out: Connection) -> None:
             else:
                 raise ValueError(f"unknown message {msg[0]!r}")
         except Exception as exc:  # reported to the parent, which raises it
-            out.send(("error", type(exc).__name__, str(exc)))
+            try:
+                out.send(("error", type(exc).__name__, str(exc)))
+            except OSError:  # the parent is gone or stopped listening
+                return
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -386,7 +386,12 @@ class Game:
         (:class:`~.parallel_cpre.PartitionedPredecessors`) once one call here took ``parallel_after`` seconds.
         """
         if part is None and self._pool is not None:
-            return self._pool(Z, outside, within)
+            try:
+                return self._pool(Z, outside, within)
+            except BaseException:
+                # The error closed the pool; later calls run here, and no new helpers start.
+                self._last_pool, self._pool, self.processes = self._pool, None, 1
+                raise
         chain, admissible = (self.chain, self.admissible) if within is None else within
         t0 = time.perf_counter()
         with self.model.guard("computing CPre"):

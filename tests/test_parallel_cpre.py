@@ -122,8 +122,26 @@ def test_a_helper_that_dies_is_a_clear_error():
         pool.helpers[0].wait()
         with pytest.raises(HelperError, match=r"synthesis helper 1 (died|is gone).*synthesis_processes"):
             pool(game.model.x_domain)
+        assert not os.path.exists(pool._tmp)  # the error stopped the pool
     finally:
         pool.close()
+
+
+def test_after_a_helper_error_the_game_goes_on_in_one_process():
+    rng = np.random.default_rng(8)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    game.processes, game.parallel_after = 2, 0.0
+    m = game.model
+    bZ = m.state_set(np.array(ex.states)[random_set(rng, ex, 0.6)])
+    want = game.predecessors(bZ)  # one process; starts the helpers
+    game._pool.helpers[0].kill()
+    game._pool.helpers[0].wait()
+    with pytest.raises(HelperError):
+        game.predecessors(bZ)
+    assert game.predecessors(bZ) == want and game._pool is None and game.processes == 1
+    game.close()
 
 
 def test_processes_must_be_positive():
