@@ -179,8 +179,7 @@ class LayeredController(Controller):
     @classmethod
     def from_result(cls, game, result, meta: dict) -> "LayeredController":
         """The controller of a layered :class:`~pipelines.synthesis.SynthesisResult` of ``game``."""
-        M = game.M if game.method == "shared" else None
-        return cls(game.model, game.admissible, game.chain, M, result.layers, result.stay, meta)
+        return cls(game.model, game.admissible, game.chain, game.M, result.layers, result.stay, meta)
 
     @property
     def nodes(self) -> int:

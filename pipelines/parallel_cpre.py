@@ -52,6 +52,9 @@ READY_TIMEOUT = 120.0
 """Seconds a helper may take to start (import numpy, dd and the model) before synthesis gives up on it."""
 
 
+OUT_OF_MEMORY = "if it ran out of memory, run synthesis in one process (options.synthesis_processes: 1)"
+
+
 class HelperError(CompabsError):
     """A helper process failed or died; the message says which and why."""
 
@@ -129,8 +132,8 @@ class _Helper:
         try:
             self.out.send(msg)
         except OSError as exc:
-            raise HelperError(f"synthesis helper {self.index} is gone ({self._status()}: {exc}); if it ran out of "
-                              "memory, run synthesis in one process (options.synthesis_processes: 1)") from None
+            raise HelperError(
+                f"synthesis helper {self.index} is gone ({self._status()}: {exc}); {OUT_OF_MEMORY}") from None
 
     def recv(self, timeout: float | None = None) -> tuple:
         try:
@@ -138,8 +141,7 @@ class _Helper:
                 raise HelperError(f"synthesis helper {self.index} did not answer within {timeout:g} s")
             msg = self.inp.recv()
         except (EOFError, OSError):
-            raise HelperError(f"synthesis helper {self.index} died ({self._status()}); if it ran out of memory, "
-                              "run synthesis in one process (options.synthesis_processes: 1)") from None
+            raise HelperError(f"synthesis helper {self.index} died ({self._status()}); {OUT_OF_MEMORY}") from None
         if msg[0] == "error":
             _, kind, text = msg
             if kind == "BDDMemoryError":
@@ -265,10 +267,9 @@ class PartitionedPredecessors:
             return
         g = self.game
         chain, admissible = (g.chain, g.admissible) if within is None else within
-        roots = [rel for rel, _ in chain] + [admissible] + ([g.M] if g.method == "shared" else [])
+        roots = [rel for rel, _ in chain] + [admissible] + ([] if g.M is None else [g.M])
         files = [self._dump(f) for f in roots]
-        msg = ("problem", files, [list(xn) for _, xn in chain], g.method, list(g.u_bits),
-               list(getattr(g, "w_bits", [])))
+        msg = ("problem", files, [list(xn) for _, xn in chain], list(g.u_bits), list(g.w_bits))
         for h in self._helpers:
             h.wait_ready()
             h.send(msg)
@@ -342,12 +343,12 @@ def _serve(inp: Connection, out: Connection) -> None:
                 out.send(("ready",))
             elif msg[0] == "problem":
                 assert model is not None
-                _, files, xn_lists, method, u_bits, w_bits = msg
+                _, files, xn_lists, u_bits, w_bits = msg
                 with model.guard("reading the chain"):
                     roots = [model.bdd.load(f)[0] for f in files]
                 n = len(xn_lists)
                 chain = list(zip(roots[:n], xn_lists))
-                M = roots[n + 1] if method == "shared" else None
+                M = roots[n + 1] if len(roots) > n + 1 else None  # the shared method's interconnection
                 problem = (chain, roots[n], M, u_bits, w_bits)
                 out.send(("ok",))
             elif msg[0] == "pred":

@@ -289,8 +289,8 @@ def spec_hash(spec: JobSpec) -> str:
 
     # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
     # timed out must resume.
-    canonical = json.dumps(spec.model_dump(mode="json", exclude={"options": {"task_timeout", "synthesis_processes"}}), sort_keys=True,
-                           separators=(",", ":"))
+    timing_only = {"options": {"task_timeout", "synthesis_processes"}}
+    canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 

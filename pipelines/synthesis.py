@@ -287,6 +287,7 @@ class Game:
             self.admissible &= nb_prime
             chain.append((t_tilde, m.bits_of(m.subsystem_digits(s)["xn"])))
         self.chain = schedule(chain, set(m.xn_bits), bdd, self.chain_order)
+        self.M, self.w_bits = None, []  # w is quantified inside the chain
 
     def _prepare_shared(self) -> None:
         m, bdd = self.model, self.bdd
@@ -322,13 +323,6 @@ class Game:
             chain.append((rel & bdd.exist(outside_support, S), xn_bits))
         return Within(chain, self.admissible & S)
 
-    def _bad_successor(self, Z: Function, chain: Chain) -> Function:
-        """``∃x'. (∧_i R_i ∧ ¬Z')`` chained one subsystem at a time (``R_i`` = T̃_i or T_i)."""
-        acc = ~self.model.to_next(Z)
-        for rel, xn_bits in chain:
-            acc = cudd.and_exists(acc, rel, xn_bits)
-        return acc
-
     def cpre(self, Z: Function, within: Within | None = None) -> Function:
         """``CPre(Z)`` over current-state and input bits (see the module docstring).
 
@@ -336,10 +330,7 @@ class Game:
         """
         chain, admissible = (self.chain, self.admissible) if within is None else within
         with self.model.guard("computing CPre"):
-            bad = self._bad_successor(Z, chain)
-            if self.method == "shared":
-                bad = cudd.and_exists(self.M, bad, self.w_bits)  # the bottleneck step (METHOD §6)
-            return admissible & ~bad
+            return admissible & ~bad_inputs(self.model, chain, self.M, self.w_bits, Z)
 
     def cpre_at(self, state: Mapping[str, bool], Z_next: Function) -> Function:
         """``CPre(Z)`` at one state: a function of the input bits only.
@@ -395,8 +386,8 @@ class Game:
         chain, admissible = (self.chain, self.admissible) if within is None else within
         t0 = time.perf_counter()
         with self.model.guard("computing CPre"):
-            result = predecessors_of(self.model, chain, admissible, getattr(self, "M", None),
-                                     getattr(self, "w_bits", []), self.u_bits, Z, outside, part)
+            result = predecessors_of(self.model, chain, admissible, self.M, self.w_bits, self.u_bits, Z, outside,
+                                     part)
         if part is None and self.processes > 1 and time.perf_counter() - t0 >= self.parallel_after:
             from .parallel_cpre import PartitionedPredecessors
 
@@ -415,7 +406,7 @@ class Game:
         p = self._pool if self._pool is not None else self._last_pool
         if p is None:
             return {}
-        return {"processes": len(p.cuts) + 1, "calls": p.calls, "digit": p.digit, "cuts": list(p.cuts),
+        return {"processes": len(p.cuts) + 1, "calls": p.calls, "digit": p.digit, "cuts": p.cuts,
                 "last_seconds": [round(s, 3) for s in p.seconds]}
 
 
@@ -432,21 +423,20 @@ def resolve_processes(processes: int | str) -> int:
     return processes
 
 
-def predecessors_of(
-    model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, w_bits: Sequence[str],
-    u_bits: Sequence[str], Z: Function, outside: Function | None = None, part: Function | None = None,
+def bad_inputs(
+    model: SymbolicModel, chain: Chain, M: Function | None, w_bits: Sequence[str], Z: Function,
+    outside: Function | None = None, part: Function | None = None,
 ) -> Function:
-    """``part ∧ ∃u.CPre(Z)`` from the CPre ingredients (:meth:`Game.predecessors`; ``M`` for the shared method).
+    """State-input pairs with a successor outside ``Z``: ``part ∧ ∃w.[M̂ ∧ outside ∧ ∃x'.(∧_i R_i ∧ ¬Z')]``.
 
-    ``part`` (current states) is conjoined into the chain's first operand, the ``∃w`` step and the admissible
-    pairs; it reads current-state bits only, so it commutes with every quantification and the result is
-    exact on it. A function of the ingredients (not a method) because helper processes
-    (:mod:`.parallel_cpre`) run it on their own copies.
+    The chain (``R_i`` = T̃_i or T_i) is conjoined one subsystem at a time; ``M`` is ``None`` for the
+    per-subsystem CPre (``w`` already quantified in the chain), else the shared ``∃w`` step follows, the
+    bottleneck of METHOD §6. ``part`` (current states) is conjoined into the chain's first operand; it reads
+    current-state bits only, so it commutes with ``∃x'`` and ``∃w`` and the result is exact on it.
     """
     acc = ~model.to_next(Z)
     if part is not None:
         acc &= part
-        admissible = admissible & part
     for rel, xn_bits in chain:
         acc = cudd.and_exists(acc, rel, xn_bits)
     if M is not None:
@@ -454,7 +444,22 @@ def predecessors_of(
         if part is not None:
             care &= part
         acc = cudd.and_exists(care, acc, list(w_bits))
-    return cudd.and_exists(admissible, ~acc, list(u_bits))
+    return acc
+
+
+def predecessors_of(
+    model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, w_bits: Sequence[str],
+    u_bits: Sequence[str], Z: Function, outside: Function | None = None, part: Function | None = None,
+) -> Function:
+    """``part ∧ ∃u.CPre(Z)`` from the CPre ingredients (:meth:`Game.predecessors`; ``M`` for the shared method).
+
+    ``part`` restricts :func:`bad_inputs` and the admissible pairs, so the result is exact on it. A function of
+    the ingredients (not a method) because helper processes (:mod:`.parallel_cpre`) run it on their own copies.
+    """
+    if part is not None:
+        admissible = admissible & part
+    bad = bad_inputs(model, chain, M, w_bits, Z, outside, part)
+    return cudd.and_exists(admissible, ~bad, list(u_bits))
 
 
 def schedule(
