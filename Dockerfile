@@ -8,11 +8,9 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
-# Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their workers, which makes every large numpy temporary
-# of a task an mmap (~25 % slower tasks; see workers/cluster.py EMBEDDED_CONFIG). /etc/dask is read by every Dask
-# process of the image.
-RUN mkdir -p /etc/dask \
- && printf 'distributed:\n  nanny:\n    pre-spawn-environ:\n      MALLOC_TRIM_THRESHOLD_: null\n' > /etc/dask/compabs.yaml
+# The workers' Dask configuration (glibc malloc settings for their large numpy temporaries; see the file).
+# /etc/dask is read by every Dask process of the image.
+COPY workers/dask.yaml /etc/dask/compabs.yaml
 
 WORKDIR /opt/compabs
 COPY pyproject.toml README.md ./

@@ -571,8 +571,10 @@ def _busy_cpu() -> float:
     return sum(getattr(t, f, 0.0) for f in ("user", "nice", "system", "irq", "softirq", "steal"))
 
 
-def run_child(kind: str, params: dict, timeout: float, mem_limit_mb: float) -> dict:
+def run_child(kind: str, params: dict, timeout: float, mem_limit_mb: float, env: dict[str, str] | None = None) -> dict:
     """Run one child case in a fresh process (own session); poll its process tree; collect its events.
+
+    ``env``: variables added to this process's environment for the child (e.g. the workers' malloc settings).
 
     Returns a record: ``status`` (ok | error | timeout | memory), ``error``, ``events``, ``wall`` (process
     lifetime), ``cpu`` (the tree's CPU), ``peak_rss_mb``, ``others_cores`` (average busy cores of other processes).
@@ -585,7 +587,7 @@ def run_child(kind: str, params: dict, timeout: float, mem_limit_mb: float) -> d
            "--events", events_path]
     busy0, t0 = _busy_cpu(), time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=str(ROOT), start_new_session=True, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, **env} if env else None)
     stderr_lines: list[str] = []
     reader = threading.Thread(target=lambda: stderr_lines.extend(proc.stderr), daemon=True)
     reader.start()
@@ -814,6 +816,8 @@ def _slope(xs: list[float], ys: list[float]) -> float:
 
 
 def bench_floor(args) -> dict:
+    from workers.cluster import worker_environ
+
     if args.quick:
         specs = [(EXAMPLES / "small.yaml", {}), (EXAMPLES / "tanks.yaml", {})]
     else:
@@ -821,8 +825,9 @@ def bench_floor(args) -> dict:
                  (EXAMPLES / "scalability.yaml", {}), (EXAMPLES / "stress.yaml", {"repeat": 1})]
     rows, children = [], []
     for spec, extra in specs:
+        # The stage runs in a Dask worker: measure it (and the floor) in a process with a worker's environment.
         child = run_child("floor", {"spec": str(spec), "repeat": 3, **extra}, args.point_timeout,
-                          args.mem_limit_gb * 1024)
+                          args.mem_limit_gb * 1024, env=worker_environ())
         children.append(case_record(f"floor {spec.stem}", child, spec=spec.name))
         for e in child["events"]:
             if e["type"] == "row":

@@ -175,6 +175,53 @@ def test_connect_from_environment(monkeypatch, cluster):
     assert cluster.client.status == "running"  # closing a joined client leaves the cluster alone
 
 
+def _allocator_settings() -> dict[str, str | None]:
+    import os
+
+    return {k: os.environ.get(k) for k in ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
+                                            "MALLOC_TOP_PAD_")}
+
+
+def test_embedded_workers_get_the_allocator_settings(cluster):
+    """The worker processes run with workers/dask.yaml's environment (not Dask's MALLOC_TRIM_THRESHOLD_=65536),
+    and a large temporary of a task comes from the heap, not from a fresh mmap (measured with the defaults:
+    321 MB mmapped)."""
+    from workers.cluster import DASK_CONFIG_FILE, worker_environ
+
+    want = worker_environ()
+    assert set(want) == {"MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"}
+    got = cluster.client.run(_allocator_settings)
+    assert len(got) == 2 and all(env == want for env in got.values()), got
+
+    def mmapped_bytes_with_a_large_array() -> int:
+        import ctypes
+
+        import numpy as np
+
+        class MallInfo2(ctypes.Structure):
+            _fields_ = [(name, ctypes.c_size_t) for name in (
+                "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks",
+                "keepcost")]
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallinfo2.restype = MallInfo2
+        a = np.ones(40_000_000)  # 320 MB: above glibc's default mmap threshold (at most 32 MB)
+        held = libc.mallinfo2().hblkhd  # bytes in mmapped blocks
+        del a
+        return held
+
+    # In the task thread, where the per-cell stage runs (its own arena by default, which cannot hold 320 MB).
+    mmapped = cluster.client.submit(mmapped_bytes_with_a_large_array, pure=False).result()
+    assert mmapped < 320_000_000, f"a 320 MB array was mmapped: {DASK_CONFIG_FILE} not in effect?"
+
+
+def test_image_installs_the_worker_config():
+    from workers.cluster import DASK_CONFIG_FILE
+
+    dockerfile = (Path(__file__).resolve().parents[1] / "Dockerfile").read_text()
+    assert f"COPY workers/{DASK_CONFIG_FILE.name} /etc/dask/" in dockerfile
+
+
 # ----------------------------------------------------------------------------------------------- equality
 @pytest.mark.slow
 def test_tanks_distributed_equals_in_process(tmp_path, client):

@@ -16,6 +16,7 @@ Process workers are started with ``spawn``, so the calling program's ``__main__`
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
 from .errors import ClusterError
@@ -24,12 +25,25 @@ from .errors import ClusterError
 SCHEDULER_ENV = "COMPABS_SCHEDULER"
 #: Seconds to wait for an external scheduler to answer and to have at least one worker.
 CONNECT_TIMEOUT = 30.0
-#: Dask configuration of the embedded cluster. Dask's nannies export MALLOC_TRIM_THRESHOLD_=65536 to their
-#: workers, which turns off glibc's dynamic mmap threshold: every large numpy temporary of a task is then
-#: mmapped and page-faulted afresh. Measured on the stressed tank case (bench/runner.py --stress 40, one
-#: worker): task compute 3.75 s with it, 3.0 s without, 2.6 s in-process. ``None`` unsets it (a value the
-#: user exported is still inherited). External workers: set the same in their Dask config (see README).
-EMBEDDED_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
+#: Dask configuration of compabs's workers (``workers/dask.yaml``; the image copies it to ``/etc/dask``): the
+#: environment the nannies give the worker processes, glibc's malloc tuned for large numpy temporaries. Dask's own
+#: default, MALLOC_TRIM_THRESHOLD_=65536, turns off glibc's dynamic mmap threshold, so every large temporary of a
+#: task is mmapped and page-faulted afresh (tanks, one worker: task compute 3.75 s with it, 3.0 s without); the
+#: file's settings go further (stress per-cell stage 95.8 s -> 57.1 s CPU). External workers: use the same file.
+DASK_CONFIG_FILE = Path(__file__).with_name("dask.yaml")
+
+
+def worker_environ() -> dict[str, str]:
+    """The environment variables ``workers/dask.yaml`` has the nannies set in each worker process."""
+    import yaml
+
+    tree = yaml.safe_load(DASK_CONFIG_FILE.read_text())
+    env = tree["distributed"]["nanny"]["pre-spawn-environ"]
+    return {k: str(v) for k, v in env.items() if v is not None}
+
+
+#: ``workers/dask.yaml`` as dotted keys for ``dask.config.set`` (a nested dict would replace whole sections).
+EMBEDDED_CONFIG = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in worker_environ().items()}
 
 
 class Connection(tuple):
