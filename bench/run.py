@@ -260,22 +260,29 @@ def network_w_cells(abstraction) -> int:
 
 
 class _Recorder:
-    """Wraps a black box; keeps the arrays of its first call (the samples call of ``abstract_cells``)."""
+    """Wraps a black box; keeps the arrays and results of its sample calls (``abstract_cells`` evaluates a chunk's
+    samples in one call per block of triples, in order, and the cells' centres in calls of their own)."""
 
     def __init__(self, box) -> None:
         self.box = box
-        self.args = None
-        self.out = None
+        self.calls: list[tuple[tuple, Any]] = []
 
     def __call__(self, *arrays, describe=None):
         out = self.box(*arrays, describe=describe)
-        if self.args is None:
-            self.args, self.out = arrays, out
+        if getattr(describe, "__name__", "") == "where_sample":
+            self.calls.append((arrays, out))
         return out
 
 
-def _floor_function(sub, network) -> Callable:
-    """The compiled dynamics of a subsystem, called bare (no shape or finiteness checks)."""
+def _floor_function(sub, network) -> tuple[Callable, Callable]:
+    """The compiled dynamics of a subsystem, called bare (no shape or finiteness checks), and how to turn the
+    recorded arguments of a sample call into its arguments (outside the timing).
+
+    An expression reads the recorded broadcast views as they are; a ``module:function`` gets the ``(B, d)`` copies
+    the black box would make for it (making them is the stage's work, not the floor's).
+    """
+    import numpy as np
+
     from pipelines.expr import compile_expression
     from pipelines.spec import is_module_function
 
@@ -285,14 +292,19 @@ def _floor_function(sub, network) -> Callable:
         import importlib
 
         mod, fn = src.split(":")
-        return getattr(importlib.import_module(mod), fn)
+
+        def flat(arrays):
+            shape = np.broadcast_shapes(*(a.shape[:-1] for a in arrays))
+            return tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(-1, a.shape[-1]) for a in arrays)
+
+        return getattr(importlib.import_module(mod), fn), flat
     used = {k: d for k, d in sub.dynamics.inputs.items() if d > 0}
     expr = compile_expression(src, used, network.constants)
 
     def bare(*arrays):
-        return expr(**{k: a.T for k, a in zip(names, arrays) if k in used})
+        return expr(**{k: np.moveaxis(a, -1, 0) for k, a in zip(names, arrays) if k in used})
 
-    return bare
+    return bare, lambda arrays: arrays
 
 
 def _constants(sub) -> tuple[float, float]:
@@ -317,7 +329,7 @@ def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
         sub = members[0]
         L_x, L_w = _constants(sub)
         chunks = chunk_ranges(sub, spec.options.chunk_cells)
-        floor = _floor_function(sub, network)
+        floor, prepare = _floor_function(sub, network)
         best = None
         for _ in range(p.get("repeat", 1)):
             tot = {"stage_wall": 0.0, "stage_cpu": 0.0, "floor_wall": 0.0, "floor_cpu": 0.0, "evaluations": 0}
@@ -327,13 +339,16 @@ def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
                 w0, c0 = time.perf_counter(), time.process_time()
                 abstract_cells(s2, a, b, L_x, L_w, sub.spec.growth_bound, sub.spec.scp_objective)
                 w1, c1 = time.perf_counter(), time.process_time()
-                floor(*rec.args)
+                calls = [prepare(args) for args, _ in rec.calls]
                 w2, c2 = time.perf_counter(), time.process_time()
+                for args in calls:
+                    floor(*args)
+                w3, c3 = time.perf_counter(), time.process_time()
                 tot["stage_wall"] += w1 - w0
                 tot["stage_cpu"] += c1 - c0
-                tot["floor_wall"] += w2 - w1
-                tot["floor_cpu"] += c2 - c1
-                tot["evaluations"] += rec.args[0].shape[0]
+                tot["floor_wall"] += w3 - w2
+                tot["floor_cpu"] += c3 - c2
+                tot["evaluations"] += sum(out.shape[0] * out.shape[1] * out.shape[2] for _, out in rec.calls)
                 del rec, s2
             if best is None or tot["stage_cpu"] + tot["floor_cpu"] < best["stage_cpu"] + best["floor_cpu"]:
                 best = tot
@@ -388,9 +403,11 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
         abstract_cells(replace(sub, dynamics=rec), a, b, L_x, L_w, "scp", "paper")
         c = b - a
         B = c * n_u * n_w
-        # abstract_cells lays the samples out sample-major, (S_x, S_w, triples): triples first here.
-        Xs.append(np.moveaxis(rec.args[0].reshape(Sx * Sw, B, sub.n), 1, 0))
-        Vs.append(np.moveaxis(rec.out.reshape(Sx, Sw, B, sub.n), 2, 0))
+        # abstract_cells lays each block's samples out sample-major, (S_x, S_w, triples): triples first here.
+        for args, out in rec.calls:  # args[0]: (Sx, 1, Bb, n) state samples, broadcast over the w samples
+            Bb = out.shape[2]
+            Xs.append(np.moveaxis(np.broadcast_to(args[0], (Sx, Sw, Bb, sub.n)).reshape(Sx * Sw, Bb, sub.n), 1, 0))
+            Vs.append(np.moveaxis(out.reshape(Sx, Sw, Bb, sub.n), 2, 0))
         x_lo, x_hi = xg.clipped_cells(xg.unravel(np.arange(a, b)))
         RX = np.broadcast_to(((x_hi - x_lo) / 2)[:, None, None, :], (c, n_u, n_w, sub.n)).reshape(B, sub.n)
         RW = np.broadcast_to(((w_hi - w_lo) / 2)[None, None, :, :], (c, n_u, n_w, sub.p)).reshape(B, sub.p)

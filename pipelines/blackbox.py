@@ -21,6 +21,10 @@ from .spec import is_module_function
 class BlackBox:
     """A vectorised map ``(arrays of shape (B, d_k)) -> array of shape (B, out_dim)``.
 
+    The batch may also be several leading axes that broadcast (``(*batch, d_k) -> (*batch, out_dim)``): a grid
+    of samples passed as broadcast views. Expressions evaluate on the views directly; a ``module:function``
+    receives the materialised ``(B, d_k)`` arrays it is written for.
+
     Parameters
     ----------
     name : str
@@ -91,8 +95,9 @@ class BlackBox:
                 raise ExpressionError(f"{self._name}: {exc}") from None
 
             def run(*arrays: np.ndarray) -> np.ndarray:
-                out = expr(**{k: a.T for k, a in zip(self._inputs, arrays) if k in used})
-                return np.asarray(out, dtype=float).T
+                # (*batch, d) -> (d, *batch) views in; (out, *batch) -> (*batch, out) view back
+                out = expr(**{k: np.moveaxis(a, -1, 0) for k, a in zip(self._inputs, arrays) if k in used})
+                return np.moveaxis(np.asarray(out, dtype=float), 0, -1)
 
             self._fn = run
 
@@ -139,16 +144,27 @@ class BlackBox:
 
         Parameters
         ----------
-        *arrays : ndarray, shape (B, d_k)
-            One per input, in the order of ``inputs``.
+        *arrays : ndarray, shape (B, d_k) or (*batch_k, d_k)
+            One per input, in the order of ``inputs``; the ``batch_k`` broadcast to one batch shape.
         describe : callable, optional
-            Maps a batch row to a description (e.g. the cell it was sampled in) for error messages.
+            Maps a batch row (flat, row-major over the batch shape) to a description (e.g. the cell it was
+            sampled in) for error messages.
 
         Returns
         -------
-        ndarray, shape (B, out_dim), float64, all finite.
+        ndarray, shape (B, out_dim) or (*batch, out_dim), float64, all finite.
         """
-        B = arrays[0].shape[0] if arrays else 0
+        try:
+            shape = np.broadcast_shapes(*(a.shape[:-1] for a in arrays)) if arrays else (0,)
+        except ValueError:
+            raise BlackBoxError(
+                f"{self._name}: argument batch shapes {[a.shape[:-1] for a in arrays]} do not broadcast"
+            ) from None
+        B = int(np.prod(shape))
+        given = arrays
+        flat = len(shape) == 1 and all(a.shape[:-1] == shape for a in arrays)
+        if not flat and self._is_module:  # a user function gets the (B, d) arrays it is written for
+            arrays = tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(B, a.shape[-1]) for a in arrays)
         # A whole-batch failure (an exception, a wrong shape) has no one offending row: name the batch's range.
         batch = f" on the batch from {describe(0)} to {describe(B - 1)}" if describe is not None and B else ""
         try:
@@ -159,13 +175,24 @@ class BlackBox:
             raise
         except Exception as exc:
             raise BlackBoxError(f"{self._name}: raised {type(exc).__name__}: {exc}{batch}") from None
-        if out.shape != (B, self._out_dim):
-            raise BlackBoxError(f"{self._name}: returned shape {out.shape}, expected {(B, self._out_dim)}{batch}")
-        finite = np.isfinite(out)
-        if not finite.all():
-            row = int(np.argmin(finite.all(axis=1)))
-            bad = out[row]
-            point = ", ".join(f"{k}={np.array2string(a[row], precision=6)}" for k, a in zip(self._inputs, arrays))
-            where = f" ({describe(row)})" if describe is not None else ""
-            raise BlackBoxError(f"{self._name}: returned {bad.tolist()} (not finite) at {point}{where}")
+        if self._is_module:
+            if out.shape != (B, self._out_dim):
+                raise BlackBoxError(f"{self._name}: returned shape {out.shape}, expected {(B, self._out_dim)}{batch}")
+            out = out.reshape(shape + (self._out_dim,))
+        elif out.shape != shape + (self._out_dim,):  # an expression that reads only some of the batch axes
+            out = np.ascontiguousarray(np.broadcast_to(out, shape + (self._out_dim,)))
+        # One read, no temporary: a sum is finite only if every term is (a finite sum can overflow, so a
+        # non-finite sum is checked value by value).
+        if not np.isfinite(out.sum()):
+            finite = np.isfinite(out).all(axis=-1).ravel()
+            if not finite.all():
+                row = int(np.argmin(finite))
+                at = np.unravel_index(row, shape)
+                bad = out[at]
+                point = ", ".join(
+                    f"{k}={np.array2string(np.broadcast_to(a, shape + a.shape[-1:])[at], precision=6)}"
+                    for k, a in zip(self._inputs, given)
+                )
+                where = f" ({describe(row)})" if describe is not None else ""
+                raise BlackBoxError(f"{self._name}: returned {bad.tolist()} (not finite) at {point}{where}")
         return out

@@ -10,7 +10,9 @@ functions is reachable from an expression.
 Shapes
 ------
 Every variable ``v`` declared with dimension ``d`` is passed as an array of shape ``(d, B)`` (dimension
-first, batch last). Inside an expression a value is either
+first, batch last). The batch may also be several axes, ``(d, *batch)``, whose shapes broadcast together by
+numpy's rules (a grid of samples passed as broadcast views, without copies); ``B`` below stands for it. Inside
+an expression a value is either
 
 * *elementwise*: a scalar, or an array of shape ``(B,)`` (``x[0]``, ``mean(x)``, ``3 * u[1]``), or
 * a *vector* of ``k`` components, shape ``(k, B)`` (``x``, ``x[1:3]``, ``2 * x``).
@@ -80,6 +82,8 @@ Value = Union[float, np.floating, np.ndarray]
 #: The arrays of one call, name -> float64 array of shape ``(dim, B)``.
 Env = Mapping[str, np.ndarray]
 Evaluator = Callable[[Env], Value]
+#: The batch shape of one call: ``(B,)``, or several axes (see "Shapes").
+Batch = tuple[int, ...]
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -884,35 +888,40 @@ def _logical_chain(ufunc: Callable[[Value, Value], np.ndarray], fns: tuple[Evalu
     return run
 
 
-def _assemble_single(node: _Node) -> Callable[[Env, int], np.ndarray]:
+def _assemble_single(node: _Node) -> Callable[[Env, Batch], np.ndarray]:
     """Output of a non-list expression: ``(1, B)`` for an elementwise value, ``(k, B)`` for a vector."""
     rows = node.lead or 1
     fn = node.fn
 
-    def run(env: Env, batch: int) -> np.ndarray:
+    def run(env: Env, batch: Batch) -> np.ndarray:
         value = np.asarray(fn(env), dtype=np.float64)
         if node.lead is None:
-            value = np.broadcast_to(value, (batch,))[np.newaxis, :]
-        return np.array(np.broadcast_to(value, (rows, batch)), dtype=np.float64)
+            if value.shape == batch and value.base is None and value.flags.owndata and value.flags.c_contiguous:
+                # A ufunc's fresh result (inputs reach an elementwise value only as views): no copy needed.
+                return value[np.newaxis]
+            value = np.broadcast_to(value, batch)[np.newaxis]
+        # Row-major whatever the inputs' strides (a ufunc lays its output out like its inputs), so that
+        # reductions over the leading batch axes read contiguous rows.
+        return np.array(np.broadcast_to(value, (rows,) + batch), dtype=np.float64, order="C")
 
     return run
 
 
-def _assemble_list(entries: list[_Node]) -> Callable[[Env, int], np.ndarray]:
+def _assemble_list(entries: list[_Node]) -> Callable[[Env, Batch], np.ndarray]:
     """Output of ``[e1, ..., en]``: elementwise entries are one row each, vector entries all their rows."""
     layout = tuple((e.fn, e.lead) for e in entries)
     total = sum(lead or 1 for _, lead in layout)
 
-    def run(env: Env, batch: int) -> np.ndarray:
-        out = np.empty((total, batch), dtype=np.float64)
+    def run(env: Env, batch: Batch) -> np.ndarray:
+        out = np.empty((total,) + batch, dtype=np.float64)
         row = 0
         for fn, lead in layout:
             value = fn(env)
             if lead is None:
-                out[row] = np.broadcast_to(value, (batch,))
+                out[row] = np.broadcast_to(value, batch)
                 row += 1
             else:
-                out[row : row + lead] = np.broadcast_to(value, (lead, batch))
+                out[row : row + lead] = np.broadcast_to(value, (lead,) + batch)
                 row += lead
         return out
 
@@ -937,9 +946,11 @@ class CompiledExpression:
     Notes
     -----
     ``expr(x=X, u=U)`` takes float arrays of shape ``(dim, B)`` per variable and returns a new float64 array
-    of shape ``(output_dim(), B)``. Every variable the expression references must be passed; declared but
-    unreferenced ones may be omitted. Evaluation never raises on NaN/inf (errors are ignored); it raises
-    :class:`ExpressionError` only for wrong arguments (unknown or missing name, wrong shape, unequal ``B``).
+    of shape ``(output_dim(), B)``; or arrays of shape ``(dim, *batch)`` whose batch shapes broadcast, and then
+    the result has shape ``(output_dim(), *broadcast batch)``. Every variable the expression references must be
+    passed; declared but unreferenced ones may be omitted. Evaluation never raises on NaN/inf (errors are
+    ignored); it raises :class:`ExpressionError` only for wrong arguments (unknown or missing name, wrong
+    shape, unequal ``B``, batch shapes that do not broadcast).
     """
 
     __slots__ = ("_text", "_variables", "_used", "_assemble", "_out_dim")
@@ -977,18 +988,19 @@ class CompiledExpression:
 
         Parameters
         ----------
-        **arrays : array_like, shape (dim, B)
-            One array per variable, keyed by variable name; all with the same batch size ``B``.
+        **arrays : array_like, shape (dim, B) or (dim, *batch)
+            One array per variable, keyed by variable name; all with the same batch size ``B``, or batch shapes
+            that broadcast.
 
         Returns
         -------
-        numpy.ndarray, shape (output_dim(), B), float64
+        numpy.ndarray, shape (output_dim(), B) or (output_dim(), *batch), float64
         """
         env, batch = self._prepare(arrays)
         with np.errstate(all="ignore"):
             return self._assemble(env, batch)
 
-    def _prepare(self, arrays: Mapping[str, object]) -> tuple[dict[str, np.ndarray], int]:
+    def _prepare(self, arrays: Mapping[str, object]) -> tuple[dict[str, np.ndarray], Batch]:
         unknown = [k for k in arrays if k not in self._variables]
         if unknown:
             raise ExpressionError(
@@ -1003,17 +1015,29 @@ class CompiledExpression:
                 f"expression {_shown(self._text)}: pass at least one variable array so the batch size is known"
             )
         env: dict[str, np.ndarray] = {}
-        batch: int | None = None
+        batch: Batch | None = None
         for name, raw in arrays.items():
             arr = _as_batch_array(self._text, name, raw, self._variables[name])
-            if batch is not None and arr.shape[1] != batch:
-                raise ExpressionError(
-                    f"expression {_shown(self._text)}: variable {name!r} has batch size {arr.shape[1]}, "
-                    f"others have {batch}"
-                )
-            batch = arr.shape[1]
+            shape = arr.shape[1:]
+            if batch is not None and shape != batch:
+                if len(shape) == 1 and len(batch) == 1:
+                    raise ExpressionError(
+                        f"expression {_shown(self._text)}: variable {name!r} has batch size {shape[0]}, "
+                        f"others have {batch[0]}"
+                    )
+                try:
+                    shape = np.broadcast_shapes(batch, shape)
+                except ValueError:
+                    raise ExpressionError(
+                        f"expression {_shown(self._text)}: variable {name!r} has batch shape {arr.shape[1:]}, "
+                        f"which does not broadcast with the others' {batch}"
+                    ) from None
+            batch = shape
             env[name] = arr
         assert batch is not None
+        for name, arr in env.items():  # batch axes right-aligned, so that vectors (k, *batch) broadcast too
+            if arr.ndim - 1 < len(batch):
+                env[name] = arr.reshape(arr.shape[:1] + (1,) * (len(batch) + 1 - arr.ndim) + arr.shape[1:])
         return env, batch
 
     def __repr__(self) -> str:
@@ -1021,14 +1045,14 @@ class CompiledExpression:
 
 
 def _as_batch_array(text: str, name: str, raw: object, dim: int) -> np.ndarray:
-    """``raw`` as a float64 array of shape ``(dim, B)``, or :class:`ExpressionError`."""
+    """``raw`` as a float64 array of shape ``(dim, B)`` or ``(dim, *batch)``, or :class:`ExpressionError`."""
     try:
         if np.iscomplexobj(raw):
             raise TypeError("complex values are not allowed")
         arr = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ExpressionError(f"expression {_shown(text)}: variable {name!r} is not a real float array ({exc})") from None
-    if arr.ndim != 2 or arr.shape[0] != dim:
+    if arr.ndim < 2 or arr.shape[0] != dim:
         raise ExpressionError(
             f"expression {_shown(text)}: variable {name!r} must have shape ({dim}, B), got {arr.shape}"
         )

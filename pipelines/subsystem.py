@@ -203,38 +203,6 @@ def statistics_sample(first_triple: int, count: int) -> np.ndarray:
     return np.flatnonzero(hashed < np.uint64(int(STATISTICS_SAMPLE * (1 << 24))))
 
 
-def _sample_inputs(lead: tuple[int, ...], bases: list[np.ndarray]) -> list[np.ndarray]:
-    """Each ``base`` (shape ``(*tail, B, d)``, a suffix of ``lead + (B, d)``) repeated over the missing leading
-    axes and flattened to ``(prod(lead) * B, d)``: the black box's arguments.
-
-    A base whose rows are all the same point becomes a read-only broadcast view (no copy). The others share one
-    new allocation (fewer, larger allocations: fewer fresh pages to fault in) and are filled by whole
-    contiguous ``(B, d)`` blocks (numpy copies those at memory speed, unlike a broadcast over many short axes).
-    """
-    rows = int(np.prod(lead)) * bases[0].shape[-2]
-    out: list[np.ndarray | None] = []
-    need = 0
-    for base in bases:
-        d = base.shape[-1]
-        if d == 0:
-            out.append(np.empty((rows, 0)))
-        elif np.all(base.reshape(-1, d) == base.reshape(-1, d)[:1]):
-            out.append(np.broadcast_to(base.reshape(-1, d)[:1], (rows, d)))
-        else:
-            out.append(None)
-            need += rows * d
-    block = np.empty(need)
-    at = 0
-    for k, base in enumerate(bases):
-        if out[k] is None:
-            d = base.shape[-1]
-            arr = block[at : at + rows * d]
-            at += rows * d
-            arr.reshape(tuple(lead) + base.shape[-2:])[...] = base
-            out[k] = arr.reshape(rows, d)
-    return out
-
-
 @functools.lru_cache(maxsize=64)
 def _chunk_invariants(
     ug: UniformGrid, wg: UniformGrid | None, samples: int, n: int
@@ -259,6 +227,14 @@ def _chunk_invariants(
     for a in (u_pts, w_lo, w_hi, off_x, ws):
         a.setflags(write=False)
     return u_pts, w_lo, w_hi, counts, off_x, ws
+
+
+#: Black-box evaluations (samples x triples) per block of :func:`abstract_cells`: a chunk's triples are
+#: processed in blocks of about this many evaluations, so the temporaries (a few float64 arrays of this length)
+#: stay near the caches and a task's memory is bounded whatever its chunk. Measured on examples/stress.yaml's
+#: agent (one process, warm heap): 11.0 ns per evaluation with blocks of 1e6, 11.5 with 4e6, 13-14 with 1.6e7,
+#: 16.3 with 3.2e7.
+BLOCK_POINTS = 1 << 20
 
 
 def abstract_cells(
@@ -299,55 +275,109 @@ def abstract_cells(
 
     Notes
     -----
-    Layout: the samples of all triples are evaluated in one call of the black box, ordered with the sub-grid
-    axes first and the triples last, ``(S_x, S_w, c, n_u, n_w)`` row-major, so every reduction over samples
+    The chunk's triples ``(x, u, w)``, flat in row-major order over ``(c, n_u, n_w)``, are processed in
+    consecutive blocks of about :data:`BLOCK_POINTS` evaluations (:func:`_abstract_block`). Every quantity is
+    computed per triple, so blocks give the same bits as one pass; the slope records keep the first largest
+    slope, as ``argmax`` over the whole chunk would.
+    """
+    xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
+    u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, sub.n)
+    c, n_u, n_w = stop - start, u_pts.shape[0], w_lo.shape[0]
+    x_lo, x_hi = xg.clipped_cells(xg.unravel(np.arange(start, stop)))  # (c, n)
+    samples = off_x.shape[0] * ws.shape[1]
+    B = c * n_u * n_w
+    step = max(1, BLOCK_POINTS // samples)
+    parts = [
+        _abstract_block(sub, start, x_lo, x_hi, t0, min(t0 + step, B), L_x, L_w, method, objective, full_statistics)
+        for t0 in range(0, B, step)
+    ]
+    successors = {
+        name: (sum(p[3][name][0] for p in parts), sum(p[3][name][1] for p in parts)) for name in parts[0][3]
+    }
+    slope_x, slope_w = parts[0][4], parts[0][5]
+    for p in parts[1:]:
+        slope_x, slope_w = slope_x.merge(p[4]), slope_w.merge(p[5])
+    cshape = (c, n_u, n_w)
+    lo = np.concatenate([p[0] for p in parts]).reshape(cshape + (sub.n,))
+    hi = np.concatenate([p[1] for p in parts]).reshape(cshape + (sub.n,))
+    blocking = np.concatenate([p[2] for p in parts]).reshape(cshape)
+    return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
+
+
+def _abstract_block(
+    sub: Subsystem,
+    start: int,
+    x_lo: np.ndarray,
+    x_hi: np.ndarray,
+    t0: int,
+    t1: int,
+    L_x: float,
+    L_w: float,
+    method: str,
+    objective: str,
+    full_statistics: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, tuple[int, int]], SlopeRecord, SlopeRecord]:
+    """The triples ``t0 .. t1-1`` of the chunk starting at state cell ``start`` (see :func:`abstract_cells`).
+
+    Parameters
+    ----------
+    x_lo, x_hi : ndarray, shape (c, n)
+        The chunk's clipped state cells.
+    t0, t1 : int
+        Flat triple range within the chunk, row-major over ``(c, n_u, n_w)``.
+
+    Returns
+    -------
+    lo, hi : ndarray of int32, shape (t1 - t0, n)
+    blocking : ndarray of bool, shape (t1 - t0,)
+    successors : dict, method -> (sum of successor counts, non-blocking triples)
+    slope_x, slope_w : SlopeRecord
+
+    Notes
+    -----
+    Layout: the samples of the block's triples are evaluated in one call of the black box, ordered with the
+    sub-grid axes first and the triples last, ``(S_x, S_w, B)`` row-major, so every reduction over samples
     (extremes, neighbour differences, the SCP's pair maxima) runs over leading axes with the triples on the
-    contiguous axis. An input that is the same at every sample (one input value, a one-point internal cell)
-    is passed as a read-only broadcast view: a black box must not write into its arguments.
+    contiguous axis. The arguments are ``(S_x, 1, B, n)``, ``(B, m)`` and ``(S_w, B, p)`` arrays that the black
+    box broadcasts (:class:`~pipelines.blackbox.BlackBox`: an expression reads them as views, a
+    ``module:function`` gets them copied out to ``(S_x S_w B, d)``).
     """
     xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
     n, p = sub.n, sub.p
-    x_idx = xg.unravel(np.arange(start, stop))
-    x_lo, x_hi = xg.clipped_cells(x_idx)  # (c, n)
     u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, n)
-    c, n_u, n_w = stop - start, u_pts.shape[0], w_lo.shape[0]
-    m_u = u_pts.shape[1]
+    n_u, n_w = u_pts.shape[0], w_lo.shape[0]
     cx, cw = counts[:n], counts[n:]
     Sx, Sw = off_x.shape[0], ws.shape[1]
+    t = np.arange(t0, t1)
+    ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
+    B = t.size
+    shape = (Sx, Sw, B)
 
-    xs = x_lo[:, None, :] + off_x[None] * (x_hi - x_lo)[:, None, :]  # (c, Sx, n)
-    cshape = (c, n_u, n_w)
-    B = c * n_u * n_w
-    shape = (Sx, Sw) + cshape
-    # Each input once per triple (the batch, c * n_u * n_w rows, contiguous), then copied over the samples.
-    X, U, W = _sample_inputs((Sx, Sw), [
-        np.repeat(xs.transpose(1, 0, 2), n_u * n_w, axis=1)[:, None],  # (Sx, 1, B, n)
-        np.tile(np.repeat(u_pts, n_w, axis=0), (c, 1)),  # (B, m)
-        np.tile(ws.transpose(1, 0, 2), (1, c * n_u, 1)),  # (Sw, B, p)
-    ])
+    xl, xh = x_lo[ci], x_hi[ci]  # (B, n)
+    xs = xl[None] + off_x[:, None, :] * (xh - xl)[None]  # (Sx, B, n)
+    # Each input once per triple and sample axis it varies along; the black box broadcasts them to (Sx, Sw, B).
+    X = xs[:, None]  # (Sx, 1, B, n)
+    U = u_pts[ui]  # (B, m)
+    W = np.ascontiguousarray(ws[wi].transpose(1, 0, 2))  # (Sw, B, p); row-major, so is V (ufuncs follow inputs)
+
+    def where_triple(b: int) -> str:
+        return f"state cell {start + int(ci[b])}, input {int(ui[b])}, internal cell {int(wi[b])}"
 
     def where_sample(row: int) -> str:
-        _, _, ci, ui, wi = np.unravel_index(row, shape)
-        return f"state cell {start + ci}, input {ui}, internal cell {wi}"
+        return where_triple(int(np.unravel_index(row, shape)[2]))
 
-    V = sub.dynamics(X, U, W, describe=where_sample)  # (Sx * Sw * B, n)
-    del X, U, W
+    V = sub.dynamics(X, U, W, describe=where_sample)  # (Sx, Sw, B, n)
 
     # Centre of the clipped joint cell: Lemma 4.3 and the SCP bound distances from it.
-    xc, wc = (x_lo + x_hi) / 2, (w_lo + w_hi) / 2
-    rx, rw = (x_hi - x_lo) / 2, (w_hi - w_lo) / 2
-    XC = np.broadcast_to(xc[:, None, None, :], cshape + (n,)).reshape(B, n)
-    UC = np.broadcast_to(u_pts[None, :, None, :], cshape + (m_u,)).reshape(B, m_u)
-    WC = np.broadcast_to(wc[None, None, :, :], cshape + (p,)).reshape(B, p)
+    wl, wh = w_lo[wi], w_hi[wi]  # (B, p)
+    XC, WC = (xl + xh) / 2, (wl + wh) / 2
+    RX, RW = (xh - xl) / 2, (wh - wl) / 2
 
     def where_centre(row: int) -> str:
-        ci, ui, wi = np.unravel_index(row, cshape)
-        return f"centre of state cell {start + ci}, input {ui}, internal cell {wi}"
+        return "centre of " + where_triple(row)
 
-    C = sub.dynamics(XC, UC, WC, describe=where_centre)  # (B, n)
+    C = sub.dynamics(XC, u_pts[ui], WC, describe=where_centre)  # (B, n)
 
-    RX = np.broadcast_to(rx[:, None, None, :], cshape + (n,)).reshape(B, n)
-    RW = np.broadcast_to(rw[None, None, :, :], cshape + (p,)).reshape(B, p)
     HX = 2 * RX / np.asarray(cx, dtype=float) if n else RX
     HW = 2 * RW / np.asarray(cw, dtype=float) if p else RW
 
@@ -369,11 +399,11 @@ def abstract_cells(
 
     rho = scp_rho(HX, HW, L_x, L_w)
     chosen = "scp_radius" if (method == "scp" and objective == "radius") else method
-    sampled: dict[str, np.ndarray] = {}  # method -> triples (positions in the chunk) it is computed on
+    sampled: dict[str, np.ndarray] = {}  # method -> triples (positions in the block) it is computed on
     if not full_statistics:
         for name in ("scp", "scp_radius"):
             if name != chosen:
-                sampled[name] = statistics_sample(start * n_u * n_w, B)
+                sampled[name] = statistics_sample(start * n_u * n_w + t0, B)
     if n == 1 and not scalar:
         vmax_w, vmin_w = V3[..., 0].max(axis=1), V3[..., 0].min(axis=1)
     # The SCP of each objective, on every triple or on the statistics sample (see full_statistics).
@@ -403,12 +433,12 @@ def abstract_cells(
             if todo.any():
                 t_ix = slice(None) if ix is None and todo.all() else np.arange(B)[sel][todo]
                 w1 = np.ones(B)[t_ix] if name == "scp" else RX[t_ix, 0]
-                t1, t2 = scp_parameters_batch_last(E[:, t_ix], HX[t_ix, 0], rho[t_ix], L_x, w1)
-                rad[todo, 0] = np.minimum(t1 * RX[t_ix, 0] + t2, lip[t_ix, 0])  # both bounds are sound: so is the min
+                t1_, t2_ = scp_parameters_batch_last(E[:, t_ix], HX[t_ix, 0], rho[t_ix], L_x, w1)
+                rad[todo, 0] = np.minimum(t1_ * RX[t_ix, 0] + t2_, lip[t_ix, 0])  # both bounds are sound: so is the min
             boxes[name] = (C[sel] - rad, C[sel] + rad)
     else:
         # No batched solver for dim(x) > 1 yet: the reference LP per triple (correct, slow).
-        xs_b = np.broadcast_to(xs.transpose(1, 0, 2)[:, None, :, None, None, :], shape + (n,)).reshape(Sx, Sw, B, n)
+        xs_b = np.broadcast_to(xs[:, None], shape + (n,))
         for name, ix in rows.items():
             idx = np.arange(B) if ix is None else ix
             rad = np.empty((idx.size, n))
@@ -439,10 +469,9 @@ def abstract_cells(
         live = ~block[part]
         successors[name] = (int(count[part][live].sum()), int(live.sum()))
         if name == chosen:
-            blk = block[part]
-            lo = np.where(blk[:, None], 0, first[part]).astype(np.int32).reshape(cshape + (n,))
-            hi = np.where(blk[:, None], -1, last[part]).astype(np.int32).reshape(cshape + (n,))
-            blocking = blk.reshape(cshape)
+            blocking = block[part]
+            lo = np.where(blocking[:, None], 0, first[part]).astype(np.int32)
+            hi = np.where(blocking[:, None], -1, last[part]).astype(np.int32)
 
     # Slopes for Lipschitz validation (METHOD §3): neighbours along x axes (w fixed) and w axes (x fixed).
     if scalar:
@@ -455,10 +484,9 @@ def abstract_cells(
 
     def record(s: np.ndarray) -> SlopeRecord:
         k = int(np.argmax(s))
-        ci, ui, wi = np.unravel_index(k, cshape)
-        return SlopeRecord(float(s[k]), start + int(ci), int(ui), int(wi))
+        return SlopeRecord(float(s[k]), start + int(ci[k]), int(ui[k]), int(wi[k]))
 
-    return CellsResult(start, stop, lo, hi, blocking, successors, record(sx), record(sw))
+    return lo, hi, blocking, successors, record(sx), record(sw)
 
 
 @dataclass(frozen=True)

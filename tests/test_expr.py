@@ -599,3 +599,32 @@ def test_random_arithmetic_matches_numpy(expr: tuple[str, Ref], b: int) -> None:
         expected = np.broadcast_to(reference(x, u), (b,))
     assert out.shape == (1, b)
     np.testing.assert_allclose(out[0], expected, rtol=1e-12, atol=0, equal_nan=True)
+
+
+# --------------------------------------------------------------------------------------------------------
+# Batches of several axes (a grid of samples passed as broadcast views)
+# --------------------------------------------------------------------------------------------------------
+
+
+def test_batches_of_several_axes_broadcast_like_the_materialised_arrays() -> None:
+    f = compile_expression("[x[0] * u[0] + sin(w[1]), max(x[1], w[0]), norm(x - w)]", {"x": 2, "u": 1, "w": 2})
+    rng = np.random.default_rng(0)
+    x, u, w = rng.normal(size=(2, 4, 1, 5)), rng.normal(size=(1, 5)), rng.normal(size=(2, 3, 5))
+    out = f(x=x, u=u, w=w)
+    assert out.shape == (3, 4, 3, 5)
+
+    def flat(a):  # batch axes right-aligned with (4, 3, 5), then materialised
+        a = a.reshape(a.shape[:1] + (1,) * (4 - a.ndim) + a.shape[1:])
+        return np.broadcast_to(a, (a.shape[0], 4, 3, 5)).reshape(a.shape[0], -1)
+
+    np.testing.assert_array_equal(out.reshape(3, -1), f(x=flat(x), u=flat(u), w=flat(w)))
+    single = compile_expression("x[0] + 1", {"x": 2})(x=x)  # an elementwise result, returned without a copy
+    assert single.shape == (1, 4, 1, 5) and single.flags.writeable
+    np.testing.assert_array_equal(single[0], x[0] + 1)
+    assert not np.shares_memory(compile_expression("x[0]", {"x": 2})(x=x), x)  # never a view of an argument
+
+
+def test_batch_shapes_that_do_not_broadcast_are_refused() -> None:
+    f = compile_expression("x[0] + u[0]", {"x": 1, "u": 1})
+    with pytest.raises(ExpressionError, match="batch shape .* does not broadcast"):
+        f(x=np.ones((1, 4, 3)), u=np.ones((1, 4, 2)))

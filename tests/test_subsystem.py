@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from pipelines.audit import audit_subsystem
+from pipelines.growth_bound import subgrid_counts
 from pipelines.network import build_network
 from pipelines.spec import load_spec
 from pipelines.subsystem import (
@@ -185,10 +186,13 @@ class _Recorder:
 
 @pytest.mark.parametrize("case,which", [("consensus", 0), ("scalability", 0), ("tanks", 0), ("tanks", 1),
                                         ("small", 0)])
-def test_scp_relation_matches_the_reference_lp_on_real_cells(case, which):
+def test_scp_relation_matches_the_reference_lp_on_real_cells(case, which, monkeypatch):
     """On a subset of the triples of each example: theta from the reference LP (HiGHS, every sample pair) on
     the pipeline's own samples, the box C +- min(radius, Lipschitz radius) snapped to cells, must give the
     relation's lo/hi/blocking exactly; the radii agree to 1e-9."""
+    import pipelines.subsystem as subsystem
+
+    monkeypatch.setattr(subsystem, "BLOCK_POINTS", 1 << 40)  # the chunk's samples in one call, recorded below
     from pipelines.growth_bound import (
         lipschitz_radius,
         pair_maxima_scalar,
@@ -221,7 +225,7 @@ def test_scp_relation_matches_the_reference_lp_on_real_cells(case, which):
     for objective in ("paper", "radius"):
         rec = _Recorder(sub.dynamics)
         res = abstract_cells(replace(sub, dynamics=rec), a, b, L_x, L_w, "scp", objective)
-        X = rec.args[0].reshape(Sx, Sw, B)
+        X = np.broadcast_to(rec.args[0], (Sx, Sw, B, 1)).reshape(Sx, Sw, B)  # (Sx, 1, B, 1) state samples
         V = rec.out.reshape(Sx, Sw, B)
         for k, t in enumerate(triples):
             w = np.array([1.0 if objective == "paper" else rx[k, 0]])
@@ -281,3 +285,42 @@ def test_small_and_large_chunks_take_different_paths_to_the_same_bits(monkeypatc
         np.testing.assert_array_equal(getattr(out[0], f), getattr(out[1], f))
     assert out[0].successors == out[1].successors
     assert out[0].slope_x == out[1].slope_x and out[0].slope_w == out[1].slope_w
+
+
+def _planar() -> list:
+    """A subsystem with a 2-D state and a 2-D internal input (the per-triple LP path, multi-axis slopes)."""
+    from pipelines.spec import parse_spec
+
+    spec = parse_spec({
+        "subsystems": [{"name": "p", "replicate": 2, "reads": [0, 1],
+                        "state": {"lb": [0, 0], "ub": [2, 2], "eta": [1, 1]}, "input": {"lb": -1, "ub": 1, "eta": 1},
+                        "dynamics": "[0.5 * x[0] + 0.2 * u[0] + 0.1 * w[1], 0.4 * x[1] + 0.1 * sin(w[0])]",
+                        "lipschitz": {"x": 0.5, "w": 0.1}, "samples": 16, "growth_bound": "scp"}],
+        "interconnection": {"map": "[x[0], x[1]]", "internal": [{"lb": 0, "ub": 2, "eta": 1}] * 2,
+                            "error": "linear"},
+        "specification": {"kind": "safe", "safe": {"boxes": [{"lb": [0, 0, 0, 0], "ub": [2, 2, 2, 2]}]}},
+    })
+    return [m[0] for m in build_network(spec, None).unique_subsystems().values()]
+
+
+@pytest.mark.parametrize("case", ["consensus", "scalability", "tanks", "small", "planar"])
+def test_blocks_of_triples_give_the_same_bits_as_one_pass(case, monkeypatch):
+    """abstract_cells in blocks of a few triples (block edges inside a state cell and inside an input's row)
+    equals one pass over the chunk: relation, successor counts (the sampled statistics too) and the slope
+    records, whose ties keep the first triple."""
+    import pipelines.subsystem as subsystem
+
+    for sub in _planar() if case == "planar" else _distinct(case):
+        L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
+        a, b = chunk_ranges(sub, None)[0]
+        b = min(b, a + 3)
+        samples = int(np.prod(subgrid_counts(sub.spec.samples, sub.n + sub.p)))
+        out = []
+        for block in (1 << 40, 7 * samples, samples):  # one block; 7 triples per block; one triple per block
+            monkeypatch.setattr(subsystem, "BLOCK_POINTS", block)
+            out.append(abstract_cells(sub, a, b, L_x, L_w, "scp", "paper", full_statistics=False))
+        for r in out[1:]:
+            for f in ("lo", "hi", "blocking"):
+                np.testing.assert_array_equal(getattr(r, f), getattr(out[0], f))
+            assert r.successors == out[0].successors
+            assert r.slope_x == out[0].slope_x and r.slope_w == out[0].slope_w
