@@ -7,7 +7,13 @@ import os
 import numpy as np
 import pytest
 
-from pipelines.parallel_cpre import HelperError, PartitionedPredecessors, equal_work_cuts, update_density
+from pipelines.parallel_cpre import (
+    HelperError,
+    PartitionedPredecessors,
+    damped_cuts,
+    equal_work_cuts,
+    update_density,
+)
 from pipelines.synthesis import cobuchi, reach, safe
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 
@@ -43,10 +49,25 @@ def test_update_density_matches_each_range_to_its_time():
     for _ in range(8):
         bounds = [(0, cuts[0] - 1), (cuts[0], 31)]
         d = update_density(d, bounds, [truth[a:b + 1].sum() for a, b in bounds])
-        cuts = equal_work_cuts(d, 2)
+        cuts = damped_cuts(cuts, equal_work_cuts(d, 2))
         seen.append(cuts[0])
     best = min(range(1, 20), key=lambda c: max(truth[:c].sum(), truth[c:].sum()))
     assert seen[-3:] == [best] * 3, seen
+
+
+def test_damped_cuts_move_half_way_and_stay_ordered():
+    assert damped_cuts([16], [16]) == [16]
+    assert damped_cuts([16], [18]) == [17] and damped_cuts([18], [15]) == [17] and damped_cuts([4], [12]) == [8]
+    rng = np.random.default_rng(5)
+    for _ in range(2000):
+        cells, parts = int(rng.integers(3, 40)), int(rng.integers(2, 6))
+        if parts > cells:
+            continue
+        old = equal_work_cuts(rng.exponential(size=cells), parts)
+        target = equal_work_cuts(rng.exponential(size=cells), parts)
+        new = damped_cuts(old, target)
+        assert all(a < b for a, b in zip(new, new[1:])) and 1 <= new[0] and new[-1] <= cells - 1, (old, target, new)
+        assert all(min(o, t) <= c <= max(o, t) for o, t, c in zip(old, target, new))
 
 
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
