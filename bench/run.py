@@ -119,27 +119,29 @@ STAGE_ORDER = ("startup", "plan", "lipschitz", "subsystems", "interconnection", 
 
 
 # ====================================================================================== measurement (child side)
-_DESCENDANT_CPU: dict[int, float] = {}
 
 
 def tree_cpu() -> float:
-    """CPU seconds of this process plus those of its descendants (Dask workers, ...).
+    """CPU seconds of this process plus those of its descendants (Dask workers, synthesis helpers, ...).
 
-    A descendant that has exited counts with the last CPU time seen for it (so the sum never drops when a
-    cluster shuts down; CPU a worker spent after the last look is missed).
+    Descendants that have exited and were reaped count exactly (``RUSAGE_CHILDREN``: helpers that start and
+    stop between two calls included); live ones with their CPU so far. A descendant reaped by another
+    descendant that is still alive is missed until that one is reaped too.
     """
+    live = 0.0
     try:
         import psutil
 
         for c in psutil.Process().children(recursive=True):
             try:
                 t = c.cpu_times()
-                _DESCENDANT_CPU[c.pid] = max(_DESCENDANT_CPU.get(c.pid, 0.0), t.user + t.system)
+                live += t.user + t.system
             except psutil.Error:
                 pass
     except ImportError:  # pragma: no cover - psutil is a test dependency
         pass
-    return time.process_time() + sum(_DESCENDANT_CPU.values())
+    reaped = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + reaped.ru_utime + reaped.ru_stime + live
 
 
 def self_peak_mb() -> float:

@@ -86,3 +86,13 @@ def test_quick_benchmark(tmp_path):
     assert cases["workers"]["one_worker_seconds"] > 0 and cases["workers"]["two_workers_seconds"] > 0
     assert res["ratios"] and all(_positive(v) for v in res["ratios"].values())
     assert res["targets"]
+
+
+def test_tree_cpu_counts_a_child_that_started_and_ended_between_two_looks():
+    """Synthesis helpers live only inside the synthesis stage: their CPU must still reach the stage's figure."""
+    from bench.run import tree_cpu
+
+    before = tree_cpu()
+    subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass"],
+                   check=True)
+    assert tree_cpu() - before >= 0.5
