@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -292,16 +293,28 @@ def abstract_cells(
         for t0 in range(0, B, step)
     ]
     successors = {
-        name: (sum(p[3][name][0] for p in parts), sum(p[3][name][1] for p in parts)) for name in parts[0][3]
+        name: (sum(p.successors[name][0] for p in parts), sum(p.successors[name][1] for p in parts))
+        for name in parts[0].successors
     }
-    slope_x, slope_w = parts[0][4], parts[0][5]
+    slope_x, slope_w = parts[0].slope_x, parts[0].slope_w
     for p in parts[1:]:
-        slope_x, slope_w = slope_x.merge(p[4]), slope_w.merge(p[5])
+        slope_x, slope_w = slope_x.merge(p.slope_x), slope_w.merge(p.slope_w)
     cshape = (c, n_u, n_w)
-    lo = np.concatenate([p[0] for p in parts]).reshape(cshape + (sub.n,))
-    hi = np.concatenate([p[1] for p in parts]).reshape(cshape + (sub.n,))
-    blocking = np.concatenate([p[2] for p in parts]).reshape(cshape)
+    lo = np.concatenate([p.lo for p in parts]).reshape(cshape + (sub.n,))
+    hi = np.concatenate([p.hi for p in parts]).reshape(cshape + (sub.n,))
+    blocking = np.concatenate([p.blocking for p in parts]).reshape(cshape)
     return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
+
+
+class _Block(NamedTuple):
+    """What :func:`_abstract_block` gives for its triples (flat, in order); :func:`abstract_cells` joins them."""
+
+    lo: np.ndarray  # (triples, n) int32; empty range (0, -1) where blocking
+    hi: np.ndarray
+    blocking: np.ndarray  # (triples,) bool
+    successors: dict[str, tuple[int, int]]  # method -> (sum of successor counts, non-blocking triples)
+    slope_x: SlopeRecord
+    slope_w: SlopeRecord
 
 
 def _abstract_block(
@@ -316,7 +329,7 @@ def _abstract_block(
     method: str,
     objective: str,
     full_statistics: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, tuple[int, int]], SlopeRecord, SlopeRecord]:
+) -> _Block:
     """The triples ``t0 .. t1-1`` of the chunk starting at state cell ``start`` (see :func:`abstract_cells`).
 
     Parameters
@@ -328,10 +341,9 @@ def _abstract_block(
 
     Returns
     -------
-    lo, hi : ndarray of int32, shape (t1 - t0, n)
-    blocking : ndarray of bool, shape (t1 - t0,)
-    successors : dict, method -> (sum of successor counts, non-blocking triples)
-    slope_x, slope_w : SlopeRecord
+    _Block
+        ``lo``, ``hi`` of shape ``(t1 - t0, n)``, ``blocking`` of shape ``(t1 - t0,)``, the successor counts and
+        the slope records of these triples.
 
     Notes
     -----
@@ -486,7 +498,7 @@ def _abstract_block(
         k = int(np.argmax(s))
         return SlopeRecord(float(s[k]), start + int(ci[k]), int(ui[k]), int(wi[k]))
 
-    return lo, hi, blocking, successors, record(sx), record(sw)
+    return _Block(lo, hi, blocking, successors, record(sx), record(sw))
 
 
 @dataclass(frozen=True)
