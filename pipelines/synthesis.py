@@ -208,6 +208,7 @@ class Game:
         self.parallel_after = float(parallel_after)
         self._pool: Any = None
         self._last_pool: Any = None
+        self._pool_error: str | None = None  # why the helpers stopped, if a helper failed
         if chain_order not in CHAIN_ORDERS:
             raise ValueError(f"chain_order must be one of {CHAIN_ORDERS}, got {chain_order!r}")
         self.chain_order = chain_order
@@ -375,10 +376,20 @@ class Game:
 
         With ``processes > 1`` a call that is not given a ``part`` runs in parts in several processes
         (:class:`~.parallel_cpre.PartitionedPredecessors`) once one call here took ``parallel_after`` seconds.
+        If a helper dies or fails, that call and the later ones run in this process (``parallel["stopped"]``
+        says why); CUDD running out of memory in a helper is raised, as it would be here.
         """
         if part is None and self._pool is not None:
+            from .parallel_cpre import HelperError
+
             try:
                 return self._pool(Z, outside, within)
+            except HelperError as exc:
+                # A helper died or failed (killed, out of memory in its process): its part is recomputed here,
+                # and so is everything after; the answer is the same, only slower. The report says why.
+                self._last_pool, self._pool, self.processes = self._pool, None, 1
+                self._pool_error = str(exc)
+                log.warning("partitioned CPre stopped (%s); going on in one process", exc)
             except BaseException:
                 # The error closed the pool; later calls run here, and no new helpers start.
                 self._last_pool, self._pool, self.processes = self._pool, None, 1
@@ -402,12 +413,16 @@ class Game:
 
     @property
     def parallel(self) -> dict[str, Any]:
-        """How the partitioned ``∃u.CPre`` ran (empty if it never started): calls, digit, cuts, seconds per part."""
+        """How the partitioned ``∃u.CPre`` ran (empty if it never started): calls, digit, cuts, seconds per part,
+        and ``stopped`` (why) if a helper failed and the game went on in one process."""
         p = self._pool if self._pool is not None else self._last_pool
         if p is None:
             return {}
-        return {"processes": len(p.cuts) + 1, "calls": p.calls, "digit": p.digit, "cuts": p.cuts,
-                "last_seconds": [round(s, 3) for s in p.seconds]}
+        out = {"processes": len(p.cuts) + 1, "calls": p.calls, "digit": p.digit, "cuts": p.cuts,
+               "last_seconds": [round(s, 3) for s in p.seconds]}
+        if self._pool_error is not None:
+            out["stopped"] = f"{self._pool_error}; the later calls ran in one process"
+        return out
 
 
 def resolve_processes(processes: int | str) -> int:
