@@ -15,8 +15,12 @@ The digit is the top-most current-state digit of the variable order: CUDD's recu
 the parts share little work. Measured, summing the parts' times against the whole: consensus N = 6 1.0-1.17x,
 10 tanks 1.03x (a digit lower in the order cost up to 2x). The work is not uniform over the digit's cells
 (tanks: split at the middle of the safe range, 8.6 s against 4.9 s), so after every call a per-cell estimate of
-the work is scaled to the measured time of each range (:func:`update_density`) and the cuts move to its
-equal-work quantiles.
+the work is scaled to the measured time of each range (:func:`update_density`) and the cuts move half way
+to its equal-work quantiles (:func:`damped_cuts`: consensus's heavy cells made undamped cuts oscillate).
+
+Failures: a helper that dies or fails is a :class:`HelperError`, after which the pool is closed (pending
+answers would desynchronise the next call); :meth:`.Game.predecessors` then answers in one process. CUDD out
+of memory in a helper is a :class:`~.symbolic.BDDMemoryError`, raised to the caller.
 
 Transport: BDDs as DDDMP files in a private temporary directory; a helper declares the variables from the
 model's header (:meth:`.SymbolicModel.from_header`), so levels match. Messages are pickled tuples of strings
