@@ -896,7 +896,7 @@ def _assemble_single(node: _Node) -> Callable[[Env, Batch], np.ndarray]:
     def run(env: Env, batch: Batch) -> np.ndarray:
         value = np.asarray(fn(env), dtype=np.float64)
         if node.lead is None:
-            if value.shape == batch and value.base is None and value.flags.owndata and value.flags.c_contiguous:
+            if value.shape == batch and value.flags.owndata and value.flags.c_contiguous:
                 # A ufunc's fresh result (inputs reach an elementwise value only as views): no copy needed.
                 return value[np.newaxis]
             value = np.broadcast_to(value, batch)[np.newaxis]

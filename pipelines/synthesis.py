@@ -184,8 +184,11 @@ class Game:
         subsystem. Both are exact; ``shared`` is valid for every network.
     chain_order : {'greedy', 'widest_last', 'network'}
         Order in which the relations are conjoined into ``¬Z'`` (see :func:`schedule`).
-    processes : int
-        Processes for :meth:`predecessors` (this one included); ``1``: no helper processes.
+    processes : int or 'auto'
+        Processes for :meth:`predecessors` (this one included); ``1``: no helper processes; ``'auto'``:
+        :func:`resolve_processes` for the shared CPre, 1 for the per-subsystem one (the 10 tanks: each half of
+        a split CPre took as long as the whole, since the halves share most sub-results that one process
+        computes once; the safety loop gained nothing, 33.3 s vs 33.4 s).
     parallel_after : float
         Seconds one single-process :meth:`predecessors` call must take before the helpers start (starting
         one costs ~0.5 s; small games never need them). ``0``: from the second call on.
@@ -199,12 +202,11 @@ class Game:
         interconnection: Mapping[int, Function],
         method: str = "auto",
         chain_order: str = "greedy",
-        processes: int = 1,
+        processes: int | str = 1,
         parallel_after: float = 1.0,
     ) -> None:
-        if processes < 1:
+        if isinstance(processes, int) and processes < 1:
             raise ValueError(f"processes must be at least 1, got {processes}")
-        self.processes = int(processes)
         self.parallel_after = float(parallel_after)
         self._pool: Any = None
         self._last_pool: Any = None
@@ -231,6 +233,7 @@ class Game:
         elif method == "per_subsystem" and not separable:
             raise ValueError("per_subsystem CPre needs every internal variable read by at most one subsystem")
         self.method = method
+        self.processes = 1 if processes == "auto" and method == "per_subsystem" else resolve_processes(processes)
         self.u_bits = model.u_bits
         self.setup_seconds = 0.0
         t0 = time.perf_counter()
@@ -252,7 +255,7 @@ class Game:
         max_memory: int | None = None,
         share: str = "rename",
         chain_order: str = "greedy",
-        processes: int = 1,
+        processes: int | str = 1,
         parallel_after: float = 1.0,
     ) -> "Game":
         """Build the model, the relations and the interconnection of an abstraction job.
@@ -387,12 +390,12 @@ class Game:
             except HelperError as exc:
                 # A helper died or failed (killed, out of memory in its process): its part is recomputed here,
                 # and so is everything after; the answer is the same, only slower. The report says why.
-                self._last_pool, self._pool, self.processes = self._pool, None, 1
+                self._drop_pool(one_process=True)
                 self._pool_error = str(exc)
                 log.warning("partitioned CPre stopped (%s); going on in one process", exc)
             except BaseException:
                 # The error closed the pool; later calls run here, and no new helpers start.
-                self._last_pool, self._pool, self.processes = self._pool, None, 1
+                self._drop_pool(one_process=True)
                 raise
         chain, admissible = (self.chain, self.admissible) if within is None else within
         t0 = time.perf_counter()
@@ -409,7 +412,13 @@ class Game:
         """Stop the helper processes of the partitioned ``∃u.CPre``, if any were started (idempotent)."""
         if self._pool is not None:
             self._pool.close()
-            self._last_pool, self._pool = self._pool, None
+            self._drop_pool(one_process=False)
+
+    def _drop_pool(self, one_process: bool) -> None:
+        """Forget the (closed) pool, keeping it for :attr:`parallel`; ``one_process``: start no helpers again."""
+        self._last_pool, self._pool = self._pool, None
+        if one_process:
+            self.processes = 1
 
     @property
     def parallel(self) -> dict[str, Any]:
@@ -689,9 +698,9 @@ def synthesize(
 ) -> tuple[Game, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
-    ``processes``: for the fixed points' ``∃u.CPre`` (:meth:`Game.predecessors`), an int or ``'auto'``
-    (:func:`resolve_processes`, for the shared-``w`` method only: consensus N = 8 safe + reach 404 s -> 320 s
-    with 2; the tanks' per-subsystem CPre gained nothing); the helper processes stop before this returns.
+    ``processes``: for the fixed points' ``∃u.CPre`` (:meth:`Game.predecessors`), an int or ``'auto'`` (see
+    :class:`Game`; consensus N = 8 safe + reach 404 s -> 320 s with 2); the helper processes stop before this
+    returns.
 
     ``controller_form``: ``explicit`` (a BDD over states and inputs), ``layered`` (:class:`SynthesisResult`
     ``layers``) or ``auto``, which is ``layered`` for the shared-``w`` CPre: there the explicit controller is
@@ -709,11 +718,7 @@ def synthesize(
 
     t0 = time.perf_counter()
     game = Game.from_abstraction(abstraction, order=order, method=method, max_memory=max_memory,
-                                 chain_order=chain_order, processes=resolve_processes(processes))
-    if processes == "auto" and game.method == "per_subsystem":
-        # Measured on the 10 tanks: each half of a split CPre took as long as the whole (the halves share most
-        # sub-results, which one process computes once), so the safety loop gained nothing (33.3 s vs 33.4 s).
-        game.processes = 1
+                                 chain_order=chain_order, processes=processes)
     build = time.perf_counter() - t0
     m = game.model
     spec = abstraction.spec.specification

@@ -183,3 +183,15 @@ def test_resolve_processes():
     for bad in (0, -1, True, "two", 1.5):
         with pytest.raises(ValueError, match="processes must be"):
             resolve_processes(bad)
+
+
+def test_auto_processes_split_only_the_shared_cpre():
+    """'auto': one process for the per-subsystem CPre (measured not to pay on the tanks), the CPUs for the
+    shared one."""
+    from pipelines.synthesis import resolve_processes
+
+    for shared, order in ((False, "interleaved"), (True, "shared_top")):
+        game = build(random_net(np.random.default_rng(9), shared), order)
+        auto = type(game)(game.model, game.T, game.NB, game.parts, processes="auto")
+        assert auto.method == ("shared" if shared else "per_subsystem")
+        assert auto.processes == (resolve_processes("auto") if shared else 1)
