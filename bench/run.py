@@ -295,9 +295,10 @@ def _floor_function(sub, network) -> tuple[Callable, Callable]:
 
         mod, fn = src.split(":")
 
+        from pipelines.blackbox import as_rows
+
         def flat(arrays):
-            shape = np.broadcast_shapes(*(a.shape[:-1] for a in arrays))
-            return tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(-1, a.shape[-1]) for a in arrays)
+            return as_rows(arrays, np.broadcast_shapes(*(a.shape[:-1] for a in arrays)))
 
         return getattr(importlib.import_module(mod), fn), flat
     used = {k: d for k, d in sub.dynamics.inputs.items() if d > 0}

@@ -18,6 +18,12 @@ from .errors import BlackBoxError, SpecError
 from .spec import is_module_function
 
 
+def as_rows(arrays: Sequence[np.ndarray], shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    """Arrays of shape ``(*batch_k, d_k)`` that broadcast to ``shape`` as copies of shape ``(prod(shape), d_k)``:
+    the arguments a ``module:function`` black box is written for."""
+    return tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(-1, a.shape[-1]) for a in arrays)
+
+
 class BlackBox:
     """A vectorised map ``(arrays of shape (B, d_k)) -> array of shape (B, out_dim)``.
 
@@ -164,7 +170,7 @@ class BlackBox:
         given = arrays
         flat = len(shape) == 1 and all(a.shape[:-1] == shape for a in arrays)
         if not flat and self._is_module:  # a user function gets the (B, d) arrays it is written for
-            arrays = tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(B, a.shape[-1]) for a in arrays)
+            arrays = as_rows(arrays, shape)
         # A whole-batch failure (an exception, a wrong shape) has no one offending row: name the batch's range.
         batch = f" on the batch from {describe(0)} to {describe(B - 1)}" if describe is not None and B else ""
         try:
