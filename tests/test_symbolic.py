@@ -122,6 +122,31 @@ def test_variable_order_is_as_declared(order):
     assert m.bdd.configure()["reordering"] is False
 
 
+@pytest.mark.parametrize("order", ["interleaved", "shared_top"])
+def test_to_next_equals_renaming_and_refuses_next_state_bits(order):
+    layouts = [SubsystemLayout(0, (6,), 3, (1,), "a", 0), SubsystemLayout(1, (5,), 2, (0,), "b", 1)]
+    m = SymbolicModel(layouts, [6, 5], order=order)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        # random sets of states, and of states x inputs (the renaming must leave input bits alone)
+        f = m.state_set(rng.integers(0, [6, 5], size=(rng.integers(1, 12), 2)))
+        f |= f & m.var("u0_0") | (m.var("x1_2") & ~m.var("u1_0"))
+        expected = m.bdd.let(dict(zip(m.x_bits, m.xn_bits)), f)
+        assert m.to_next(f) == expected
+        assert m.bdd.support(m.to_next(f)).isdisjoint(m.x_bits)
+    with pytest.raises(ValueError, match="already reads next-state bits"):
+        m.to_next(m.var("x0_0") & m.var("xn1_0"))
+
+
+def test_cudd_keeps_its_tables_small():
+    """Garbage collection and the computed table are bounded (``GC_LOOSE_UP_TO``, ``MAX_CACHE_ENTRIES``)."""
+    from pipelines.symbolic import GC_LOOSE_UP_TO, MAX_CACHE_ENTRIES
+
+    m = SymbolicModel([SubsystemLayout(0, (8,), 1, (), "a", 0)], [], order="interleaved")
+    cfg = m.bdd.configure()
+    assert cfg["loose_up_to"] == GC_LOOSE_UP_TO and cfg["max_cache_hard"] == MAX_CACHE_ENTRIES
+
+
 def test_unread_internal_variables_go_on_top_in_the_interleaved_order():
     layouts = [SubsystemLayout(0, (3,), 2, (0,), "a", 0)]
     m = SymbolicModel(layouts, [2, 3], order="interleaved")
