@@ -143,7 +143,7 @@ def simulate_many(
         now_in = np.array([inside[r][-1] for r in live])
         out_of_box = np.any((X < lb) | (X > ub), axis=1)
         in_avoid = _cells_in(grid, avoid, X)
-        stepping, U = [], []
+        choosing = []
         for j, r in enumerate(live):
             if kind in ("reach", "reach_avoid") and policy is not None and now_in[j]:
                 going[r] = False  # reached: a reach controller's job ends here
@@ -157,17 +157,23 @@ def simulate_many(
             if violation[r] is not None:
                 going[r] = False
                 continue
-            if policy is None:
-                u = np.zeros(m)
-            elif hasattr(policy, "choose"):  # a Controller draws one input without listing them all
-                u = policy.choose(X[j], rng, choose)
-            else:
+            choosing.append(j)
+        # Only the choices draw from rng, in row order, as simulate() does run by run.
+        if policy is None:
+            chosen: list[np.ndarray | None] = [np.zeros(m) for _ in choosing]
+        elif hasattr(policy, "choose_many"):  # a Controller draws inputs without listing them all
+            chosen = policy.choose_many(X[choosing], rng, choose) if choosing else []
+        else:
+            chosen = []
+            for j in choosing:
                 options = policy(X[j])
-                u = None if options.shape[0] == 0 else \
-                    options[rng.integers(options.shape[0])] if choose == "random" else options[0]
+                chosen.append(None if options.shape[0] == 0 else
+                              options[rng.integers(options.shape[0])] if choose == "random" else options[0])
+        stepping, U = [], []
+        for j, u in zip(choosing, chosen):
             if u is None:
-                violation[r] = f"step {k}: the state {X[j].tolist()} is outside the controller's domain"
-                going[r] = False
+                violation[live[j]] = f"step {k}: the state {X[j].tolist()} is outside the controller's domain"
+                going[live[j]] = False
                 continue
             stepping.append(j)
             U.append(u)

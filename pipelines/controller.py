@@ -42,6 +42,7 @@ class Controller:
         self._state_grid = UniformGrid.from_description(meta["state_grid"])
         self._input_grids = [UniformGrid.from_description(g) for g in meta["input_grids"]]
         self._domain = model.bdd.exist(model.u_bits, bdd)
+        self._samplers: dict[tuple[int, ...], object] = {}
 
     @property
     def meta(self) -> dict:
@@ -57,13 +58,18 @@ class Controller:
 
     def cell(self, x: np.ndarray) -> np.ndarray | None:
         """The cell indices of a concrete state, shape (n,), or ``None`` off the grid or outside the box."""
-        x = np.asarray(x, dtype=float).reshape(1, -1)
-        if x.shape[1] != self._state_grid.dim:
-            raise CompabsError(f"a state has {self._state_grid.dim} components, got {x.shape[1]}")
-        if np.any(x < np.asarray(self._state_grid.lb)) or np.any(x > np.asarray(self._state_grid.ub)):
-            return None
-        idx, inside = self._state_grid.cell_of(x)
-        return idx[0] if inside[0] else None
+        idx, ok = self.cells(np.asarray(x, dtype=float).reshape(1, -1))
+        return idx[0] if ok[0] else None
+
+    def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell indices of concrete states, shape (B, n) -> (B, n), and whether each is in the box and on the
+        grid, shape (B,) (indices of the others are meaningless)."""
+        X = np.asarray(X, dtype=float)
+        if X.ndim != 2 or X.shape[1] != self._state_grid.dim:
+            raise CompabsError(f"a state has {self._state_grid.dim} components, got shape {X.shape[1:]}")
+        in_box = np.all((X >= np.asarray(self._state_grid.lb)) & (X <= np.asarray(self._state_grid.ub)), axis=1)
+        idx, inside = self._state_grid.cell_of(X)
+        return idx, in_box & inside
 
     def input_set(self, idx: np.ndarray):
         """The inputs allowed at a cell as a BDD over the input bits."""
@@ -82,14 +88,35 @@ class Controller:
         Costs a few BDD operations per input bit, where :meth:`inputs` lists every admissible joint input (tens
         of thousands at a consensus state).
         """
-        idx = self.cell(x)
-        if idx is None:
-            return None
-        m = self._model
-        code = m.sample(self.input_set(idx), m.u_digits(), rng if how == "random" else None)
-        if code is None:
-            return None
-        return np.concatenate([g.points(g.unravel(np.array([c])))[0] for c, g in zip(code, self._input_grids)])
+        return self.choose_many(np.asarray(x, dtype=float).reshape(1, -1), rng, how)[0]
+
+    def choose_many(self, X: np.ndarray, rng: np.random.Generator, how: str = "random") -> list[np.ndarray | None]:
+        """:meth:`choose` at each row of ``X``, shape (B, n), drawing from ``rng`` in row order (so the draws
+        are those of :meth:`choose` row by row). Cells and input points are computed for all rows at once, and
+        the model counts of a cell's input set are kept per cell (at most ``INPUT_CACHE`` cells): the 100 tank
+        runs of 98 steps visit 6,161 distinct cells in 9,800 draws.
+        """
+        idx, ok = self.cells(X)
+        codes = np.zeros((len(ok), len(self._input_grids)), dtype=np.int64)
+        for r in np.flatnonzero(ok):
+            code = self._sampler(idx[r]).draw(rng if how == "random" else None)
+            if code is None:
+                ok[r] = False
+            else:
+                codes[r] = code
+        points = np.concatenate([g.points(g.unravel(codes[:, s])) for s, g in enumerate(self._input_grids)], axis=1)
+        return [points[r] if ok[r] else None for r in range(len(ok))]
+
+    def _sampler(self, idx: np.ndarray):
+        key = tuple(int(v) for v in idx)
+        hit = self._samplers.get(key)
+        if hit is None:
+            m = self._model
+            hit = m.sampler(self.input_set(idx), m.u_digits())
+            if len(self._samplers) >= INPUT_CACHE:
+                self._samplers.clear()
+            self._samplers[key] = hit
+        return hit
 
     def inputs(self, x: np.ndarray) -> np.ndarray:
         """Admissible concrete inputs at the concrete state ``x``, shape (k, m_total); (0, m_total) outside."""

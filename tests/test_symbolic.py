@@ -18,6 +18,7 @@ from pipelines.symbolic import (
     SubsystemLayout,
     SymbolicModel,
     bit_width,
+    factorize,
     unique_rows,
 )
 
@@ -91,6 +92,17 @@ LAYOUTS = [
 # ------------------------------------------------------------------------------------------- encoding
 def test_bit_widths():
     assert [bit_width(k) for k in (1, 2, 3, 4, 5, 8, 9, 41, 64, 65)] == [1, 1, 2, 2, 3, 3, 4, 6, 6, 7]
+
+
+@pytest.mark.parametrize("bound", [1, 7, 1000, 1 << 40])
+def test_factorize_matches_numpy_unique(bound):
+    rng = np.random.default_rng(bound % 97)
+    for n in (0, 1, 5, 3000):
+        keys = rng.integers(0, bound, size=n, dtype=np.int64)
+        uniq, inv = factorize(keys, bound)
+        ref, ref_inv = np.unique(keys, return_inverse=True)
+        np.testing.assert_array_equal(uniq, ref)
+        np.testing.assert_array_equal(inv, ref_inv.reshape(-1))
 
 
 def test_unique_rows_matches_numpy():
