@@ -74,6 +74,25 @@ class AbstractionResult:
     interconnection: Any
     target: AbstractRegion | None
     report: dict[str, Any] = field(default_factory=dict)
+    pending_audit: Any = field(default=None, repr=False)  # a BackgroundAudit until finish_audit
+
+    def finish_audit(self, progress: Progress = _no_progress) -> None:
+        """Wait for an audit started beside synthesis (``run_abstraction(audit_beside=True)``) and put its report
+        in ``report["audit"]``; nothing if none is pending. Raises what the audit raised (e.g. a black box that
+        returned NaN on an audit sample)."""
+        if self.pending_audit is None:
+            return
+        pending, self.pending_audit = self.pending_audit, None
+        audit, seconds, waited = pending.result()
+        self.report["audit"] = {**audit, "beside_synthesis": True, "waited_seconds": waited}
+        self.report["stage_seconds"]["audit"] = seconds
+        progress("audit", 1, 1, f"{audit['transitions_checked']} transitions, {audit['violations']} violations")
+
+    def cancel_audit(self) -> None:
+        """Stop an audit started beside synthesis, if one is running (idempotent)."""
+        if self.pending_audit is not None:
+            pending, self.pending_audit = self.pending_audit, None
+            pending.cancel()
 
 
 def _resolve_constant(sub: Subsystem, arg: str, rng: np.random.Generator) -> ConstantRecord:
@@ -204,6 +223,7 @@ def run_abstraction(
     allowed_modules: Sequence[str] | None = None,
     audit: bool = True,
     chunk_points: int | None = None,
+    audit_beside: bool = False,
 ) -> AbstractionResult:
     """Run the abstraction stages of a job and build its report.
 
@@ -219,6 +239,10 @@ def run_abstraction(
     chunk_points : int, optional
         Black-box evaluations per chunk task when ``options.chunk_cells`` is not set (``None``: the default of
         :func:`~pipelines.subsystem.chunk_ranges`). A runner picks it from its per-task overhead.
+    audit_beside : bool
+        Start the audit in a child process and return without waiting (:mod:`.audit_beside`): synthesis needs
+        nothing the audit makes, so it runs on another core meanwhile. The caller must call
+        :meth:`AbstractionResult.finish_audit` (which fills ``report["audit"]``) or ``cancel_audit``.
 
     Raises
     ------
@@ -277,27 +301,18 @@ def run_abstraction(
     seconds["interconnection"] = time.perf_counter() - t0
 
     audit_report: dict[str, Any] = {"transitions_checked": 0, "violations": 0}
+    pending = None
     if audit and spec.options.audit_transitions:
-        t0 = time.perf_counter()
-        n = spec.options.audit_transitions
-        parts: dict[str, AuditResult] = {}
-        total = len(groups) + 2
-        for i, (key, members) in enumerate(groups.items()):
-            parts[members[0].name] = audit_subsystem(members[0], relations[key], n, rng)
-            progress("audit", i + 1, total, members[0].name)
-        parts["interconnection"] = audit_interconnection(network, ia, n, rng)
-        progress("audit", total - 1, total, "interconnection")
-        # The composed system: the same inclusions again, plus the wiring between the parts (which w_j each
-        # subsystem reads, offsets, which relation serves which replica). A tenth of the transitions is plenty
-        # for that here; `compabs audit DIR --transitions N` draws N of them against the stored abstraction.
-        parts["composition"] = audit_composition(network, relations, ia, max(min(n, 10_000), n // 10), rng)
-        progress("audit", total, total, "composition")
-        audit_report = {
-            "transitions_checked": sum(p.transitions_checked for p in parts.values()),
-            "violations": sum(p.violations for p in parts.values()),
-            "parts": {k: p.as_dict() for k, p in parts.items()},
-        }
-        seconds["audit"] = time.perf_counter() - t0
+        if audit_beside:
+            from .audit_beside import BackgroundAudit
+
+            pending = BackgroundAudit(network, relations, ia, spec.options.audit_transitions, rng)
+            audit_report = {"transitions_checked": 0, "violations": 0, "pending": True}
+            progress("audit", 0, 1, "running in a child process beside synthesis")
+        else:
+            t0 = time.perf_counter()
+            audit_report = run_audit(network, relations, ia, spec.options.audit_transitions, rng, progress)
+            seconds["audit"] = time.perf_counter() - t0
 
     target = regions.get("target") or regions.get("safe")
     counts = {k: r.states for k, r in regions.items()}  # exact counts cost a sweep each: once per region
@@ -313,7 +328,37 @@ def run_abstraction(
         "interconnection": ia.describe(),
         "audit": audit_report,
     }
-    return AbstractionResult(spec, network, relations, ia, target, report)
+    return AbstractionResult(spec, network, relations, ia, target, report, pending_audit=pending)
+
+
+def run_audit(
+    network: Network, relations: dict[str, SubsystemRelation], ia: Any, count: int, rng: np.random.Generator,
+    progress: Progress = _no_progress,
+) -> dict[str, Any]:
+    """The audit stage: Theorems 4.2 and 4.7 and the composition checked on ``count`` random transitions each.
+
+    Returns the report's ``audit`` entry (``transitions_checked``, ``violations``, ``parts``). Draws from ``rng``
+    in a fixed order, so the same generator state gives the same report in this process or in a child
+    (:mod:`.audit_beside`).
+    """
+    groups = network.unique_subsystems()
+    parts: dict[str, AuditResult] = {}
+    total = len(groups) + 2
+    for i, (key, members) in enumerate(groups.items()):
+        parts[members[0].name] = audit_subsystem(members[0], relations[key], count, rng)
+        progress("audit", i + 1, total, members[0].name)
+    parts["interconnection"] = audit_interconnection(network, ia, count, rng)
+    progress("audit", total - 1, total, "interconnection")
+    # The composed system: the same inclusions again, plus the wiring between the parts (which w_j each
+    # subsystem reads, offsets, which relation serves which replica). A tenth of the transitions is plenty
+    # for that here; `compabs audit DIR --transitions N` draws N of them against the stored abstraction.
+    parts["composition"] = audit_composition(network, relations, ia, max(min(count, 10_000), count // 10), rng)
+    progress("audit", total, total, "composition")
+    return {
+        "transitions_checked": sum(p.transitions_checked for p in parts.values()),
+        "violations": sum(p.violations for p in parts.values()),
+        "parts": {k: p.as_dict() for k, p in parts.items()},
+    }
 
 
 # ====================================================================================== synthesis stages

@@ -135,22 +135,30 @@ def execute_job(
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SpecError(f"--out {out}: cannot create the directory: {exc.strerror}") from None
+    synthesize = bool(spec.options.synthesis and synthesis)
+    # With synthesis to run, the audit runs beside it in a child process (pipelines.audit_beside): it needs
+    # nothing synthesis makes, and its violations set the job's status at the end either way.
     if in_process:
-        result = run_abstraction(spec, progress=progress, allowed_modules=allowed_modules, audit=audit)
+        result = run_abstraction(spec, progress=progress, allowed_modules=allowed_modules, audit=audit,
+                                 audit_beside=synthesize)
     else:
         from workers.runner import run_job
 
         result, runner = run_job(
             spec, out, scheduler=scheduler, workers=workers, progress=progress, allowed_modules=allowed_modules,
-            audit=audit, overwrite=overwrite, client=client,
+            audit=audit, overwrite=overwrite, client=client, audit_beside=synthesize,
         )
         result.report["runner"] = runner
-    if spec.options.synthesis and synthesis:
-        from pipelines.job import run_synthesis
+    try:
+        if synthesize:
+            from pipelines.job import run_synthesis
 
-        extra = run_synthesis(result, out, progress=progress)
-        result.report["stage_seconds"].update(extra.pop("stage_seconds"))
-        result.report.update(extra)
+            extra = run_synthesis(result, out, progress=progress)
+            result.report["stage_seconds"].update(extra.pop("stage_seconds"))
+            result.report.update(extra)
+        result.finish_audit(progress)
+    finally:
+        result.cancel_audit()  # an error or a cancellation: stop the child (nothing when finished)
     try:
         if in_process:
             from pipelines.artifacts import save_interconnection

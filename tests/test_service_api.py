@@ -320,7 +320,12 @@ def test_a_whole_job_events_results_and_no_path_traversal(client, tmp_path):
     assert set(progress[0]) == {"stage", "done", "total", "message"}
     order = ["plan", "lipschitz", "subsystems", "interconnection", "audit", "synthesis", "closed_loop"]
     seen = [p["stage"] for p in progress]
-    assert [s for i, s in enumerate(seen) if i == 0 or seen[i - 1] != s] == order  # each stage once, in order
+    # Each stage once, in order; the audit runs beside synthesis (pipelines.audit_beside): it starts before
+    # synthesis and reports its end after the closed loop.
+    runs = [s for i, s in enumerate(seen) if i == 0 or seen[i - 1] != s]
+    assert runs == order + ["audit"]
+    audit = [p for p in progress if p["stage"] == "audit"]
+    assert audit[0]["done"] == 0 and audit[-1]["done"] == audit[-1]["total"] and len(audit) == 2
     final = events[-1]["data"]
     done = client.get(f"/jobs/{job['id']}", headers=AUTH).json()
     assert final == done

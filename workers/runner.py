@@ -246,6 +246,7 @@ def run_job(
     audit: bool = True,
     overwrite: bool = False,
     client: Any = None,
+    audit_beside: bool = False,
 ) -> tuple[AbstractionResult, dict[str, Any]]:
     """Run a job's abstraction stages with the per-cell stage on a Dask cluster.
 
@@ -261,8 +262,8 @@ def run_job(
         Worker processes of an embedded cluster.
     progress : callable, optional
         ``progress(stage, done, total, message)``, as for ``run_abstraction``.
-    allowed_modules, audit
-        As for ``run_abstraction``.
+    allowed_modules, audit, audit_beside
+        As for ``run_abstraction`` (with ``audit_beside`` the caller finishes or cancels the audit).
     overwrite : bool
         If the store holds another spec's relations, delete it instead of refusing.
     client : distributed.Client, optional
@@ -295,7 +296,8 @@ def run_job(
         mapper = StoreMapper(client, store, network)
         kwargs = {} if progress is None else {"progress": progress}
         result = run_abstraction(
-            spec, mapper=mapper, allowed_modules=allowed_modules, audit=audit, chunk_points=TASK_POINTS, **kwargs
+            spec, mapper=mapper, allowed_modules=allowed_modules, audit=audit, chunk_points=TASK_POINTS,
+            audit_beside=audit_beside, **kwargs
         )
         try:
             store.consolidate()
@@ -308,6 +310,9 @@ def run_job(
                 f"writing the job's files in {os.fspath(out_dir)} failed: {exc}. Every chunk is stored; free space or "
                 "fix the permissions and run the job again to finish it."
             ) from None
+        except BaseException:
+            result.cancel_audit()
+            raise
     finally:
         if conn is not None:
             conn.close()

@@ -1,0 +1,130 @@
+"""The audit in a child process, beside synthesis (``run_abstraction(audit_beside=True)``).
+
+Synthesis needs nothing the audit makes, and the audit (Theorems 4.2 and 4.7 checked on random transitions,
+:func:`~pipelines.job.run_audit`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
+GIL: a thread would not overlap it, a process does. On the 10 tanks the 2.6 s audit then costs no wall time
+(the per-subsystem synthesis uses one core). The job still fails on a violation, after synthesis, as before: a
+violation never stopped synthesis, it sets the job's status at the end.
+
+The child is ``python -m pipelines.audit_beside IN OUT`` (not ``multiprocessing``, whose ``spawn`` re-runs the
+caller's ``__main__`` and whose ``fork`` copies a process that may hold Dask's threads). ``IN`` is a pickle of
+the network (black boxes included: a ``module:function`` pickles by reference and was allowed already), the
+relations, the interconnection abstraction, the transition count and the random generator, whose state makes
+the child's report identical to an audit in this process. ``OUT`` holds ``("ok", report, seconds)`` or
+``("error", exception)``.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from .errors import CompabsError
+
+
+class BackgroundAudit:
+    """An audit running in a child process; :meth:`result` waits for it, :meth:`cancel` stops it.
+
+    Parameters
+    ----------
+    network, relations, ia, count, rng
+        As for :func:`~pipelines.job.run_audit`; ``rng`` is copied (this process's generator is left alone).
+    """
+
+    def __init__(self, network: Any, relations: dict, ia: Any, count: int, rng: Any) -> None:
+        self._dir = Path(tempfile.mkdtemp(prefix="compabs-audit-"))
+        self._in, self._out, self._err = self._dir / "in.pickle", self._dir / "out.pickle", self._dir / "stderr"
+        try:
+            with open(self._in, "wb") as fh:
+                pickle.dump((network, relations, ia, int(count), rng), fh, protocol=pickle.HIGHEST_PROTOCOL)
+            with open(self._err, "wb") as err:  # a file, not a pipe: a chatty child cannot block on a full pipe
+                self._proc = subprocess.Popen(
+                    [sys.executable, "-m", "pipelines.audit_beside", str(self._in), str(self._out)],
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=_child_env(),
+                )
+        except BaseException:
+            shutil.rmtree(self._dir, ignore_errors=True)
+            raise
+        self._t0 = time.perf_counter()
+
+    def result(self) -> tuple[dict[str, Any], float, float]:
+        """Wait for the audit.
+
+        Returns
+        -------
+        report : dict
+            As :func:`~pipelines.job.run_audit` returns it.
+        seconds : float
+            The audit's own wall time in the child.
+        waited : float
+            Seconds this call waited (0 when the audit finished while synthesis ran).
+
+        Raises
+        ------
+        CompabsError
+            What the audit raised (e.g. a black box returning NaN on an audit sample), or why the child died.
+        """
+        t0 = time.perf_counter()
+        try:
+            code = self._proc.wait()
+            waited = time.perf_counter() - t0
+            if code != 0 or not self._out.exists():
+                tail = self._err.read_text(errors="replace")[-2000:] if self._err.exists() else ""
+                raise CompabsError(f"the audit's child process exited with status {code}: {tail.strip() or 'no message'}")
+            with open(self._out, "rb") as fh:
+                outcome = pickle.load(fh)
+            if outcome[0] == "error":
+                raise outcome[1]
+            _, report, seconds = outcome
+            return report, seconds, waited
+        finally:
+            shutil.rmtree(self._dir, ignore_errors=True)
+
+    def cancel(self) -> None:
+        """Stop the child and remove its files (idempotent)."""
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+
+def _child_env() -> dict[str, str]:
+    """This process's environment with the directory holding ``pipelines`` first on the path (the package may
+    be imported from a checkout that is not installed)."""
+    root = str(Path(__file__).resolve().parent.parent)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def main(argv: list[str]) -> int:
+    """Child side: run the audit on the pickled inputs and pickle the outcome."""
+    from .job import run_audit
+
+    src, dst = argv
+    with open(src, "rb") as fh:
+        network, relations, ia, count, rng = pickle.load(fh)
+    t0 = time.perf_counter()
+    try:
+        outcome: tuple = ("ok", run_audit(network, relations, ia, count, rng), time.perf_counter() - t0)
+    except CompabsError as exc:  # a user's error (NaN from a black box, ...): the parent raises it as it is
+        outcome = ("error", exc)
+    try:
+        data = pickle.dumps(outcome)
+    except Exception:  # an exception that does not pickle: keep its message
+        data = pickle.dumps(("error", CompabsError(f"the audit failed: {outcome[1]}")))
+    tmp = Path(dst + ".partial")
+    tmp.write_bytes(data)
+    tmp.replace(dst)  # the parent reads OUT only once it is whole
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover - run as a child by BackgroundAudit
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,71 @@
+"""The audit in a child process beside synthesis (``pipelines.audit_beside``): the same report as in the job's
+process, errors of the child as clear errors, nothing left behind when a job stops."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import pytest
+
+from pipelines import audit_beside
+from pipelines.audit_beside import BackgroundAudit
+from pipelines.errors import BlackBoxError, CompabsError
+from pipelines.job import run_abstraction
+from pipelines.spec import load_spec
+
+from .conftest import EXAMPLES
+
+
+def small(**options):
+    spec = load_spec(EXAMPLES / "small.yaml")
+    return spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": 20_000, **options})})
+
+
+def test_audit_beside_equals_the_audit_in_this_process():
+    here = run_abstraction(small())
+    beside = run_abstraction(small(), audit_beside=True)
+    assert beside.report["audit"].get("pending") and beside.pending_audit is not None
+    seen = []
+    beside.finish_audit(lambda *a: seen.append(a))
+    got = beside.report["audit"]
+    assert got["beside_synthesis"] and got["waited_seconds"] >= 0 and beside.pending_audit is None
+    assert {k: v for k, v in got.items() if k not in ("beside_synthesis", "waited_seconds")} == here.report["audit"]
+    assert got["transitions_checked"] > 20_000 and got["violations"] == 0
+    assert seen[-1][:3] == ("audit", 1, 1) and beside.report["stage_seconds"]["audit"] > 0
+    beside.finish_audit()  # nothing pending: nothing happens
+    assert beside.report["audit"] == got
+
+
+def test_a_child_that_fails_is_a_clear_error_and_leaves_no_files():
+    r = run_abstraction(small(), audit=False)
+    bad = BackgroundAudit(r.network, {}, r.interconnection, 1000, None)  # no relations: the child fails
+    folder = bad._dir
+    with pytest.raises(CompabsError, match="audit's child process exited with status 1"):
+        bad.result()
+    assert not folder.exists()
+
+
+def test_a_users_error_in_the_child_is_raised_as_it_is(tmp_path, monkeypatch):
+    """A CompabsError in the child (say a black box that returns NaN on an audit sample) reaches the caller with
+    its class and message; the child side is ``main``, run here with the audit replaced by one that fails."""
+    import pipelines.job
+
+    def failing(*args, **kwargs):
+        raise BlackBoxError("subsystem 'agent' returned NaN at x=[3.5]")
+
+    monkeypatch.setattr(pipelines.job, "run_audit", failing)
+    src, dst = tmp_path / "in.pickle", tmp_path / "out.pickle"
+    src.write_bytes(pickle.dumps((None, {}, None, 10, None)))
+    assert audit_beside.main([str(src), str(dst)]) == 0
+    kind, exc = pickle.loads(dst.read_bytes())
+    assert kind == "error" and isinstance(exc, BlackBoxError) and "NaN at x=[3.5]" in str(exc)
+
+
+def test_cancel_stops_the_child_and_removes_its_files():
+    r = run_abstraction(small(audit_transitions=2_000_000), audit_beside=True)
+    pending = r.pending_audit
+    folder: Path = pending._dir
+    r.cancel_audit()
+    assert pending._proc.poll() is not None and not folder.exists() and r.pending_audit is None
+    r.cancel_audit()  # idempotent
