@@ -8,9 +8,9 @@ Not repeated here, see ``tests/test_workers.py``: a worker SIGKILLed while the p
 (``test_worker_killed_mid_job``), the runner SIGKILLed mid-job (``test_runner_killed_mid_job_resumes``), a task
 that kills every worker it lands on (``test_task_that_kills_its_workers_is_a_clear_error``). The API process
 SIGKILLed mid-job and restarted is the service's test (``tests/test_service_e2e.py``). The stages after the
-per-cell one (Lipschitz constants, interconnection, audit, synthesis, closed loop) run in the runner's process,
-so a worker killed during them costs nothing but its restart; ``test_worker_killed_in_every_runner_stage``
-checks exactly that.
+per-cell one (Lipschitz constants, interconnection, synthesis, closed loop) run in the runner's process, the audit
+in a child process beside synthesis, so a worker killed during them costs nothing but its restart;
+``test_worker_killed_in_every_runner_stage`` checks exactly that.
 """
 
 from __future__ import annotations
@@ -146,10 +146,22 @@ def test_worker_killed_in_every_runner_stage(tmp_path, client, reference, capsys
     stages = ("lipschitz", "interconnection", "audit", "synthesis", "closed_loop")
     killed: list[tuple[str, int]] = []
 
+    def two_live_workers() -> list[int]:
+        # The audit starts (beside synthesis) right after the interconnection and synthesis right after it, so a
+        # kill can follow the previous one within milliseconds: wait until two workers answer, not only until the
+        # scheduler lists two (it may still list the one just killed).
+        deadline = time.monotonic() + 240
+        while True:
+            client.wait_for_workers(2, timeout=240)
+            pids = client.run(os.getpid, on_error="ignore")
+            if len(pids) >= 2:
+                return sorted(pids.values())
+            assert time.monotonic() < deadline, "the cluster did not get back to two workers"
+            time.sleep(0.2)
+
     def progress(stage: str, done: int, total: int, message: str) -> None:
         if stage in stages and stage not in {s for s, _ in killed}:
-            client.wait_for_workers(2, timeout=240)
-            victim = sorted(client.run(os.getpid).values())[len(killed) % 2]
+            victim = two_live_workers()[len(killed) % 2]
             os.kill(victim, signal.SIGKILL)
             killed.append((stage, victim))
 
