@@ -175,6 +175,28 @@ def test_connect_from_environment(monkeypatch, cluster):
     assert cluster.client.status == "running"  # closing a joined client leaves the cluster alone
 
 
+def _announce_unknown_worker_removed(dask_scheduler) -> None:
+    # What the scheduler sends when a worker dies while it registers: a 'remove' for a worker never added.
+    dask_scheduler.plugins["worker-status"].bcomm.send(["remove", "tcp://127.0.0.1:9"])
+
+
+def test_embedded_cluster_closes_after_a_worker_died_while_registering(caplog):
+    """distributed's LocalCluster watcher dies on a 'remove' for a worker it never saw, and cluster.close()
+    re-raises that KeyError after closing everything: closing the connection logs it instead of failing."""
+    conn = connect(workers=1)
+    cluster = conn.client.cluster
+    conn.client.run_on_scheduler(_announce_unknown_worker_removed)
+    deadline = time.monotonic() + 30
+    while not cluster._watch_worker_status_task.done():  # the watcher has read the message and died
+        assert time.monotonic() < deadline, "the scheduler's message never reached the cluster"
+        time.sleep(0.05)
+    with caplog.at_level("WARNING", logger="workers.cluster"):
+        conn.close()
+    assert "died while it registered" in caplog.text
+    assert cluster.scheduler.status.name == "closed"
+    assert all(w.status.name == "closed" for w in cluster.workers.values())
+
+
 def _allocator_settings() -> dict[str, str | None]:
     import os
 

@@ -15,11 +15,14 @@ Process workers are started with ``spawn``, so the calling program's ``__main__`
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import Any
 
 from .errors import ClusterError
+
+logger = logging.getLogger(__name__)
 
 #: Environment variable naming an external scheduler (``tcp://HOST:PORT``).
 SCHEDULER_ENV = "COMPABS_SCHEDULER"
@@ -67,7 +70,18 @@ class Connection(tuple):
 
     def close(self) -> None:
         """Close the client, and with it the embedded cluster if this connection started one."""
-        self.client.close()
+        try:
+            self.client.close()
+        except KeyError as exc:
+            if not self.info["embedded"]:
+                raise
+            # A worker that dies while it registers (killed, or out of memory at start) is announced to the
+            # LocalCluster as removed without ever having been added (the scheduler's WorkerStatusPlugin fails
+            # on its identity), and the cluster's watcher task dies on that 'remove' with a KeyError, which
+            # cluster.close() re-raises after it has closed the scheduler and the workers. Nothing is left
+            # running, so the caller's cleanup must not fail on it.
+            logger.warning("embedded Dask cluster closed; its worker-status watcher had failed on an "
+                           "unknown worker %s (a worker that died while it registered)", exc)
 
     def __enter__(self) -> "Connection":
         return self
