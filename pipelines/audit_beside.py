@@ -46,7 +46,7 @@ class BackgroundAudit:
                 pickle.dump((network, relations, ia, int(count), rng), fh, protocol=pickle.HIGHEST_PROTOCOL)
             with open(self._err, "wb") as err:  # a file, not a pipe: a chatty child cannot block on a full pipe
                 self._proc = subprocess.Popen(
-                    [sys.executable, "-m", "pipelines.audit_beside", str(self._in), str(self._out)],
+                    [sys.executable, "-m", "pipelines.audit_beside", str(self._in), str(self._out), str(os.getpid())],
                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=_child_env(),
                 )
         except BaseException:
@@ -104,11 +104,40 @@ def _child_env() -> dict[str, str]:
     return env
 
 
+#: Seconds between the child's checks that its parent is alive.
+PARENT_POLL = 0.5
+
+
+def _exit_when_orphaned(parent: int, folder: Path) -> None:
+    """Stop this child, and remove its folder, once ``parent`` has died (a thread of the child).
+
+    A job's process killed outright (SIGKILL, out of memory) cannot cancel its audit; without this the child
+    would finish an audit nobody reads and leave its folder behind. A dead parent's children are re-parented
+    (to init or a subreaper), so a changed ``getppid()`` says the parent is gone; ``PR_SET_PDEATHSIG`` would
+    say it too but fires when the *thread* that started the child exits, and a job's thread may.
+    """
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL)
+        shutil.rmtree(folder, ignore_errors=True)
+        os._exit(3)  # nobody waits for this child any more: no cleanup of the interpreter needed
+
+    threading.Thread(target=watch, name="audit-parent-watch", daemon=True).start()
+
+
 def main(argv: list[str]) -> int:
-    """Child side: run the audit on the pickled inputs and pickle the outcome."""
+    """Child side: run the audit on the pickled inputs and pickle the outcome.
+
+    ``argv`` is ``IN OUT [PARENT_PID]``; with a parent pid the child stops (and removes ``IN``'s folder) when
+    that process dies.
+    """
     from .job import run_audit
 
-    src, dst = argv
+    src, dst, *parent = argv
+    if parent:
+        _exit_when_orphaned(int(parent[0]), Path(src).parent)
     with open(src, "rb") as fh:
         network, relations, ia, count, rng = pickle.load(fh)
     t0 = time.perf_counter()

@@ -69,3 +69,37 @@ def test_cancel_stops_the_child_and_removes_its_files():
     r.cancel_audit()
     assert pending._proc.poll() is not None and not folder.exists() and r.pending_audit is None
     r.cancel_audit()  # idempotent
+
+
+PARENT_THAT_DIES = """
+import os, signal, sys
+from pathlib import Path
+sys.path.insert(0, {root!r})
+from tests.test_audit_beside import small
+from pipelines.job import run_abstraction
+r = run_abstraction(small(audit_transitions=50_000_000), audit_beside=True)
+p = r.pending_audit
+print(p._proc.pid, p._dir, flush=True)
+os.kill(os.getpid(), signal.SIGKILL)  # no cancel, no finally: as when the job's process is killed
+"""
+
+
+def test_the_child_stops_and_cleans_up_when_its_parent_is_killed():
+    """A job's process killed outright cannot cancel its audit: the child notices the death of its parent, stops
+    and removes its folder, instead of finishing an audit nobody reads (50 M transitions: about a minute)."""
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    root = str(Path(__file__).resolve().parent.parent)
+    run = subprocess.run([sys.executable, "-c", PARENT_THAT_DIES.format(root=root)], capture_output=True,
+                         text=True, timeout=300, cwd=root)
+    assert run.returncode == -9, run.stderr[-2000:]
+    pid, folder = run.stdout.split()
+    deadline = time.monotonic() + 30
+    while psutil.pid_exists(int(pid)) and psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE:
+        assert time.monotonic() < deadline, "the audit's child outlived its parent by 30 s"
+        time.sleep(0.1)
+    assert not Path(folder).exists()
