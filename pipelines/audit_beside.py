@@ -6,12 +6,12 @@ GIL: a thread would not overlap it, a process does. On the 10 tanks the 2.6 s au
 (the per-subsystem synthesis uses one core). The job still fails on a violation, after synthesis, as before: a
 violation never stopped synthesis, it sets the job's status at the end.
 
-The child is ``python -m pipelines.audit_beside IN OUT`` (not ``multiprocessing``, whose ``spawn`` re-runs the
-caller's ``__main__`` and whose ``fork`` copies a process that may hold Dask's threads). ``IN`` is a pickle of
-the network (black boxes included: a ``module:function`` pickles by reference and was allowed already), the
-relations, the interconnection abstraction, the transition count and the random generator, whose state makes
-the child's report identical to an audit in this process. ``OUT`` holds ``("ok", report, seconds)`` or
-``("error", exception)``.
+The child is ``python -m pipelines.audit_beside IN OUT PARENT_PID`` (not ``multiprocessing``, whose ``spawn``
+re-runs the caller's ``__main__`` and whose ``fork`` copies a process that may hold Dask's threads). ``IN`` is a
+pickle of the network (black boxes included: a ``module:function`` pickles by reference and was allowed
+already), the relations, the interconnection abstraction, the transition count and the random generator, whose
+state makes the child's report identical to an audit in this process. ``OUT`` holds ``("ok", report, seconds)``
+or ``("error", exception)``. The child stops, and removes its folder, once ``PARENT_PID`` has died.
 """
 
 from __future__ import annotations
@@ -52,7 +52,6 @@ class BackgroundAudit:
         except BaseException:
             shutil.rmtree(self._dir, ignore_errors=True)
             raise
-        self._t0 = time.perf_counter()
 
     def result(self) -> tuple[dict[str, Any], float, float]:
         """Wait for the audit.

@@ -12,11 +12,15 @@ is the form that fits on disk and answers in milliseconds.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import CompabsError
 from .grid import UniformGrid
+
+if TYPE_CHECKING:  # pragma: no cover - dd is imported where a controller is loaded, not here
+    from .symbolic import Sampler
 
 CONTROLLER_FILE = "controller"
 
@@ -42,7 +46,7 @@ class Controller:
         self._state_grid = UniformGrid.from_description(meta["state_grid"])
         self._input_grids = [UniformGrid.from_description(g) for g in meta["input_grids"]]
         self._domain = model.bdd.exist(model.u_bits, bdd)
-        self._samplers: dict[tuple[int, ...], object] = {}
+        self._samplers: dict[tuple[int, ...], Sampler] = {}
 
     @property
     def meta(self) -> dict:
@@ -107,7 +111,7 @@ class Controller:
         points = np.concatenate([g.points(g.unravel(codes[:, s])) for s, g in enumerate(self._input_grids)], axis=1)
         return [points[r] if ok[r] else None for r in range(len(ok))]
 
-    def _sampler(self, idx: np.ndarray):
+    def _sampler(self, idx: np.ndarray) -> Sampler:
         key = tuple(int(v) for v in idx)
         hit = self._samplers.get(key)
         if hit is None:
