@@ -51,6 +51,12 @@ def subgrid_counts(samples: int, dims: int) -> tuple[int, ...]:
     return tuple(counts)
 
 
+def _max_norm(a: np.ndarray) -> np.ndarray:
+    """``max(a, axis=1)`` of a ``(B, d)`` array: the infinity norm of non-negative rows (a view for ``d = 1``:
+    the per-cell stage calls this on small arrays, where a reduction's fixed cost dominates)."""
+    return a[:, 0] if a.shape[1] == 1 else np.max(a, axis=1)
+
+
 def lipschitz_radius(r_x: np.ndarray, r_w: np.ndarray, L_x: float, L_w: float) -> np.ndarray:
     """Radius of Lemma 4.3, shape (B,): ``L_x ||r_x||_inf + L_w ||r_w||_inf`` (the same in every component).
 
@@ -61,10 +67,19 @@ def lipschitz_radius(r_x: np.ndarray, r_w: np.ndarray, L_x: float, L_w: float) -
     r_w : ndarray, shape (B, p)
         Half-widths of the clipped internal-input cells (``p`` may be 0).
     """
-    rad = L_x * np.max(r_x, axis=1)
+    rad = L_x * _max_norm(r_x)
     if r_w.shape[1]:
-        rad = rad + L_w * np.max(r_w, axis=1)
+        rad = rad + L_w * _max_norm(r_w)
     return rad
+
+
+def hull_margin(h_x: np.ndarray, h_w: np.ndarray, L_x: float, L_w: float) -> np.ndarray:
+    """The margin ``rho_h = L_x ||h_x|| / 2 + L_w ||h_w|| / 2`` of the ``hull`` growth bound, shape (B,): every
+    point of the cell is within half a sub-cell spacing of a sample, per component."""
+    rho = L_x * _max_norm(h_x) / 2
+    if h_w.shape[1]:
+        rho = rho + L_w * _max_norm(h_w) / 2
+    return rho
 
 
 def scp_rho(h_x: np.ndarray, h_w: np.ndarray, L_x: float, L_w: float) -> np.ndarray:
@@ -84,9 +99,9 @@ def scp_rho(h_x: np.ndarray, h_w: np.ndarray, L_x: float, L_w: float) -> np.ndar
     The paper's ``rho = 4 L_x eta_hat + 2 L_w ||eta_w||`` bounds ``||x_1 - x_l||`` by a whole sub-cell and
     ``||w_1 - w_l||`` by a whole cell (it does not sample ``w``); ours is the same argument with ``w`` sampled.
     """
-    rho = 2.0 * L_x * np.max(h_x, axis=1)
+    rho = 2.0 * L_x * _max_norm(h_x)
     if h_w.shape[1]:
-        rho = rho + L_w * np.max(h_w, axis=1)
+        rho = rho + L_w * _max_norm(h_w)
     return rho
 
 

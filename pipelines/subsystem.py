@@ -22,8 +22,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import compiled
 from .errors import BlackBoxError
+from .grid import SNAP_RTOL, UniformGrid
 from .growth_bound import (
+    FP_RTOL,
+    hull_margin,
     lipschitz_radius,
     pair_maxima_batch_last,
     scp_parameters_batch_last,
@@ -32,7 +36,6 @@ from .growth_bound import (
     subgrid_counts,
     widen,
 )
-from .grid import UniformGrid
 from .network import Subsystem
 
 METHODS = ("lipschitz", "scp", "scp_radius", "hull")
@@ -230,6 +233,21 @@ def _chunk_invariants(
     return u_pts, w_lo, w_hi, counts, off_x, ws
 
 
+@functools.lru_cache(maxsize=64)
+def _grid_arrays(g: UniformGrid) -> tuple[np.ndarray, ...]:
+    """``origin, eta, k_lo, shape, lb, ub`` of a grid as the arrays :func:`compiled.scalar_block` takes."""
+    f, i = np.float64, np.int64
+    return tuple(np.asarray(v, dtype=t) for v, t in
+                 ((g.origin, f), (g.eta, f), (g.k_lo, i), (g.shape, i), (g.lb, f), (g.ub, f)))
+
+
+#: Whether :func:`_abstract_block` hands the triples of a scalar subsystem (one state dimension, at most one
+#: internal-input sample axis) to :func:`compiled.scalar_block` (one compiled pass, 1.5-2.5x faster on the
+#: examples) instead of its generic numpy path. The same bits (the tests switch it off to compare); the sampled
+#: statistics (``full_statistics=False``) take the generic path.
+_USE_SCALAR_KERNEL = True
+_NO_W = np.zeros(0)  # the internal-input cells of a subsystem without internal inputs
+
 #: Black-box evaluations (samples x triples) per block of :func:`abstract_cells`: a chunk's triples are
 #: processed in blocks of about this many evaluations, so the temporaries (a few float64 arrays of this length)
 #: stay near the caches and a task's memory is bounded whatever its chunk. Measured on examples/stress.yaml's
@@ -372,6 +390,12 @@ def _abstract_block(
     U = u_pts[ui]  # (B, m)
     W = np.ascontiguousarray(ws[wi].transpose(1, 0, 2))  # (Sw, B, p); row-major, so is V (ufuncs follow inputs)
 
+    chosen = "scp_radius" if (method == "scp" and objective == "radius") else method
+
+    def record(s: np.ndarray) -> SlopeRecord:
+        k = int(np.argmax(s))  # the first largest slope, as over the whole chunk
+        return SlopeRecord(float(s[k]), start + int(ci[k]), int(ui[k]), int(wi[k]))
+
     def where_triple(b: int) -> str:
         return f"state cell {start + int(ci[b])}, input {int(ui[b])}, internal cell {int(wi[b])}"
 
@@ -390,6 +414,17 @@ def _abstract_block(
 
     C = sub.dynamics(XC, u_pts[ui], WC, describe=where_centre)  # (B, n)
 
+    scalar = n == 1 and len(cw) <= 1
+    if scalar and full_statistics and _USE_SCALAR_KERNEL:
+        lo, hi, blocking, sums, live, sx, sw = compiled.scalar_block(
+            V.reshape(Sx, Sw, B), C[:, 0], xl[:, 0], xh[:, 0], wl[:, 0] if p else _NO_W, wh[:, 0] if p else _NO_W,
+            float(cx[0]), float(cw[0]) if p else 1.0, L_x, L_w, compiled.SCALAR_METHODS.index(chosen),
+            *_grid_arrays(xg), FP_RTOL, SNAP_RTOL,
+        )
+        successors = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)}
+        return _Block(lo[:, None], hi[:, None], blocking, successors, record(sx), record(sw))
+
+    # The generic path: numpy, the reference of compiled.scalar_block.
     HX = 2 * RX / np.asarray(cx, dtype=float) if n else RX
     HW = 2 * RW / np.asarray(cw, dtype=float) if p else RW
 
@@ -400,17 +435,15 @@ def _abstract_block(
     # Extremes over the samples: of each x sample over the w samples (the SCP's pair maxima need them), then
     # over x (the hull). Min and max are exact, so any order of reduction gives the same bits.
     V3 = V.reshape(Sx, Sw, B, n)
-    scalar = n == 1 and len(cw) <= 1
     if scalar:
         vmax_w, vmin_w, dx, dw = _scalar_sample_pass(V3[..., 0])
         hull_lo, hull_hi = vmin_w.min(axis=0)[:, None], vmax_w.max(axis=0)[:, None]
     else:
         hull_lo, hull_hi = V3.min(axis=(0, 1)), V3.max(axis=(0, 1))
-    rho_h = L_x * np.max(HX, axis=1) / 2 + (L_w * np.max(HW, axis=1) / 2 if p else 0.0)
+    rho_h = hull_margin(HX, HW, L_x, L_w)
     boxes["hull"] = (hull_lo - rho_h[:, None], hull_hi + rho_h[:, None])
 
     rho = scp_rho(HX, HW, L_x, L_w)
-    chosen = "scp_radius" if (method == "scp" and objective == "radius") else method
     sampled: dict[str, np.ndarray] = {}  # method -> triples (positions in the block) it is computed on
     if not full_statistics:
         for name in ("scp", "scp_radius"):
@@ -493,10 +526,6 @@ def _abstract_block(
         Vg = V.reshape(tuple(cx) + tuple(cw) + (B, n))
         sx = _axis_slopes(Vg, range(len(cx)), tuple(cx), HX)
         sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), tuple(cw), HW) if p else np.zeros(B)
-
-    def record(s: np.ndarray) -> SlopeRecord:
-        k = int(np.argmax(s))
-        return SlopeRecord(float(s[k]), start + int(ci[k]), int(ui[k]), int(wi[k]))
 
     return _Block(lo, hi, blocking, successors, record(sx), record(sw))
 

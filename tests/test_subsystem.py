@@ -272,21 +272,6 @@ def test_the_other_scp_objective_is_counted_on_a_fixed_sample():
     assert np.array_equal(np.concatenate([statistics_sample(a, min(100, T - a)) + a for a in range(0, T, 100)]), picked)
 
 
-def test_small_and_large_chunks_take_different_paths_to_the_same_bits(monkeypatch):
-    import pipelines.subsystem as subsystem
-
-    sub = _distinct("scalability")[0]
-    L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
-    out = []
-    for small in (0, 1 << 30):
-        monkeypatch.setattr(subsystem, "SMALL_PASS", small)
-        out.append(abstract_cells(sub, 3, 9, L_x, L_w, "scp", "radius"))
-    for f in ("lo", "hi", "blocking"):
-        np.testing.assert_array_equal(getattr(out[0], f), getattr(out[1], f))
-    assert out[0].successors == out[1].successors
-    assert out[0].slope_x == out[1].slope_x and out[0].slope_w == out[1].slope_w
-
-
 def _planar() -> list:
     """A subsystem with a 2-D state and a 2-D internal input (the per-triple LP path, multi-axis slopes)."""
     from pipelines.spec import parse_spec

@@ -1,0 +1,383 @@
+"""Compiled kernels of the per-cell stage's scalar path (numba): the sample pass, the SCP's pair maxima and the
+closed-form SCP, each fused into one loop nest instead of a few dozen numpy calls and their temporaries.
+
+Every kernel computes exactly the values of the numpy function named in its docstring, which stays the
+reference (the tests compare the two bit for bit on random and degenerate inputs): the kernels use the same
+floating-point operations on the same operands, and only maxima, minima and comparisons (exact) are
+reordered. numba compiles without ``fastmath``, so no operation is contracted or reassociated.
+
+Compilation (about half a second for all of them) happens at the first call in a process and is cached on disk
+beside this module (numba's ``cache=True``; where that directory is read-only numba uses ``NUMBA_CACHE_DIR`` or
+compiles per process). :func:`warm_up` compiles them ahead of a timing.
+
+Measured on examples/scalability.yaml's per-cell stage (1.25e6 evaluations, bench/run.py floor case): see the
+README's Benchmark section.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .growth_bound import SCP_TIE_RTOL
+
+# error_model="numpy": a float division by zero gives inf/nan as in numpy instead of raising; nogil: a Dask
+# worker's other threads run while a kernel does.
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+
+
+@_jit
+def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pipelines.subsystem._scalar_sample_pass` in one read of the samples.
+
+    Parameters
+    ----------
+    V : ndarray, shape (S_x, S_w, B), float64, finite
+        Successor samples (state sample, internal-input sample, triple). Finite: the black box guarantees it,
+        and a comparison with NaN would not propagate it as ``np.max`` does.
+
+    Returns
+    -------
+    vmax_w, vmin_w : ndarray, shape (S_x, B)
+        Extremes over the internal-input samples at each state sample.
+    dx, dw : ndarray, shape (B,)
+        Largest ``|ΔV|`` between neighbouring samples along the state axis and along the internal-input axis.
+    """
+    Sx, Sw, B = V.shape
+    vmax = np.empty((Sx, B))
+    vmin = np.empty((Sx, B))
+    dx = np.zeros(B)
+    dw = np.zeros(B)
+    for k in range(Sx):
+        hi = vmax[k]
+        lo = vmin[k]
+        first = V[k, 0]
+        for b in range(B):
+            hi[b] = first[b]
+            lo[b] = first[b]
+        for l in range(1, Sw):
+            row = V[k, l]
+            prev = V[k, l - 1]
+            for b in range(B):
+                v = row[b]
+                hi[b] = max(hi[b], v)
+                lo[b] = min(lo[b], v)
+                dw[b] = max(dw[b], abs(v - prev[b]))
+        if k:
+            for l in range(Sw):
+                row = V[k, l]
+                prev = V[k - 1, l]
+                for b in range(B):
+                    dx[b] = max(dx[b], abs(row[b] - prev[b]))
+    return vmax, vmin, dx, dw
+
+
+@_jit
+def hull_and_bound(vmax: np.ndarray, vmin: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sample hull and the quick lower bound of the SCP radius that :func:`pipelines.subsystem._abstract_block`
+    tries before the pair maxima, from the per-state-sample extremes.
+
+    Parameters
+    ----------
+    vmax, vmin : ndarray, shape (m_x, B), finite
+    half : int
+        ``m_x // 2``.
+
+    Returns
+    -------
+    hull_lo, hull_hi : ndarray, shape (B,)
+        ``vmin.min(axis=0)``, ``vmax.max(axis=0)``.
+    bound : ndarray, shape (B,)
+        ``max(E_0, E_half)`` of :func:`pair_maxima_batch_last` (only ``E_0`` when ``half == 0``).
+    """
+    m, B = vmax.shape
+    hull_lo = vmin[0].copy()
+    hull_hi = vmax[0].copy()
+    bound = np.empty(B)
+    for b in range(B):
+        bound[b] = vmax[0, b] - vmin[0, b]
+    for k in range(1, m):
+        for b in range(B):
+            hull_lo[b] = min(hull_lo[b], vmin[k, b])
+            hull_hi[b] = max(hull_hi[b], vmax[k, b])
+            bound[b] = max(bound[b], vmax[k, b] - vmin[k, b])
+    if half:
+        for l in range(m - half):
+            for b in range(B):
+                bound[b] = max(bound[b], vmax[l + half, b] - vmin[l, b], vmax[l, b] - vmin[l + half, b])
+    return hull_lo, hull_hi, bound
+
+
+@_jit
+def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
+    """:func:`pipelines.growth_bound.pair_maxima_batch_last`:
+    ``E[k] = max_l max(vmax[l + k] - vmin[l], vmax[l] - vmin[l + k])``.
+
+    Parameters
+    ----------
+    vmax, vmin : ndarray, shape (m_x, B), finite
+
+    Returns
+    -------
+    ndarray, shape (m_x, B)
+    """
+    m, B = vmax.shape
+    out = np.empty((m, B))
+    for k in range(m):
+        o = out[k]
+        for b in range(B):
+            o[b] = vmax[k, b] - vmin[0, b]
+        for l in range(m - k):
+            up = vmax[l + k]
+            down_hi = vmax[l]
+            lo_l = vmin[l]
+            lo_k = vmin[l + k]
+            for b in range(B):
+                o[b] = max(o[b], up[b] - lo_l[b], down_hi[b] - lo_k[b])
+    return out
+
+
+@_jit
+def scp_parameters_batch_last(
+    E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pipelines.growth_bound.scp_parameters_batch_last`: the closed-form SCP (Eq. 4.5, METHOD §2) per
+    column, ``theta1 = clip(min_{d_i <= w} max_{d_j > w} (r_j - r_i) / (d_j - d_i), 0, L_x)``,
+    ``theta2 = max(0, max_k r_k - theta1 d_k)``, with ``d_k = k h_x``, ``r_k = E_k + rho``.
+
+    Parameters
+    ----------
+    E : ndarray, shape (m, B), finite
+        Pair maxima.
+    h_x, rho, weight_theta1 : ndarray, shape (B,)
+    L_x : float
+
+    Returns
+    -------
+    theta1, theta2 : ndarray, shape (B,)
+    """
+    m, B = E.shape
+    theta1 = np.empty(B)
+    theta2 = np.empty(B)
+    for b in range(B):
+        theta1[b], theta2[b] = _scp_column(E[:, b], h_x[b], rho[b], L_x, weight_theta1[b])
+    return theta1, theta2
+
+
+@_jit
+def _scp_column(e: np.ndarray, h: float, rho: float, L_x: float, w: float) -> tuple[float, float]:
+    """``(theta1, theta2)`` of one cell's SCP from its pair maxima ``e``, shape (m,) (see
+    :func:`scp_parameters_batch_last`)."""
+    m = e.shape[0]
+    limit = w * (1.0 + SCP_TIE_RTOL)
+    right = m  # first k with d_k right of w (d increases with k: the left points are a prefix)
+    for k in range(m):
+        if not (k * h <= limit):
+            right = k
+            break
+    theta = -np.inf  # no point right of w: theta1 = 0 is optimal (clipped below)
+    if right < m:
+        theta = np.inf
+        for i in range(right):
+            r_i = e[i] + rho
+            d_i = i * h
+            s = -np.inf
+            for j in range(right, m):
+                s = max(s, ((e[j] + rho) - r_i) / (j * h - d_i))
+            theta = min(theta, s)
+    t1 = min(max(theta, 0.0), L_x)
+    t2 = 0.0
+    for k in range(m):
+        t2 = max(t2, (e[k] + rho) - t1 * (k * h))
+    return t1, t2
+
+
+@_jit
+def _cell_range(
+    lo: float, hi: float, origin: float, eta: float, k_lo: int, size: int, lb: float, ub: float, fp_rtol: float,
+    snap_rtol: float,
+) -> tuple[int, int, bool]:
+    """Successor cells of the box ``[lo, hi]`` along one state axis (Definition 4.2), as ``_abstract_block``
+    computes them: :func:`pipelines.growth_bound.widen`, :meth:`pipelines.grid.UniformGrid.cells_touching`
+    (``fp_rtol = FP_RTOL``, ``snap_rtol = SNAP_RTOL``), clipped to the ``size`` cells of the grid.
+
+    Returns
+    -------
+    first, last : int
+    leaves : bool
+        Whether the widened box leaves ``[lb, ub]`` (the triple is blocking).
+    """
+    scale = max(abs(lo), abs(hi))
+    a = lo - fp_rtol * scale
+    b = hi + fp_rtol * scale
+    leaves = a < lb or b > ub
+    a = (a - origin) / eta - 0.5
+    b = (b - origin) / eta + 0.5
+    a = a - snap_rtol * max(1.0, abs(a))
+    b = b + snap_rtol * max(1.0, abs(b))
+    top = size - 1
+    first = min(max(np.int64(np.ceil(a)) - k_lo, 0), top)
+    last = min(max(np.int64(np.floor(b)) - k_lo, 0), top)
+    return first, last, leaves
+
+
+@_jit
+def _margins(
+    xl: np.ndarray, xh: np.ndarray, wl: np.ndarray, wh: np.ndarray, b: int, has_w: bool, cx: float, cw: float,
+    L_x: float, L_w: float,
+) -> tuple[float, float, float, float]:
+    """Triple ``b``'s Lipschitz radius, hull margin, SCP margin and x sample spacing, as
+    ``growth_bound.lipschitz_radius``, ``hull_margin``, ``scp_rho`` and ``_abstract_block`` compute them."""
+    rx = (xh[b] - xl[b]) / 2
+    hx = 2 * rx / cx
+    lip = L_x * rx
+    rho_h = L_x * hx / 2
+    rho = 2.0 * L_x * hx
+    if has_w:
+        rw = (wh[b] - wl[b]) / 2
+        hw = 2 * rw / cw
+        lip = lip + L_w * rw
+        rho_h = rho_h + L_w * hw / 2
+        rho = rho + L_w * hw
+    return lip, rho_h, rho, hx
+
+
+#: Order of the growth bounds in :func:`scalar_block`'s successor statistics (that of ``_abstract_block``).
+SCALAR_METHODS = ("lipschitz", "hull", "scp", "scp_radius")
+
+
+@_jit
+def scalar_block(
+    V: np.ndarray,
+    C: np.ndarray,
+    xl: np.ndarray,
+    xh: np.ndarray,
+    wl: np.ndarray,
+    wh: np.ndarray,
+    cx: float,
+    cw: float,
+    L_x: float,
+    L_w: float,
+    chosen: int,
+    origin: np.ndarray,
+    eta: np.ndarray,
+    k_lo: np.ndarray,
+    shape: np.ndarray,
+    lb: np.ndarray,
+    ub: np.ndarray,
+    fp_rtol: float,
+    snap_rtol: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Everything :func:`pipelines.subsystem._abstract_block` computes after the black box, for a scalar state
+    with at most one internal-input sub-grid axis, in one pass per triple: the four growth bounds (Lemma 4.3,
+    the sample hull, the SCP of Theorem 4.4 under both objectives), their successor cells (Definition 4.2) and
+    blocking flags, the successor statistics and the slopes for Lipschitz validation. The same values as that
+    function's generic path with every statistic counted (``full_statistics=True``): the tests compare the two.
+
+    Parameters
+    ----------
+    V : ndarray, shape (S_x, S_w, B), finite
+        Successor samples.
+    C : ndarray, shape (B,), finite
+        Successor of each joint cell's centre.
+    xl, xh : ndarray, shape (B,)
+        Clipped state cell of each triple.
+    wl, wh : ndarray, shape (B,) or (0,)
+        Clipped internal-input cell of each triple; empty arrays for a subsystem without internal inputs.
+    cx, cw : float
+        Sub-grid points along x and along w (``cw`` unused without internal inputs).
+    L_x, L_w : float
+        Lipschitz constants.
+    chosen : int
+        Position in :data:`SCALAR_METHODS` of the growth bound whose successors are returned.
+    origin, eta, k_lo, shape, lb, ub, fp_rtol, snap_rtol
+        The state grid (``UniformGrid`` fields as arrays of shape (1,)) and the rounding margins
+        ``growth_bound.FP_RTOL``, ``grid.SNAP_RTOL`` (see :func:`_cell_range`).
+
+    Returns
+    -------
+    lo, hi : ndarray of int32, shape (B,)
+        Successor range of the chosen bound, ``(0, -1)`` where blocking.
+    blocking : ndarray of bool, shape (B,)
+    sums, live : ndarray of int64, shape (4,)
+        Per bound of :data:`SCALAR_METHODS`: successor cells summed over the non-blocking triples, and their
+        number.
+    slope_x, slope_w : ndarray, shape (B,)
+        Largest neighbour difference quotients along x and along w (0 where a spacing is 0 or without w).
+    """
+    Sx, Sw, B = V.shape
+    has_w = wl.shape[0] > 0
+    vmax, vmin, dx, dw = scalar_sample_pass(V)
+    half = Sx // 2
+    hull_lo, hull_hi, bound = hull_and_bound(vmax, vmin, half)
+    lo = np.empty(B, dtype=np.int32)
+    hi = np.empty(B, dtype=np.int32)
+    blocking = np.empty(B, dtype=np.bool_)
+    sums = np.zeros(4, dtype=np.int64)
+    live = np.zeros(4, dtype=np.int64)
+    slope_x = np.zeros(B)
+    slope_w = np.zeros(B)
+    # Which triples may need the SCP: the first test of _abstract_block (max(E_0, E_half), the same bound).
+    need = np.zeros(B, dtype=np.bool_)
+    for b in range(B):
+        lip_b, _, rho_b, _ = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
+        need[b] = not (bound[b] + rho_b >= lip_b * (1 + 1e-9))
+    # The pair maxima of every triple (batch on the contiguous axis: vectorised) when one needs them.
+    E = pair_maxima_batch_last(vmax, vmin) if need.any() else np.empty((Sx, 0))
+    box_lo = np.empty(4)
+    box_hi = np.empty(4)
+    for b in range(B):
+        lip_b, rho_h, rho_b, hx = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
+        rx = (xh[b] - xl[b]) / 2
+        c = C[b]
+        box_lo[0] = c - lip_b
+        box_hi[0] = c + lip_b
+        box_lo[1] = hull_lo[b] - rho_h
+        box_hi[1] = hull_hi[b] + rho_h
+        # The SCP only where it can beat the Lipschitz radius (the second test of _abstract_block).
+        cannot = not need[b]
+        e = E[:, b] if need[b] else vmax[:0, 0]
+        if not cannot:
+            near = e[0]
+            for k in range(1, half + 1):
+                near = max(near, e[k])
+            cannot = near + rho_b >= lip_b * (1 + 1e-9)
+        for q in range(2):
+            rad = lip_b
+            if not cannot:
+                t1, t2 = _scp_column(e, hx, rho_b, L_x, 1.0 if q == 0 else rx)
+                rad = min(t1 * rx + t2, lip_b)  # both bounds are sound: so is the min
+            box_lo[2 + q] = c - rad
+            box_hi[2 + q] = c + rad
+        for q in range(4):
+            f, g, leaves = _cell_range(box_lo[q], box_hi[q], origin[0], eta[0], k_lo[0], shape[0], lb[0], ub[0],
+                                       fp_rtol, snap_rtol)
+            if not leaves:
+                sums[q] += g - f + 1
+                live[q] += 1
+            if q == chosen:
+                blocking[b] = leaves
+                lo[b] = 0 if leaves else f
+                hi[b] = -1 if leaves else g
+        if hx > 0:
+            slope_x[b] = dx[b] / hx
+        if has_w:
+            hw = 2 * ((wh[b] - wl[b]) / 2) / cw
+            if hw > 0:
+                slope_w[b] = dw[b] / hw
+    return lo, hi, blocking, sums, live, slope_x, slope_w
+
+
+def warm_up() -> None:
+    """Compile (or load from the disk cache) every kernel for the argument types the per-cell stage passes."""
+    V = np.zeros((2, 2, 2))
+    vmax, vmin, _, _ = scalar_sample_pass(V)
+    E = pair_maxima_batch_last(vmax, vmin)
+    hull_and_bound(vmax, vmin, 1)
+    one = np.ones(2)
+    scp_parameters_batch_last(E, one, one, 1.0, one)
+    scp_parameters_batch_last(E[:, [0]], one[[0]], one[[0]], 1.0, one[[0]])  # a column subset
+    ints = np.zeros(1, dtype=np.int64)
+    for w in (one, np.zeros(0)):
+        scalar_block(V, one, one, one, w, w, 2.0, 2.0, 1.0, 1.0, 0, one[:1], one[:1], ints, ints, one[:1], one[:1],
+                     0.0, 0.0)
