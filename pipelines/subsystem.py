@@ -217,7 +217,8 @@ def _chunk_invariants(
     -------
     u_pts : (n_u, m) input points; w_lo, w_hi : (n_w, p) clipped internal cells (one empty cell without
     internal inputs); counts : sub-grid points per axis, x then w; off_x : (S_x, n) unit offsets of the state
-    samples; ws : (n_w, S_w, p) internal-input samples of every internal cell. Read-only arrays.
+    samples; ws : (S_w, n_w, p) internal-input samples of every internal cell, sample-major (a block gathers its
+    triples' columns into the row-major ``(S_w, B, p)`` it passes to the black box). Read-only arrays.
     """
     p = 0 if wg is None else wg.dim
     u_pts = ug.all_points()
@@ -227,7 +228,7 @@ def _chunk_invariants(
         w_lo, w_hi = wg.clipped_cells(wg.unravel(np.arange(wg.size)))
     counts = subgrid_counts(samples, n + p)
     off_x, off_w = _unit_offsets(counts[:n]), _unit_offsets(counts[n:])
-    ws = w_lo[:, None, :] + off_w[None] * (w_hi - w_lo)[:, None, :]
+    ws = np.ascontiguousarray((w_lo[:, None, :] + off_w[None] * (w_hi - w_lo)[:, None, :]).transpose(1, 0, 2))
     for a in (u_pts, w_lo, w_hi, off_x, ws):
         a.setflags(write=False)
     return u_pts, w_lo, w_hi, counts, off_x, ws
@@ -303,7 +304,7 @@ def abstract_cells(
     u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, sub.n)
     c, n_u, n_w = stop - start, u_pts.shape[0], w_lo.shape[0]
     x_lo, x_hi = xg.clipped_cells(xg.unravel(np.arange(start, stop)))  # (c, n)
-    samples = off_x.shape[0] * ws.shape[1]
+    samples = off_x.shape[0] * ws.shape[0]
     B = c * n_u * n_w
     step = max(1, BLOCK_POINTS // samples)
     parts = [
@@ -377,7 +378,7 @@ def _abstract_block(
     u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, n)
     n_u, n_w = u_pts.shape[0], w_lo.shape[0]
     cx, cw = counts[:n], counts[n:]
-    Sx, Sw = off_x.shape[0], ws.shape[1]
+    Sx, Sw = off_x.shape[0], ws.shape[0]
     t = np.arange(t0, t1)
     ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
     B = t.size
@@ -388,7 +389,7 @@ def _abstract_block(
     # Each input once per triple and sample axis it varies along; the black box broadcasts them to (Sx, Sw, B).
     X = xs[:, None]  # (Sx, 1, B, n)
     U = u_pts[ui]  # (B, m)
-    W = np.ascontiguousarray(ws[wi].transpose(1, 0, 2))  # (Sw, B, p); row-major, so is V (ufuncs follow inputs)
+    W = np.take(ws, wi, axis=1)  # (Sw, B, p), row-major (ws[:, wi] is not): so is V (ufuncs follow inputs)
 
     chosen = "scp_radius" if (method == "scp" and objective == "radius") else method
 
