@@ -389,7 +389,14 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
     """(b) Batched exact SCP against one HiGHS LP per cell, on the pipeline's own samples."""
     import numpy as np
 
-    from pipelines.growth_bound import pair_maxima_scalar, scp_parameters_scalar, scp_reference, scp_rho, subgrid_counts
+    from pipelines.growth_bound import (
+        SCP_TIE_RTOL,
+        pair_maxima_scalar,
+        scp_parameters_scalar,
+        scp_reference,
+        scp_rho,
+        subgrid_counts,
+    )
     from pipelines.network import build_network
     from pipelines.spec import load_spec
     from pipelines.subsystem import abstract_cells, chunk_ranges
@@ -449,7 +456,7 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
             c0 = time.process_time()
             vmax, vmin, _, _ = compiled.scalar_sample_pass(Vt)
             E = compiled.pair_maxima_batch_last(vmax, vmin)
-            t1, t2 = compiled.scp_parameters_batch_last(E, HX[:, 0], rho, L_x, weight)
+            t1, t2 = compiled.scp_parameters_batch_last(E, HX[:, 0], rho, L_x, weight, SCP_TIE_RTOL)
             c1 = time.process_time()
             E = pair_maxima_scalar(V[..., 0])
             n1, n2 = scp_parameters_scalar(E, HX[:, 0], rho, L_x, weight)

@@ -1,14 +1,18 @@
-"""Compiled kernels of the per-cell stage's scalar path (numba): the sample pass, the SCP's pair maxima and the
-closed-form SCP, each fused into one loop nest instead of a few dozen numpy calls and their temporaries.
+"""Compiled kernels of the per-cell stage's scalar path (numba): :func:`scalar_block`, everything
+``subsystem._abstract_block`` computes after the black box for a scalar subsystem in one pass, and the kernels
+it is made of (the sample pass, the pair maxima, the closed-form SCP), instead of a few dozen numpy calls and
+their temporaries.
 
 Every kernel computes exactly the values of the numpy function named in its docstring, which stays the
 reference (the tests compare the two bit for bit on random and degenerate inputs): the kernels use the same
 floating-point operations on the same operands, and only maxima, minima and comparisons (exact) are
 reordered. numba compiles without ``fastmath``, so no operation is contracted or reassociated.
 
-Compilation (about half a second for all of them) happens at the first call in a process and is cached on disk
-beside this module (numba's ``cache=True``; where that directory is read-only numba uses ``NUMBA_CACHE_DIR`` or
-compiles per process). :func:`warm_up` compiles them ahead of a timing.
+Compilation (1-2 s for all of them) happens at the first call in a process and is cached on disk beside this
+module (numba's ``cache=True``; where that directory is read-only numba uses ``NUMBA_CACHE_DIR`` or the user's
+cache directory). :func:`warm_up` compiles them ahead of a timing. Tolerances come in as arguments, never as
+globals of another module: numba freezes a global into the compiled code, and its disk cache only notices
+changes to this file.
 
 Measured on examples/scalability.yaml's per-cell stage (1.25e6 evaluations, bench/run.py floor case): see the
 README's Benchmark section.
@@ -18,8 +22,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-
-from .growth_bound import SCP_TIE_RTOL
 
 # error_model="numpy": a float division by zero gives inf/nan as in numpy instead of raising; nogil: a Dask
 # worker's other threads run while a kernel does.
@@ -139,7 +141,7 @@ def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
 
 @_jit
 def scp_parameters_batch_last(
-    E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray
+    E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray, tie_rtol: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`pipelines.growth_bound.scp_parameters_batch_last`: the closed-form SCP (Eq. 4.5, METHOD §2) per
     column, ``theta1 = clip(min_{d_i <= w} max_{d_j > w} (r_j - r_i) / (d_j - d_i), 0, L_x)``,
@@ -151,6 +153,8 @@ def scp_parameters_batch_last(
         Pair maxima.
     h_x, rho, weight_theta1 : ndarray, shape (B,)
     L_x : float
+    tie_rtol : float
+        ``growth_bound.SCP_TIE_RTOL``.
 
     Returns
     -------
@@ -160,16 +164,16 @@ def scp_parameters_batch_last(
     theta1 = np.empty(B)
     theta2 = np.empty(B)
     for b in range(B):
-        theta1[b], theta2[b] = _scp_column(E[:, b], h_x[b], rho[b], L_x, weight_theta1[b])
+        theta1[b], theta2[b] = _scp_column(E[:, b], h_x[b], rho[b], L_x, weight_theta1[b], tie_rtol)
     return theta1, theta2
 
 
 @_jit
-def _scp_column(e: np.ndarray, h: float, rho: float, L_x: float, w: float) -> tuple[float, float]:
+def _scp_column(e: np.ndarray, h: float, rho: float, L_x: float, w: float, tie_rtol: float) -> tuple[float, float]:
     """``(theta1, theta2)`` of one cell's SCP from its pair maxima ``e``, shape (m,) (see
     :func:`scp_parameters_batch_last`)."""
     m = e.shape[0]
-    limit = w * (1.0 + SCP_TIE_RTOL)
+    limit = w * (1.0 + tie_rtol)
     right = m  # first k with d_k right of w (d increases with k: the left points are a prefix)
     for k in range(m):
         if not (k * h <= limit):
@@ -225,11 +229,13 @@ def _cell_range(
 def _margins(
     xl: np.ndarray, xh: np.ndarray, wl: np.ndarray, wh: np.ndarray, b: int, has_w: bool, cx: float, cw: float,
     L_x: float, L_w: float,
-) -> tuple[float, float, float, float]:
-    """Triple ``b``'s Lipschitz radius, hull margin, SCP margin and x sample spacing, as
-    ``growth_bound.lipschitz_radius``, ``hull_margin``, ``scp_rho`` and ``_abstract_block`` compute them."""
+) -> tuple[float, float, float, float, float, float]:
+    """Triple ``b``'s state half-width, sample spacings along x and w (0 without w), Lipschitz radius, hull
+    margin and SCP margin, as ``_abstract_block``, ``growth_bound.lipschitz_radius``, ``hull_margin`` and
+    ``scp_rho`` compute them."""
     rx = (xh[b] - xl[b]) / 2
     hx = 2 * rx / cx
+    hw = 0.0
     lip = L_x * rx
     rho_h = L_x * hx / 2
     rho = 2.0 * L_x * hx
@@ -239,7 +245,7 @@ def _margins(
         lip = lip + L_w * rw
         rho_h = rho_h + L_w * hw / 2
         rho = rho + L_w * hw
-    return lip, rho_h, rho, hx
+    return rx, hx, hw, lip, rho_h, rho
 
 
 #: Order of the growth bounds in :func:`scalar_block`'s successor statistics (that of ``_abstract_block``).
@@ -267,6 +273,8 @@ def scalar_block(
     ub: np.ndarray,
     fp_rtol: float,
     snap_rtol: float,
+    tie_rtol: float,
+    skip_rtol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Everything :func:`pipelines.subsystem._abstract_block` computes after the black box, for a scalar state
     with at most one internal-input sub-grid axis, in one pass per triple: the four growth bounds (Lemma 4.3,
@@ -293,6 +301,8 @@ def scalar_block(
     origin, eta, k_lo, shape, lb, ub, fp_rtol, snap_rtol
         The state grid (``UniformGrid`` fields as arrays of shape (1,)) and the rounding margins
         ``growth_bound.FP_RTOL``, ``grid.SNAP_RTOL`` (see :func:`_cell_range`).
+    tie_rtol, skip_rtol : float
+        ``growth_bound.SCP_TIE_RTOL`` and ``subsystem.SCP_SKIP_RTOL``.
 
     Returns
     -------
@@ -320,15 +330,14 @@ def scalar_block(
     # Which triples may need the SCP: the first test of _abstract_block (max(E_0, E_half), the same bound).
     need = np.zeros(B, dtype=np.bool_)
     for b in range(B):
-        lip_b, _, rho_b, _ = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
-        need[b] = not (bound[b] + rho_b >= lip_b * (1 + 1e-9))
+        _, _, _, lip_b, _, rho_b = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
+        need[b] = not (bound[b] + rho_b >= lip_b * (1 + skip_rtol))
     # The pair maxima of every triple (batch on the contiguous axis: vectorised) when one needs them.
     E = pair_maxima_batch_last(vmax, vmin) if need.any() else np.empty((Sx, 0))
     box_lo = np.empty(4)
     box_hi = np.empty(4)
     for b in range(B):
-        lip_b, rho_h, rho_b, hx = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
-        rx = (xh[b] - xl[b]) / 2
+        rx, hx, hw, lip_b, rho_h, rho_b = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
         c = C[b]
         box_lo[0] = c - lip_b
         box_hi[0] = c + lip_b
@@ -341,11 +350,11 @@ def scalar_block(
             near = e[0]
             for k in range(1, half + 1):
                 near = max(near, e[k])
-            cannot = near + rho_b >= lip_b * (1 + 1e-9)
+            cannot = near + rho_b >= lip_b * (1 + skip_rtol)
         for q in range(2):
             rad = lip_b
             if not cannot:
-                t1, t2 = _scp_column(e, hx, rho_b, L_x, 1.0 if q == 0 else rx)
+                t1, t2 = _scp_column(e, hx, rho_b, L_x, 1.0 if q == 0 else rx, tie_rtol)
                 rad = min(t1 * rx + t2, lip_b)  # both bounds are sound: so is the min
             box_lo[2 + q] = c - rad
             box_hi[2 + q] = c + rad
@@ -361,10 +370,8 @@ def scalar_block(
                 hi[b] = -1 if leaves else g
         if hx > 0:
             slope_x[b] = dx[b] / hx
-        if has_w:
-            hw = 2 * ((wh[b] - wl[b]) / 2) / cw
-            if hw > 0:
-                slope_w[b] = dw[b] / hw
+        if hw > 0:  # 0 without internal inputs
+            slope_w[b] = dw[b] / hw
     return lo, hi, blocking, sums, live, slope_x, slope_w
 
 
@@ -375,9 +382,9 @@ def warm_up() -> None:
     E = pair_maxima_batch_last(vmax, vmin)
     hull_and_bound(vmax, vmin, 1)
     one = np.ones(2)
-    scp_parameters_batch_last(E, one, one, 1.0, one)
-    scp_parameters_batch_last(E[:, [0]], one[[0]], one[[0]], 1.0, one[[0]])  # a column subset
+    scp_parameters_batch_last(E, one, one, 1.0, one, 0.0)
+    scp_parameters_batch_last(E[:, [0]], one[[0]], one[[0]], 1.0, one[[0]], 0.0)  # a column subset
     ints = np.zeros(1, dtype=np.int64)
     for w in (one, np.zeros(0)):
         scalar_block(V, one, one, one, w, w, 2.0, 2.0, 1.0, 1.0, 0, one[:1], one[:1], ints, ints, one[:1], one[:1],
-                     0.0, 0.0)
+                     0.0, 0.0, 0.0, 0.0)

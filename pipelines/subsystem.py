@@ -27,6 +27,7 @@ from .errors import BlackBoxError
 from .grid import SNAP_RTOL, UniformGrid
 from .growth_bound import (
     FP_RTOL,
+    SCP_TIE_RTOL,
     hull_margin,
     lipschitz_radius,
     pair_maxima_batch_last,
@@ -42,6 +43,10 @@ METHODS = ("lipschitz", "scp", "scp_radius", "hull")
 #: Relative slack when comparing an observed slope with a given Lipschitz constant: slopes are differences
 #: of float64 values, and an excess below this is rounding, not evidence.
 SLOPE_RTOL = 1e-9
+#: Relative margin by which the SCP's lower bound ``max_{k <= S_x/2} E_k + rho`` must exceed the Lipschitz
+#: radius before a triple's LP is skipped (the radius is then the Lipschitz radius to the bit): far above the
+#: rounding of terms of size <= 2 lip (see ``_abstract_block``).
+SCP_SKIP_RTOL = 1e-9
 #: Black-box evaluations per chunk when neither the spec nor the caller says: a few tenths of a second.
 DEFAULT_CHUNK_POINTS = 2_000_000
 
@@ -420,7 +425,7 @@ def _abstract_block(
         lo, hi, blocking, sums, live, sx, sw = compiled.scalar_block(
             V.reshape(Sx, Sw, B), C[:, 0], xl[:, 0], xh[:, 0], wl[:, 0] if p else _NO_W, wh[:, 0] if p else _NO_W,
             float(cx[0]), float(cw[0]) if p else 1.0, L_x, L_w, compiled.SCALAR_METHODS.index(chosen),
-            *_grid_arrays(xg), FP_RTOL, SNAP_RTOL,
+            *_grid_arrays(xg), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL, SCP_SKIP_RTOL,
         )
         successors = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)}
         return _Block(lo[:, None], hi[:, None], blocking, successors, record(sx), record(sw))
@@ -462,7 +467,7 @@ def _abstract_block(
         # First with E_0 and E_{S_x/2} only (two of the pair maxima, computed as pair_maxima_batch_last does):
         # where that settles every triple (the tanks), the pair maxima are not needed at all.
         half = Sx // 2
-        threshold = lip[:, 0] * (1 + 1e-9)
+        threshold = lip[:, 0] * (1 + SCP_SKIP_RTOL)
         bound = np.max(vmax_w - vmin_w, axis=0)
         if half:
             up = (vmax_w[half:] - vmin_w[:-half]).max(axis=0)

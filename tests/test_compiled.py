@@ -62,12 +62,13 @@ def test_scp_parameters_equal_numpy(m):
     for w in (np.ones(B), k * h, (m / 2) * h, np.zeros(B), np.full(B, 1e9), rng.uniform(0, m, B) * h):
         for L in (0.3, 1.0, 50.0):
             want = gb.scp_parameters_batch_last(E, h, rho, L, w)
-            got = compiled.scp_parameters_batch_last(E, h, rho, L, w)
+            got = compiled.scp_parameters_batch_last(E, h, rho, L, w, gb.SCP_TIE_RTOL)
             np.testing.assert_array_equal(got[0], want[0])
             np.testing.assert_array_equal(got[1], want[1])
     cols = np.flatnonzero(rng.random(B) < 0.3)
     want = gb.scp_parameters_batch_last(E[:, cols], h[cols], rho[cols], 1.0, np.ones(cols.size))
-    got = compiled.scp_parameters_batch_last(E[:, cols], h[cols], rho[cols], 1.0, np.ones(cols.size))
+    got = compiled.scp_parameters_batch_last(E[:, cols], h[cols], rho[cols], 1.0, np.ones(cols.size),
+                                               gb.SCP_TIE_RTOL)
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
 
