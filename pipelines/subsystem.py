@@ -256,10 +256,14 @@ _NO_W = np.zeros(0)  # the internal-input cells of a subsystem without internal 
 
 #: Black-box evaluations (samples x triples) per block of :func:`abstract_cells`: a chunk's triples are
 #: processed in blocks of about this many evaluations, so the temporaries (a few float64 arrays of this length)
-#: stay near the caches and a task's memory is bounded whatever its chunk. Measured on examples/stress.yaml's
-#: agent (one process, warm heap): 11.0 ns per evaluation with blocks of 1e6, 11.5 with 4e6, 13-14 with 1.6e7,
-#: 16.3 with 3.2e7.
-BLOCK_POINTS = 1 << 20
+#: stay near the caches and a task's memory is bounded whatever its chunk. Measured with the compiled pass on
+#: examples/stress.yaml (``bench/run.py --cases workers``, block sizes alternated, 2026-11-24): 2^19 one worker
+#: 57.2 / 56.8 s, two workers 32.9 / 33.9 s; 2^18 61.0 / 59.4 s and 34.1 / 34.7 s; 2^20 (that evening) 64.7 s
+#: and 41.2 s, with 12 % more CPU for two workers than for one: two processes' 8 MB temporaries crowd the shared
+#: L3. Smaller blocks pay the per-block overhead (two black-box calls and the compiled pass, ~0.05 ms) more
+#: often: scalability's per-cell stage is 2.9x its floor with 2^19, 3.2x with 2^18. Before the compiled pass (numpy
+#: only, one process): 11.0 ns per evaluation with blocks of 1e6, 11.5 with 4e6, 13-14 with 1.6e7.
+BLOCK_POINTS = 1 << 19
 
 
 def abstract_cells(
