@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
@@ -373,7 +374,7 @@ def _random_domain_states(controller, count: int, rng: np.random.Generator) -> l
 
 def run_synthesis(
     abstraction: AbstractionResult,
-    out_dir: "Path | None" = None,
+    out_dir: str | Path | None = None,
     *,
     progress: Progress = _no_progress,
     runs: int | None = None,
@@ -383,7 +384,6 @@ def run_synthesis(
     Returns the report entries: ``domain_states``, ``domain_states_by_fixed_point``, ``controller``,
     ``synthesis``, ``closed_loop`` and ``figures``.
     """
-    from pathlib import Path
 
     from .closed_loop import simulate, simulate_many
     from .controller import controller_of

@@ -6,6 +6,7 @@ import pytest
 from pipelines import compiled
 from pipelines import growth_bound as gb
 from pipelines import subsystem
+from pipelines.errors import BlackBoxError
 from pipelines.network import build_network
 from pipelines.spec import load_spec, parse_spec
 from pipelines.subsystem import abstract_cells, chunk_ranges
@@ -133,3 +134,24 @@ def test_scalar_block_flags_a_box_that_leaves_the_grid_as_blocking(monkeypatch):
     assert (res.lo[res.blocking] == 0).all() and (res.hi[res.blocking] == -1).all()
     np.testing.assert_array_equal(res.blocking, ref.blocking)
     np.testing.assert_array_equal(res.lo, ref.lo)
+
+
+@pytest.mark.parametrize("dynamics", ["where(x[0] > 20.3, sqrt(19 - x[0]), x[0])",
+                                      "where(w[0] > 27.6, 1 / (x[0] - x[0]), x[0])",
+                                      "where(x[0] < 0.6, -1 / (x[0] - x[0]), x[0])"])
+def test_a_non_finite_sample_gives_the_black_boxs_error_on_both_paths(dynamics, monkeypatch):
+    """A black box that returns NaN or an infinity at some samples: the kernel path raises the generic path's
+    error, naming the same sample, its arguments and its cell (the compiled pass's comparisons would drop a
+    NaN silently, so the samples must be checked before it runs)."""
+    spec = load_spec(EXAMPLES / "consensus.yaml", {"N": 2})
+    data = spec.model_dump(mode="json", exclude_none=True)
+    data["subsystems"][0]["dynamics"] = dynamics
+    sub = build_network(parse_spec(data), None).subsystems[0]
+    L_x, L_w = _constants(sub)
+    messages = []
+    for use in (True, False):
+        monkeypatch.setattr(subsystem, "_USE_SCALAR_KERNEL", use)
+        with pytest.raises(BlackBoxError, match=r"\(not finite\) at x=.* \(state cell \d+, input \d, internal") as e:
+            abstract_cells(sub, 0, sub.state_grid.size, L_x, L_w, "scp", "paper")
+        messages.append(str(e.value))
+    assert messages[0] == messages[1]
