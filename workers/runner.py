@@ -26,7 +26,10 @@ two workers were 1.55x one worker with 4e6 and 1.69x with 2e7 (per-cell stage 95
 108 s, so nearly CPU-bound), at a peak RSS of 1.02 GB (one worker) and 1.72 GB (two workers, process tree)
 against 0.65 and 1.08 GB: ~30 MB per 1e6 evaluations of a 1-D state, ~600 MB per task. Smaller
 chunks (``options.chunk_cells``) cost proportionally more: a one-cell task of ~2-30 ms is mostly overhead. A
-subsystem smaller than one chunk (the tank case: 41 state cells, ~0.03 s) is one task.
+subsystem smaller than one chunk (the tank case: 41 state cells, ~0.03 s) is one task. Since then a task's
+temporaries are bounded by ``subsystem.BLOCK_POINTS``, not by its chunk, and with the compiled per-cell pass
+(~5 ns per evaluation, a 2e7 task ~0.1 s) 8e7 per task was no better (2026-11-24, stress, two workers: 34.7 s
+against 32.9 s and 36.0 s with 2e7 in the runs around it).
 
 Failures
 --------
