@@ -57,20 +57,30 @@ def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
         for b in range(B):
             hi[b] = first[b]
             lo[b] = first[b]
-        for l in range(1, Sw):
-            row = V[k, l]
-            prev = V[k, l - 1]
-            for b in range(B):
-                v = row[b]
-                hi[b] = max(hi[b], v)
-                lo[b] = min(lo[b], v)
-                dw[b] = max(dw[b], abs(v - prev[b]))
         if k:
-            for l in range(Sw):
+            # The state-axis differences in the same read (rows of the previous state sample are still cached).
+            up = V[k - 1, 0]
+            for b in range(B):
+                dx[b] = max(dx[b], abs(first[b] - up[b]))
+            for l in range(1, Sw):
                 row = V[k, l]
-                prev = V[k - 1, l]
+                prev = V[k, l - 1]
+                up = V[k - 1, l]
                 for b in range(B):
-                    dx[b] = max(dx[b], abs(row[b] - prev[b]))
+                    v = row[b]
+                    hi[b] = max(hi[b], v)
+                    lo[b] = min(lo[b], v)
+                    dw[b] = max(dw[b], abs(v - prev[b]))
+                    dx[b] = max(dx[b], abs(v - up[b]))
+        else:
+            for l in range(1, Sw):
+                row = V[k, l]
+                prev = V[k, l - 1]
+                for b in range(B):
+                    v = row[b]
+                    hi[b] = max(hi[b], v)
+                    lo[b] = min(lo[b], v)
+                    dw[b] = max(dw[b], abs(v - prev[b]))
     return vmax, vmin, dx, dw
 
 
