@@ -82,13 +82,14 @@ class UniformGrid:
         lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)
         # cell k = [o + (k - 1/2) eta, o + (k + 1/2) eta] meets (lb, ub) iff k > (lb-o)/eta - 1/2 and
         # k < (ub-o)/eta + 1/2; a bound exactly on a cell boundary belongs to the inner cell only.
-        lo_r = _snap((lb_ - o_) / eta_ + 0.5)
-        hi_r = _snap((ub_ - o_) / eta_ - 0.5)
-        k_lo = np.floor(lo_r)
-        k_hi = np.ceil(hi_r)
-        point = lb_ == ub_
-        k_lo = np.where(point, np.floor(_snap((lb_ - o_) / eta_ + 0.5)), k_lo)
-        k_hi = np.where(point, k_lo, k_hi)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is _make's SpecError, not a warning
+            lo_r = _snap((lb_ - o_) / eta_ + 0.5)
+            hi_r = _snap((ub_ - o_) / eta_ - 0.5)
+            k_lo = np.floor(lo_r)
+            k_hi = np.ceil(hi_r)
+            point = lb_ == ub_
+            k_lo = np.where(point, np.floor(_snap((lb_ - o_) / eta_ + 0.5)), k_lo)
+            k_hi = np.where(point, k_lo, k_hi)
         return cls._make(o_, eta_, k_lo, k_hi, lb_, ub_, name)
 
     @classmethod
@@ -102,8 +103,9 @@ class UniformGrid:
     ) -> "UniformGrid":
         """Grid of the points that lie in ``[lb, ub]`` (external-input grids: inputs are points, not cells)."""
         lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)
-        k_lo = np.ceil(_snap((lb_ - o_) / eta_))
-        k_hi = np.floor(_snap((ub_ - o_) / eta_))
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is _make's SpecError, not a warning
+            k_lo = np.ceil(_snap((lb_ - o_) / eta_))
+            k_hi = np.floor(_snap((ub_ - o_) / eta_))
         return cls._make(o_, eta_, k_lo, k_hi, lb_, ub_, name)
 
     @staticmethod

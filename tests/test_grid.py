@@ -95,3 +95,16 @@ def test_avoid_sets_are_approximated_from_outside():
     with pytest.raises(SpecError):
         abstract_region(region, g, "specification.target")  # no whole cell inside
     assert outer.contains(np.array([[1, 1], [0, 1], [2, 2]])).tolist() == [True, True, False]
+
+
+@pytest.mark.parametrize("make", [UniformGrid.covering, UniformGrid.inside])
+@pytest.mark.parametrize("lb,ub,eta", [(-1e308, 1e308, 1e-300), (0.0, 1e308, 1e-10), (-1e300, 0.0, 1e-300)])
+def test_a_grid_whose_point_count_overflows_is_a_clear_error_without_warnings(make, lb, ub, eta):
+    """(ub - lb) / eta beyond float range: the SpecError says to use a larger eta, and numpy's overflow
+    warnings (which a library user would see on stderr before it) are not emitted."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SpecError, match="too fine.*use a larger eta"):
+            make(lb, ub, eta)
