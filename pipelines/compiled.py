@@ -54,33 +54,23 @@ def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
         hi = vmax[k]
         lo = vmin[k]
         first = V[k, 0]
+        # The state-axis differences in the same read (the previous state sample's rows are still cached); at
+        # k = 0 a row against itself adds |v - v| = 0 (the samples are finite), which leaves dx as it is.
+        up = V[k - 1, 0] if k else first
         for b in range(B):
             hi[b] = first[b]
             lo[b] = first[b]
-        if k:
-            # The state-axis differences in the same read (rows of the previous state sample are still cached).
-            up = V[k - 1, 0]
+            dx[b] = max(dx[b], abs(first[b] - up[b]))
+        for l in range(1, Sw):
+            row = V[k, l]
+            prev = V[k, l - 1]
+            up = V[k - 1, l] if k else row
             for b in range(B):
-                dx[b] = max(dx[b], abs(first[b] - up[b]))
-            for l in range(1, Sw):
-                row = V[k, l]
-                prev = V[k, l - 1]
-                up = V[k - 1, l]
-                for b in range(B):
-                    v = row[b]
-                    hi[b] = max(hi[b], v)
-                    lo[b] = min(lo[b], v)
-                    dw[b] = max(dw[b], abs(v - prev[b]))
-                    dx[b] = max(dx[b], abs(v - up[b]))
-        else:
-            for l in range(1, Sw):
-                row = V[k, l]
-                prev = V[k, l - 1]
-                for b in range(B):
-                    v = row[b]
-                    hi[b] = max(hi[b], v)
-                    lo[b] = min(lo[b], v)
-                    dw[b] = max(dw[b], abs(v - prev[b]))
+                v = row[b]
+                hi[b] = max(hi[b], v)
+                lo[b] = min(lo[b], v)
+                dw[b] = max(dw[b], abs(v - prev[b]))
+                dx[b] = max(dx[b], abs(v - up[b]))
     return vmax, vmin, dx, dw
 
 

@@ -87,9 +87,7 @@ class UniformGrid:
             hi_r = _snap((ub_ - o_) / eta_ - 0.5)
             k_lo = np.floor(lo_r)
             k_hi = np.ceil(hi_r)
-            point = lb_ == ub_
-            k_lo = np.where(point, np.floor(_snap((lb_ - o_) / eta_ + 0.5)), k_lo)
-            k_hi = np.where(point, k_lo, k_hi)
+            k_hi = np.where(lb_ == ub_, k_lo, k_hi)  # a point box: the one cell containing it
         return cls._make(o_, eta_, k_lo, k_hi, lb_, ub_, name)
 
     @classmethod
