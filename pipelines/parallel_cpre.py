@@ -2,21 +2,30 @@
 
 CUDD is single-threaded and the fixed points spend nearly all of synthesis in ``∃u.CPre`` (10 tanks: the 24
 safety iterations; consensus N = 8: the 9 reach iterations, ~450 s). :class:`PartitionedPredecessors` splits
-the current states into ranges of one digit and computes each range in its own process: the first here, the
-others in helper processes that hold a copy of the chain.
+the current states into lexicographic ranges of the top two current-state digits and computes each range in its
+own process: the first here, the others in helper processes that hold a copy of the chain.
 
 Exactness: for a set ``H`` of current states, ``H ∧ ∃u.CPre(Z)`` is computed exactly by conjoining ``H`` into
 the chain's first operand, the shared ``∃w`` step and the admissible pairs (:meth:`.Game.predecessors`'s
 ``part``): ``H`` reads current-state bits only, so it commutes with ``∃x'``, ``∃w`` and ``∃u``. The ranges
-partition every code of the digit (the last one includes the codes past the grid), so the union of the parts
-is ``∃u.CPre(Z)`` itself. Tested against the one-process result, fixed points included.
+partition every code pair of the two digits (the last one includes the codes past the grid;
+:func:`lexicographic_part`), so the union of the parts is ``∃u.CPre(Z)`` itself. Tested against the one-process
+result, fixed points included.
 
-The digit is the top-most current-state digit of the variable order: CUDD's recursion splits there first, so
-the parts share little work. Measured, summing the parts' times against the whole: consensus N = 6 1.0-1.17x,
-10 tanks 1.03x (a digit lower in the order cost up to 2x). The work is not uniform over the digit's cells
-(tanks: split at the middle of the safe range, 8.6 s against 4.9 s), so after every call a per-cell estimate of
-the work is scaled to the measured time of each range (:func:`update_density`) and the cuts move half way
-to its equal-work quantiles (:func:`damped_cuts`: consensus's heavy cells made undamped cuts oscillate).
+The top digit is the top-most current-state digit of the variable order: CUDD's recursion splits there first,
+so the parts share little work. Measured, summing the parts' times against the whole: consensus N = 6
+1.0-1.17x, 10 tanks 1.03x (a digit lower in the order cost up to 2x). The work is not uniform over the digit's
+cells (tanks: split at the middle of the safe range, 8.6 s against 4.9 s), so after every call a per-cell
+estimate of the work is scaled to the measured time of each range (:func:`update_density`) and the cuts move
+half way to its equal-work quantiles (:func:`damped_cuts`: consensus's heavy cells made undamped cuts
+oscillate). A cell here is a pair (top digit, second digit), indexed row-major: a cut may fall inside a cell of
+the top digit. Consensus N = 8 concentrates its work on the top agent's cells 15-17, and with whole cells only
+the cut alternated between 16 and 17; the largest reach call (the sixth, half of the loop) then took 164 s and
+114 s in its two parts (the same call cut at 16: 121 s and 131 s, each part in its own process, two at a
+time). With the second digit the cut settles inside cell 16. Consensus N = 8's safe and reach fixed points,
+three runs of each code alternated (2026-11-24): reach loop 294, 275 and 285 s against 328, 316 and 288 s; the
+slower part over the mean of the parts, summed over the calls, 1.04-1.06 against 1.08-1.13; the parts' summed
+work the same (no loss from cutting inside a cell).
 
 Failures: a helper that dies or fails is a :class:`HelperError`, after which the pool is closed (pending
 answers would desynchronise the next call); :meth:`.Game.predecessors` then answers in one process. CUDD out
@@ -31,6 +40,7 @@ and numbers on two pipes; helpers are ``python -m pipelines.parallel_cpre`` chil
 from __future__ import annotations
 
 import logging
+import math
 import os
 import shutil
 import subprocess
@@ -69,9 +79,9 @@ def update_density(density: np.ndarray, bounds: Sequence[tuple[int, int]], secon
     Parameters
     ----------
     density : ndarray, shape (cells,)
-        Seconds per cell of the digit, the previous estimate (uniform at first).
+        Seconds per cell, the previous estimate (uniform at first).
     bounds : sequence of (int, int)
-        Ranges ``[lo, hi]`` of digit codes, in order; the last may extend past the cells.
+        Ranges ``[lo, hi]`` of cells, in order; the last may extend past the cells.
     seconds : sequence of float
         Time each range took, same length.
 
@@ -125,6 +135,58 @@ def damped_cuts(old: Sequence[int], target: Sequence[int]) -> list[int]:
     return out
 
 
+def split_digits(model: SymbolicModel) -> tuple[str, ...]:
+    """The current-state digits the parts are cut along: the top two of the variable order (one if only one).
+
+    A cut falls between cells of the top digit, or inside one of its cells between cells of the second digit:
+    consensus's work sits on a few cells of the top agent, and a cut between whole cells of it left the parts
+    of the largest call at 164 s and 114 s.
+    """
+    out: list[str] = []
+    for v in model.variables:
+        d = v.rsplit("_", 1)[0]
+        if d.startswith("x") and not d.startswith("xn") and d not in out:
+            out.append(d)
+            if len(out) == 2:
+                break
+    if not out:
+        raise ValueError("the model has no current-state digits to cut along")
+    return tuple(out)
+
+
+def lexicographic_part(
+    model: SymbolicModel, digits: Sequence[str], start: Sequence[int], end: Sequence[int] | None
+) -> Function:
+    """Current states whose codes of ``digits``, read as a tuple, lie in ``[start, end)`` lexicographically.
+
+    ``end = None``: no upper end (codes past the grid included). Consecutive parts ``[s_0, s_1), [s_1, s_2), ...,
+    [s_k, None)`` with ``s_0 = (0, ...)`` therefore partition every code, inside the grid or not: the union of
+    the parts' predecessors is the whole (module docstring). Cells are codes: cell ``c`` of a digit has code ``c``.
+    """
+    if len(start) != len(digits) or (end is not None and len(end) != len(digits)):
+        raise ValueError("a part's start and end need one code per digit")
+
+    def top(d: str) -> int:
+        return (1 << len(model.bits[d])) - 1
+
+    def at_least(k: int, s: Sequence[int]) -> Function:  # digits[k:] >= s[k:]
+        d = digits[k]
+        if k == len(digits) - 1:
+            return model.interval(d, s[k], top(d))
+        return model.interval(d, s[k] + 1, top(d)) | (model.interval(d, s[k], s[k]) & at_least(k + 1, s))
+
+    def below(k: int, e: Sequence[int]) -> Function:  # digits[k:] < e[k:]
+        d = digits[k]
+        if k == len(digits) - 1:
+            return model.interval(d, 0, e[k] - 1)
+        return model.interval(d, 0, e[k] - 1) | (model.interval(d, e[k], e[k]) & below(k + 1, e))
+
+    part = at_least(0, start)
+    if end is not None:
+        part &= below(0, end)
+    return part
+
+
 class _Helper:
     """One helper process and its two pipes."""
 
@@ -135,9 +197,11 @@ class _Helper:
         env = dict(os.environ)
         root = str(Path(__file__).resolve().parent.parent)  # the directory holding the pipelines package
         env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+        # cwd=root: ``python -m`` puts its working directory first on sys.path, before PYTHONPATH, so a caller
+        # in a directory with another ``pipelines`` (an older checkout) would give the helpers that one.
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "pipelines.parallel_cpre", str(to_child_r), str(from_child_w)],
-            pass_fds=(to_child_r, from_child_w), env=env, stdin=subprocess.DEVNULL,
+            pass_fds=(to_child_r, from_child_w), env=env, stdin=subprocess.DEVNULL, cwd=root,
         )
         os.close(to_child_r)
         os.close(from_child_w)
@@ -215,9 +279,9 @@ class PartitionedPredecessors:
         # A weak reference: the game holds the pool, and a cycle through CUDD objects would leave their
         # destruction order to the garbage collector (dd refuses to free a manager with live nodes).
         self._game = weakref.ref(game)
-        self.digit = next(v.rsplit("_", 1)[0] for v in m.variables if v.startswith("x") and not v.startswith("xn"))
-        self.cells = m.sizes[self.digit]
-        self.codes = 1 << len(m.bits[self.digit])
+        self.digits = split_digits(m)
+        self.shape = tuple(int(m.sizes[d]) for d in self.digits)
+        self.cells = math.prod(self.shape)
         parts = min(processes, self.cells)
         self._density = np.ones(self.cells)
         self._cuts = equal_work_cuts(self._density, parts)
@@ -239,9 +303,20 @@ class PartitionedPredecessors:
         return game
 
     @property
+    def digit(self) -> str:
+        """The top current-state digit (the one every cut falls in first)."""
+        return self.digits[0]
+
+    @property
     def cuts(self) -> list[int]:
-        """First code of every part but the first (they move after each call)."""
+        """First cell of every part but the first, as an index into the cells of :attr:`digits` in row-major
+        order (they move after each call)."""
         return list(self._cuts)
+
+    @property
+    def cut_cells(self) -> list[tuple[int, ...]]:
+        """:attr:`cuts` as cells ``(code of digits[0], code of digits[1])``."""
+        return [tuple(int(c) for c in np.unravel_index(k, self.shape)) for k in self._cuts]
 
     @property
     def seconds(self) -> list[float]:
@@ -275,9 +350,13 @@ class PartitionedPredecessors:
         return f
 
     def bounds(self) -> list[tuple[int, int]]:
-        """The parts' ranges of digit codes, ``[lo, hi]`` (the last one up to the largest code)."""
-        edges = [0, *self._cuts, self.codes]
+        """The parts' ranges ``[lo, hi]`` of cells (row-major indices, see :attr:`cuts`)."""
+        edges = [0, *self._cuts, self.cells]
         return [(a, b - 1) for a, b in zip(edges, edges[1:])]
+
+    def _starts(self) -> list[tuple[int, ...] | None]:
+        """Each part's first cell, then ``None`` (the end of the last part: past every code)."""
+        return [(0,) * len(self.shape), *self.cut_cells, None]
 
     def _send_problem(self, within: "Within | None") -> None:
         key = "all" if within is None else within
@@ -313,11 +392,11 @@ class PartitionedPredecessors:
         self._send_problem(within)
         z_file = self._dump(Z)
         o_file = None if outside is None else self._dump(outside)
-        bounds = self.bounds()
-        for h, (lo, hi) in zip(self._helpers, bounds[1:]):
-            h.send(("pred", z_file, o_file, self.digit, lo, hi, self._path()))
+        bounds, starts = self.bounds(), self._starts()
+        for h, start, end in zip(self._helpers, starts[1:], starts[2:]):
+            h.send(("pred", z_file, o_file, self.digits, start, end, self._path()))
         t0 = time.perf_counter()
-        result = g.predecessors(Z, outside, within, part=m.interval(self.digit, *bounds[0]))
+        result = g.predecessors(Z, outside, within, part=lexicographic_part(m, self.digits, starts[0], starts[1]))
         seconds = [time.perf_counter() - t0]
         t_mine = time.perf_counter()
         for h in self._helpers:
@@ -330,8 +409,8 @@ class PartitionedPredecessors:
         self._calls += 1
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
-        log.info("parallel CPre: parts %s took %s s; next cuts %s; call %.2f s, before %.2f s, after %.2f s", bounds,
-                 [round(s, 2) for s in seconds], self._cuts, time.perf_counter() - t_start, t0 - t_start,
+        log.info("parallel CPre: parts from %s took %s s; next cuts %s; call %.2f s, before %.2f s, after %.2f s",
+                 starts[:-1], [round(s, 2) for s in seconds], self.cut_cells, time.perf_counter() - t_start, t0 - t_start,
                  time.perf_counter() - t_mine)
         return result
 
@@ -371,14 +450,14 @@ def _serve(inp: Connection, out: Connection) -> None:
                 out.send(("ok",))
             elif msg[0] == "pred":
                 assert model is not None and problem is not None
-                _, z_file, o_file, digit, lo, hi, result_file = msg
+                _, z_file, o_file, digits, start, end, result_file = msg
                 t0 = time.perf_counter()
                 with model.guard("computing a part of CPre"):
                     Z = model.bdd.load(z_file)[0]
                     outside = None if o_file is None else model.bdd.load(o_file)[0]
                     chain, admissible, M, u_bits, w_bits = problem
                     P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside,
-                                        model.interval(digit, lo, hi))
+                                        lexicographic_part(model, digits, start, end))
                     model.bdd.dump(result_file, [P])
                 del Z, outside, P
                 out.send(("ok", result_file, time.perf_counter() - t0))

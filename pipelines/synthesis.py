@@ -422,12 +422,14 @@ class Game:
 
     @property
     def parallel(self) -> dict[str, Any]:
-        """How the partitioned ``∃u.CPre`` ran (empty if it never started): calls, digit, cuts, seconds per part,
+        """How the partitioned ``∃u.CPre`` ran (empty if it never started): calls, the digits it cuts along, the
+        cuts (each the first cell ``[code of digits[0], code of digits[1]]`` of a part), seconds per part,
         and ``stopped`` (why) if a helper failed and the game went on in one process."""
         p = self._pool if self._pool is not None else self._last_pool
         if p is None:
             return {}
-        out = {"processes": len(p.cuts) + 1, "calls": p.calls, "digit": p.digit, "cuts": p.cuts,
+        out = {"processes": len(p.cuts) + 1, "calls": p.calls, "digits": list(p.digits),
+               "cuts": [list(c) for c in p.cut_cells],
                "last_seconds": [round(s, 3) for s in p.seconds]}
         if self._pool_error is not None:
             out["stopped"] = f"{self._pool_error}; the later calls ran in one process"

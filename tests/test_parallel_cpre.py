@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+import math
 import os
 
 import numpy as np
@@ -12,6 +14,8 @@ from pipelines.parallel_cpre import (
     PartitionedPredecessors,
     damped_cuts,
     equal_work_cuts,
+    lexicographic_part,
+    split_digits,
     update_density,
 )
 from pipelines.synthesis import cobuchi, reach, safe
@@ -55,6 +59,38 @@ def test_update_density_matches_each_range_to_its_time():
     assert seen[-3:] == [best] * 3, seen
 
 
+@pytest.mark.parametrize("order", ["interleaved", "shared_top"])
+def test_lexicographic_parts_partition_every_code(order):
+    """Consecutive parts ``[s_0, s_1), ..., [s_k, None)`` hold every code pair of the two digits exactly once
+    (codes past the grid included), each the pairs between its start and the next one; one digit likewise."""
+    rng = np.random.default_rng(41 if order == "interleaved" else 42)
+    m = build(random_net(rng, order == "shared_top"), order).model
+    digits = split_digits(m)
+    in_order = [v.rsplit("_", 1)[0] for v in m.variables if v.startswith("x") and not v.startswith("xn")]
+    assert digits == tuple(dict.fromkeys(in_order))[:2]
+    bdd = m.bdd
+
+    def holds(f, codes):
+        value = {b: bool((c >> (len(m.bits[d]) - 1 - k)) & 1)
+                 for d, c in zip(digits, codes) for k, b in enumerate(m.bits[d])}
+        g = bdd.let(value, f)
+        assert g in (bdd.true, bdd.false), "a part reads bits outside its digits"
+        return g == bdd.true
+
+    for used in (digits, digits[:1]):
+        sizes = [m.sizes[d] for d in used]
+        every = list(itertools.product(*(range(1 << len(m.bits[d])) for d in used)))
+        for _ in range(15):
+            cells = list(itertools.product(*(range(k) for k in sizes)))
+            k = int(rng.integers(1, min(4, len(cells))))
+            starts = [(0,) * len(used)] + sorted(cells[i] for i in rng.choice(np.arange(1, len(cells)), k, replace=False))
+            parts = [lexicographic_part(m, used, a, b) for a, b in zip(starts, [*starts[1:], None])]
+            for codes in every:
+                padded = (*codes, *([0] * (len(digits) - len(used))))
+                owners = [j for j, f in enumerate(parts) if holds(f, padded)]
+                assert owners == [sum(s <= codes for s in starts) - 1], (starts, codes, owners)
+
+
 def test_damped_cuts_move_half_way_and_stay_ordered():
     assert damped_cuts([16], [16]) == [16]
     assert damped_cuts([16], [18]) == [17] and damped_cuts([18], [15]) == [17] and damped_cuts([4], [12]) == [8]
@@ -82,7 +118,7 @@ def test_partitioned_predecessors_equal_the_explicit_ones(seed, shared):
     m = game.model
     pool = PartitionedPredecessors(game, 3)
     try:
-        assert pool.cells == m.sizes[pool.digit]
+        assert pool.cells == math.prod(m.sizes[d] for d in pool.digits) and len(pool.digits) == 2
         for k in range(6):
             if k and pool.cells > 2:  # every cut position the balancing could choose
                 pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
@@ -132,6 +168,25 @@ def test_close_stops_the_helpers_and_removes_the_files():
     pool.close()  # idempotent
     assert all(p.poll() is not None for p in procs)
     assert not os.path.exists(tmp)
+
+
+def test_helpers_import_the_callers_package_from_any_working_directory(tmp_path, monkeypatch):
+    """``python -m`` puts its working directory first on sys.path: a caller sitting in a directory with another
+    ``pipelines`` package (an older checkout) must still give its helpers its own."""
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "__init__.py").write_text("raise ImportError('the decoy pipelines package')\n")
+    monkeypatch.chdir(tmp_path)
+    rng = np.random.default_rng(8)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    pool = PartitionedPredecessors(game, 2)
+    try:
+        Z = random_set(rng, ex, 0.6)
+        got = states_vector(game.model, pool(game.model.state_set(np.array(ex.states)[Z])), ex)
+        np.testing.assert_array_equal(got, ex.cpre(Z).any(axis=1))
+    finally:
+        pool.close()
 
 
 def test_a_helper_that_dies_is_a_clear_error():
