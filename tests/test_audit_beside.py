@@ -37,6 +37,18 @@ def test_audit_beside_equals_the_audit_in_this_process():
     assert beside.report["audit"] == got
 
 
+def test_the_child_imports_this_package_from_any_working_directory(tmp_path, monkeypatch):
+    """``python -m`` puts its working directory first on sys.path: a job run from a directory holding another
+    ``pipelines`` (an older checkout) must still audit with this one."""
+    spec = small()
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "__init__.py").write_text("raise ImportError('the decoy pipelines package')\n")
+    monkeypatch.chdir(tmp_path)
+    beside = run_abstraction(spec, audit_beside=True)
+    beside.finish_audit()
+    assert beside.report["audit"]["transitions_checked"] > 20_000 and beside.report["audit"]["violations"] == 0
+
+
 def test_a_child_that_fails_is_a_clear_error_and_leaves_no_files():
     r = run_abstraction(small(), audit=False)
     bad = BackgroundAudit(r.network, {}, r.interconnection, 1000, None)  # no relations: the child fails
