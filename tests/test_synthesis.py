@@ -423,6 +423,23 @@ def test_small_example_end_to_end_against_the_explicit_solver():
             check_stay(ex, C, dom, phi)
 
 
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+def test_cpre_at_a_state_is_cpre_cofactored_there(shared):
+    """``Game.cpre_at`` (the layered controllers' one-state CPre, with ¬Z' cut to the reachable next cells) is
+    ``CPre(Z)`` at that state, for every state and several sets."""
+    rng = np.random.default_rng(90 + shared)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, "shared_top" if shared else "interleaved")
+    m = game.model
+    for p in (0.3, 0.6, 0.9):
+        bZ = m.state_set(np.array(ex.states)[random_set(rng, ex, p)])
+        whole, Zn = game.cpre(bZ), m.to_next(bZ)
+        for s in ex.states:
+            state = m.state_assignment(list(s))
+            assert game.cpre_at(state, Zn) == m.bdd.let(state, whole), (p, s)
+
+
 # ============================================================================ layered controllers
 def layered_matrix(ctrl, ex: Explicit) -> np.ndarray:
     """Inputs a (layered) controller allows at every cell, through ``input_indices`` one cell at a time."""
