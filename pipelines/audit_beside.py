@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .children import start_module
 from .errors import CompabsError
 
 
@@ -45,10 +46,9 @@ class BackgroundAudit:
             with open(self._in, "wb") as fh:
                 pickle.dump((network, relations, ia, int(count), rng), fh, protocol=pickle.HIGHEST_PROTOCOL)
             with open(self._err, "wb") as err:  # a file, not a pipe: a chatty child cannot block on a full pipe
-                # cwd: ``python -m`` puts its working directory first on sys.path, before PYTHONPATH.
-                self._proc = subprocess.Popen(
-                    [sys.executable, "-m", "pipelines.audit_beside", str(self._in), str(self._out), str(os.getpid())],
-                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=_child_env(), cwd=_ROOT,
+                self._proc = start_module(
+                    "pipelines.audit_beside", str(self._in), str(self._out), str(os.getpid()),
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
                 )
         except BaseException:
             shutil.rmtree(self._dir, ignore_errors=True)
@@ -93,18 +93,6 @@ class BackgroundAudit:
             self._proc.kill()
             self._proc.wait()
         shutil.rmtree(self._dir, ignore_errors=True)
-
-
-_ROOT = str(Path(__file__).resolve().parent.parent)
-"""The directory holding this ``pipelines`` package: the child's working directory and first path entry."""
-
-
-def _child_env() -> dict[str, str]:
-    """This process's environment with the directory holding ``pipelines`` first on the path (the package may
-    be imported from a checkout that is not installed)."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([_ROOT, *filter(None, [env.get("PYTHONPATH")])])
-    return env
 
 
 #: Seconds between the child's checks that its parent is alive.

@@ -49,11 +49,11 @@ import tempfile
 import time
 import weakref
 from multiprocessing.connection import Connection
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from .children import start_module
 from .errors import CompabsError
 from .symbolic import BDDMemoryError, Function, SymbolicModel
 
@@ -194,15 +194,8 @@ class _Helper:
         self.index = index
         to_child_r, to_child_w = os.pipe()
         from_child_r, from_child_w = os.pipe()
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parent.parent)  # the directory holding the pipelines package
-        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
-        # cwd=root: ``python -m`` puts its working directory first on sys.path, before PYTHONPATH, so a caller
-        # in a directory with another ``pipelines`` (an older checkout) would give the helpers that one.
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "pipelines.parallel_cpre", str(to_child_r), str(from_child_w)],
-            pass_fds=(to_child_r, from_child_w), env=env, stdin=subprocess.DEVNULL, cwd=root,
-        )
+        self.proc = start_module("pipelines.parallel_cpre", str(to_child_r), str(from_child_w),
+                                 pass_fds=(to_child_r, from_child_w), stdin=subprocess.DEVNULL)
         os.close(to_child_r)
         os.close(from_child_w)
         self.out = Connection(to_child_w, readable=False)
@@ -301,11 +294,6 @@ class PartitionedPredecessors:
         if game is None:
             raise RuntimeError("the Game of this PartitionedPredecessors is gone")
         return game
-
-    @property
-    def digit(self) -> str:
-        """The top current-state digit (the one every cut falls in first)."""
-        return self.digits[0]
 
     @property
     def cuts(self) -> list[int]:
