@@ -256,6 +256,28 @@ def test_embedded_workers_get_the_allocator_settings(cluster):
     assert mmapped < 320_000_000, f"a 320 MB array was mmapped: {DASK_CONFIG_FILE} not in effect?"
 
 
+def _periodic_ms(dask_worker=None, dask_scheduler=None) -> dict[str, float]:
+    server = dask_worker if dask_worker is not None else dask_scheduler
+    return {k: pc.callback_time for k, pc in server.periodic_callbacks.items() if k in ("tick", "monitor", "profile")}
+
+
+def test_embedded_cluster_runs_dasks_periodic_work_as_the_config_says(cluster):
+    """workers/dask.yaml's intervals (not Dask's 20 ms tick and 10 ms profiler) reach the scheduler and each
+    worker process: they decide how much of two cores Dask's own periodic work takes from the tasks."""
+    from dask.utils import parse_timedelta
+
+    from workers.cluster import worker_config
+
+    cfg = worker_config()
+    tick = 1000 * parse_timedelta(cfg["distributed.admin.tick.interval"])
+    monitor = 1000 * parse_timedelta(cfg["distributed.admin.system-monitor.interval"])
+    profile = 1000 * parse_timedelta(cfg["distributed.worker.profile.interval"])
+    assert tick >= 1000 and profile >= 100  # the measured settings, not Dask's 20 ms and 10 ms
+    got = cluster.client.run(_periodic_ms)
+    assert len(got) == 2 and all(v == {"tick": tick, "monitor": monitor, "profile": profile} for v in got.values()), got
+    assert cluster.client.run_on_scheduler(_periodic_ms) == {"tick": tick, "monitor": monitor}
+
+
 def test_image_installs_the_worker_config():
     from workers.cluster import DASK_CONFIG_FILE
 

@@ -32,7 +32,8 @@ CONNECT_TIMEOUT = 30.0
 #: environment the nannies give the worker processes, glibc's malloc tuned for large numpy temporaries. Dask's own
 #: default, MALLOC_TRIM_THRESHOLD_=65536, turns off glibc's dynamic mmap threshold, so every large temporary of a
 #: task is mmapped and page-faulted afresh (tanks, one worker: task compute 3.75 s with it, 3.0 s without); the
-#: file's settings go further (stress per-cell stage 95.8 s -> 57.1 s CPU). External workers: use the same file.
+#: file's settings go further (stress per-cell stage 95.8 s -> 57.1 s CPU). It also slows Dask's own periodic work
+#: (profiler, event-loop ticks), which competes with the tasks for the cores. External workers: use the same file.
 DASK_CONFIG_FILE = Path(__file__).with_name("dask.yaml")
 
 
@@ -45,8 +46,28 @@ def worker_environ() -> dict[str, str]:
     return {k: str(v) for k, v in env.items() if v is not None}
 
 
-#: ``workers/dask.yaml`` as dotted keys for ``dask.config.set`` (a nested dict would replace whole sections).
-EMBEDDED_CONFIG = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in worker_environ().items()}
+def _dotted(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested config as ``{"a.b.c": value}``."""
+    out: dict[str, Any] = {}
+    for k, v in tree.items():
+        if isinstance(v, dict) and v:
+            out.update(_dotted(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def worker_config() -> dict[str, Any]:
+    """Every setting of ``workers/dask.yaml`` as dotted keys for ``dask.config.set`` (a nested dict would replace
+    whole sections of Dask's defaults)."""
+    import yaml
+
+    return _dotted(yaml.safe_load(DASK_CONFIG_FILE.read_text()))
+
+
+#: The settings the embedded cluster starts under: its scheduler and nannies (in this process) read them at
+#: start, and each nanny hands its config to its worker process.
+EMBEDDED_CONFIG = worker_config()
 
 
 class Connection(tuple):

@@ -8,7 +8,7 @@ tasks complete (``as_completed``), so progress events are live and a crash loses
 
 Chunk size
 ----------
-A task is one chunk of state cells: ``options.chunk_cells`` if the spec sets it, else ``TASK_POINTS`` = 2e7
+A task is one chunk of state cells: ``options.chunk_cells`` if the spec sets it, else ``TASK_POINTS`` = 1e8
 black-box evaluations per task (the in-process default is 2e6). Measured with
 ``bench/runner.py`` on this kind of loaded 2-core machine (LocalCluster, 2 single-threaded worker processes;
 trust ratios, not absolute times):
@@ -27,9 +27,28 @@ two workers were 1.55x one worker with 4e6 and 1.69x with 2e7 (per-cell stage 95
 against 0.65 and 1.08 GB: ~30 MB per 1e6 evaluations of a 1-D state, ~600 MB per task. Smaller
 chunks (``options.chunk_cells``) cost proportionally more: a one-cell task of ~2-30 ms is mostly overhead. A
 subsystem smaller than one chunk (the tank case: 41 state cells, ~0.03 s) is one task. Since then a task's
-temporaries are bounded by ``subsystem.BLOCK_POINTS``, not by its chunk, and with the compiled per-cell pass
-(~5 ns per evaluation, a 2e7 task ~0.1 s) 8e7 per task was no better (2026-11-24, stress, two workers: 34.7 s
-against 32.9 s and 36.0 s with 2e7 in the runs around it).
+temporaries are bounded by ``subsystem.BLOCK_POINTS``, not by its chunk, so a chunk's size costs memory only
+for its results (a few bytes per triple).
+
+With the compiled per-cell pass (~5 ns per evaluation) a 2e7 task is ~0.1 s, and the overhead per task (Dask,
+the store write, the runner's read back: ~7 ms of CPU, more while both cores compute) was again a tenth of
+the stage. On ``examples/stress.yaml`` (2.2e7 evaluations per state cell, 513 cells; 2026-11-25, runs
+alternated, per-cell stage wall / its CPU / compute timed inside the tasks):
+
+=====================  ===============================  ===============================
+cells per task (tasks)  one worker                       two workers
+=====================  ===============================  ===============================
+1 (513), 2e7            53.7 s / 59.2 s / 50.2 s          31.0, 32.8 s / 61.1, 64.7 s / 58.1, 60.8 s
+4 (129), 1e8            52.1 s / 55.2 s / 50.9 s          29.1, 28.2, 27.0, 29.4 s / 57.3, 55.8, 53.4, 57.9 s
+8 (65), 2e8             51.0 s / 53.5 s / 50.3 s          26.9, 28.0 s / 53.3, 55.2 s
+=====================  ===============================  ===============================
+
+Four cells per task left ~1 s of the one-worker stage to overhead (against ~3.5 s); with two workers the CPU
+beyond the tasks' compute went from 3-4 s to ~1 s. Eight cells were no better than four, within the noise; a
+task of ~0.5 s keeps the imbalance at the end of a stage and the work lost with a killed worker small. (One
+earlier pair of runs, 2026-11-24, had found 8e7 no better than 2e7: 34.7 s against 32.9 and 36.0 s, in an
+hour whose noise was as large as the difference.) ``examples/stress.yaml`` has 3600 samples per cell since
+(3.1e7 evaluations per cell: 3 cells per task).
 
 Failures
 --------
@@ -63,7 +82,7 @@ from .store import RelationStore, group_name
 from .tasks import abstract_chunk
 
 #: Black-box evaluations per task (see "Chunk size" above).
-TASK_POINTS = 20_000_000
+TASK_POINTS = 100_000_000
 
 
 @dataclass
