@@ -37,12 +37,16 @@ CONNECT_TIMEOUT = 30.0
 DASK_CONFIG_FILE = Path(__file__).with_name("dask.yaml")
 
 
-def worker_environ() -> dict[str, str]:
-    """The environment variables ``workers/dask.yaml`` has the nannies set in each worker process."""
+def _config_tree() -> dict[str, Any]:
+    """``workers/dask.yaml`` as the nested dict it is."""
     import yaml
 
-    tree = yaml.safe_load(DASK_CONFIG_FILE.read_text())
-    env = tree["distributed"]["nanny"]["pre-spawn-environ"]
+    return yaml.safe_load(DASK_CONFIG_FILE.read_text())
+
+
+def worker_environ() -> dict[str, str]:
+    """The environment variables ``workers/dask.yaml`` has the nannies set in each worker process."""
+    env = _config_tree()["distributed"]["nanny"]["pre-spawn-environ"]
     return {k: str(v) for k, v in env.items() if v is not None}
 
 
@@ -60,9 +64,7 @@ def _dotted(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 def worker_config() -> dict[str, Any]:
     """Every setting of ``workers/dask.yaml`` as dotted keys for ``dask.config.set`` (a nested dict would replace
     whole sections of Dask's defaults)."""
-    import yaml
-
-    return _dotted(yaml.safe_load(DASK_CONFIG_FILE.read_text()))
+    return _dotted(_config_tree())
 
 
 #: The settings the embedded cluster starts under: its scheduler and nannies (in this process) read them at
