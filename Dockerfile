@@ -22,7 +22,7 @@ COPY examples ./examples
 RUN pip install . && rm -rf build
 # The per-cell stage's numba kernels, compiled once here into the package's cache (readable by the user below,
 # so no worker compiles them at its first task; numba would otherwise cache under that user's ~/.cache).
-RUN python -c "from pipelines import compiled; compiled.warm_up()"
+RUN python -c "import pipelines.abstraction.kernels as compiled; compiled.warm_up()"
 
 # Not root. /data is the shared volume (Zarr relation stores, the SQLite job store, reports, figures); a named
 # volume takes this directory's owner when it is first created.

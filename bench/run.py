@@ -26,7 +26,7 @@ Cases (``--cases``; default: all but ``consensus``):
     floor: the compiled dynamics (``compile_expression``, no validation) evaluated on exactly the sample
     arrays that stage evaluated (recorded from it), chunk by chunk. Ratio = stage / floor.
 ``scp`` (b)
-    The batched exact SCP as the stage runs it (``pipelines.compiled``: sample extremes, pair maxima, closed-form
+    The batched exact SCP as the stage runs it (``pipelines.abstraction.kernels``: sample extremes, pair maxima, closed-form
     SCP, all cells of a subsystem; the numpy batch ``pair_maxima_scalar`` + ``scp_parameters_scalar`` is timed
     beside it and must give the same bits) against
     the reference formulation (``scp_reference``: one HiGHS LP over all sample pairs per cell, a random subset
@@ -202,8 +202,8 @@ def _jsonable(obj: Any, depth: int = 0) -> Any:
 # ====================================================================================== cases (child side)
 def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
     """A spec end to end in this process: abstraction (with audit), synthesis, closed loop, files."""
-    from pipelines.job import run_abstraction, run_synthesis
-    from pipelines.spec import load_spec
+    from workers.job import run_abstraction, run_synthesis
+    from pipelines.spec.model import load_spec
 
     spec = load_spec(p["spec"], p.get("set"))
     clock = StageClock(emit)
@@ -235,9 +235,9 @@ def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
 
 def child_scalability(p: dict, emit: Callable[[dict], None]) -> None:
     """One N of the scalability example: abstraction stages (no audit) and the composition."""
-    from pipelines.job import run_abstraction
-    from pipelines.spec import load_spec
-    from pipelines.synthesis import Game
+    from workers.job import run_abstraction
+    from pipelines.spec.model import load_spec
+    from pipelines.synthesis.game import Game
 
     spec = load_spec(EXAMPLES / "scalability.yaml", {"N": p["N"]})
     clock = StageClock(emit)
@@ -293,8 +293,8 @@ def _floor_function(sub, network) -> tuple[Callable, Callable]:
     """
     import numpy as np
 
-    from pipelines.expr import compile_expression
-    from pipelines.spec import is_module_function
+    from pipelines.expressions.compiler import compile_expression
+    from pipelines.spec.model import is_module_function
 
     src = sub.spec.dynamics
     names = list(sub.dynamics.inputs)  # x, u, w in call order
@@ -328,10 +328,10 @@ def _constants(sub) -> tuple[float, float]:
 def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
     """(a) Per-cell stage against the bare evaluation of the black box on the same samples."""
     from pipelines.network import build_network
-    from pipelines.spec import load_spec
-    from pipelines.subsystem import abstract_cells, chunk_ranges
+    from pipelines.spec.model import load_spec
+    from pipelines.abstraction.cells import abstract_cells, chunk_ranges
 
-    from pipelines import compiled
+    import pipelines.abstraction.kernels as compiled
 
     compiled.warm_up()  # numba compiles (or loads its cache) at the first call: not the stage's work
     spec = load_spec(p["spec"], p.get("set"))
@@ -389,7 +389,7 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
     """(b) Batched exact SCP against one HiGHS LP per cell, on the pipeline's own samples."""
     import numpy as np
 
-    from pipelines.growth_bound import (
+    from pipelines.abstraction.growth_bound import (
         SCP_TIE_RTOL,
         pair_maxima_scalar,
         scp_parameters_scalar,
@@ -398,8 +398,8 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
         subgrid_counts,
     )
     from pipelines.network import build_network
-    from pipelines.spec import load_spec
-    from pipelines.subsystem import abstract_cells, chunk_ranges
+    from pipelines.spec.model import load_spec
+    from pipelines.abstraction.cells import abstract_cells, chunk_ranges
 
     spec = load_spec(p["spec"], p.get("set"))
     network = build_network(spec, None)
@@ -444,8 +444,8 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
     out = {"subsystem": sub.name, "spec": Path(p["spec"]).name, "cells": B, "reference_cells": int(subset.size),
            "samples_per_cell": Sx * Sw, "pairs_per_lp": Sx * Sw * (Sx * Sw + 1) // 2}
     # The stage's layout (samples first, cells on the contiguous axis) and its compiled kernels; the numpy
-    # batch (pipelines.growth_bound, the kernels' reference) is timed beside them.
-    from pipelines import compiled
+    # batch (pipelines.abstraction.growth_bound, the kernels' reference) is timed beside them.
+    import pipelines.abstraction.kernels as compiled
 
     compiled.warm_up()
     Vt = np.ascontiguousarray(np.moveaxis(V[..., 0], 0, -1).reshape(Sx, Sw, B))
@@ -486,7 +486,7 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
 
 def child_workers(p: dict, emit: Callable[[dict], None]) -> None:
     """(c) The per-cell stage on an embedded Dask cluster of ``p['workers']`` workers, fresh store."""
-    from pipelines.spec import load_spec
+    from pipelines.spec.model import load_spec
     from workers.runner import run_job
 
     spec = load_spec(p["spec"], p.get("set"))
@@ -506,9 +506,9 @@ def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
     import numpy as np
 
     from pipelines.network import build_network
-    from pipelines.spec import load_spec
-    from pipelines.subsystem import abstract_cells, assemble, chunk_ranges
-    from pipelines.symbolic import SymbolicModel
+    from pipelines.spec.model import load_spec
+    from pipelines.abstraction.cells import abstract_cells, assemble, chunk_ranges
+    from pipelines.symbolic.model import SymbolicModel
 
     spec = load_spec(p["spec"], p.get("set"))
     network = build_network(spec, None)

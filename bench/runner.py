@@ -28,10 +28,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipelines.job import run_abstraction  # noqa: E402
+from workers.job import run_abstraction  # noqa: E402
 from pipelines.network import build_network  # noqa: E402
-from pipelines.spec import JobSpec, load_spec  # noqa: E402
-from pipelines.subsystem import abstract_cells, chunk_ranges  # noqa: E402
+from pipelines.spec.model import JobSpec, load_spec  # noqa: E402
+from pipelines.abstraction.cells import abstract_cells, chunk_ranges  # noqa: E402
 
 
 def stressed(spec: JobSpec, factor: int) -> JobSpec:

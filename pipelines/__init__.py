@@ -5,7 +5,7 @@ from __future__ import annotations
 
 def load_controller(directory, name: str = "controller"):
     """Load a controller saved by ``compabs run`` (see :func:`pipelines.controller.load_controller`)."""
-    from .controller import load_controller as _load
+    from pipelines.controller import load_controller as _load
 
     return _load(directory, name)
 

@@ -15,8 +15,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .errors import BlackBoxError, SpecError
-from .spec import is_module_function
+from pipelines.errors import BlackBoxError, SpecError
+from pipelines.spec.model import is_module_function
 
 # Axis permutations by ndim (what np.moveaxis(a, -1, 0) and np.moveaxis(a, 0, -1) compute, without their
 # ~8 us of argument normalisation per call: the per-cell stage calls the black box twice per block).
@@ -96,8 +96,8 @@ class BlackBox:
                 raise SpecError(f"{self._name}: {self._source} is not callable")
             self._fn = fn
         else:
-            from .errors import ExpressionError
-            from .expr import compile_expression
+            from pipelines.errors import ExpressionError
+            from pipelines.expressions.compiler import compile_expression
 
             # An argument of dimension 0 (a subsystem that reads no internal variable) is not a variable.
             used = {k: d for k, d in self._inputs.items() if d > 0}

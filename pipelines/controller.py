@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import CompabsError
-from .grid import UniformGrid
+from pipelines.errors import CompabsError
+from pipelines.grid import UniformGrid
 
 if TYPE_CHECKING:  # pragma: no cover - dd is imported where a controller is loaded, not here
-    from .symbolic import Sampler
+    from pipelines.symbolic.model import Sampler
 
 CONTROLLER_FILE = "controller"
 
@@ -164,7 +164,7 @@ INPUT_CACHE = 100_000
 
 
 class LayeredController(Controller):
-    """A progress controller kept as layers and evaluated on line (:class:`~pipelines.synthesis.SynthesisResult`).
+    """A progress controller kept as layers and evaluated on line (:class:`~pipelines.synthesis.game.SynthesisResult`).
 
     At a cell first in ``layers[k]`` the admissible inputs are ``CPre(layers[k-1])`` at that cell (Algorithm 5's
     reachability controller), in ``layers[0]`` ``CPre(layers[0])`` if ``stay`` (the invariant of Reach(Safe)) or
@@ -187,7 +187,7 @@ class LayeredController(Controller):
     """
 
     def __init__(self, model, admissible, chain, M, layers, stay: bool, meta: dict) -> None:  # noqa: PLR0913
-        from .synthesis import Game
+        from pipelines.synthesis.game import Game
 
         if not layers:
             raise CompabsError("a layered controller needs at least one layer")
@@ -209,7 +209,7 @@ class LayeredController(Controller):
 
     @classmethod
     def from_result(cls, game, result, meta: dict) -> "LayeredController":
-        """The controller of a layered :class:`~pipelines.synthesis.SynthesisResult` of ``game``."""
+        """The controller of a layered :class:`~pipelines.synthesis.game.SynthesisResult` of ``game``."""
         return cls(game.model, game.admissible, game.chain, game.M, result.layers, result.stay, meta)
 
     @property
@@ -268,7 +268,7 @@ class LayeredController(Controller):
 
 def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Controller:
     """Load a controller written by ``compabs run`` (``DIR/controller.dddmp`` and ``DIR/controller.json``)."""
-    from .symbolic import SymbolicModel
+    from pipelines.symbolic.model import SymbolicModel
 
     base = Path(directory) / name
     if not base.with_name(base.name + ".json").exists():
@@ -284,7 +284,7 @@ def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Contr
 
 
 def controller_of(game, result, meta: dict) -> Controller:
-    """The controller of a :class:`~pipelines.synthesis.SynthesisResult`, explicit or layered."""
+    """The controller of a :class:`~pipelines.synthesis.game.SynthesisResult`, explicit or layered."""
     if result.layers:
         return LayeredController.from_result(game, result, meta)
     return Controller(game.model, result.controller, meta)

@@ -9,7 +9,7 @@ from typing import Callable
 
 import numpy as np
 
-from .closed_loop import Run
+from pipelines.verification.closed_loop import Run
 
 
 def _pyplot():

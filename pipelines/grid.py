@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import SpecError
+from pipelines.errors import SpecError
 
 #: Relative tolerance used to snap ratios such as ``(lb - origin) / eta`` to an integer or half-integer.
 #: It is relative to the ratio's magnitude, never an absolute ``1e-10``: SCOTS's absolute ``eta/1e10``

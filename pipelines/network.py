@@ -1,6 +1,6 @@
 """The interconnected system of a spec, resolved: grids, black boxes, who reads which internal variable.
 
-``build_network`` turns a validated :class:`~pipelines.spec.JobSpec` into a :class:`Network` of
+``build_network`` turns a validated :class:`~pipelines.spec.model.JobSpec` into a :class:`Network` of
 :class:`Subsystem` objects (``replicate`` expanded), the internal-variable grids and the interconnection
 map ``M``. Everything a later stage needs comes from here, so there is one place where the spec is read.
 """
@@ -13,10 +13,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
-from .blackbox import BlackBox
-from .errors import SpecError
-from .grid import UniformGrid
-from .spec import GridSpec, JobSpec, SubsystemSpec
+from pipelines.blackbox import BlackBox
+from pipelines.errors import SpecError
+from pipelines.grid import UniformGrid
+from pipelines.spec.model import GridSpec, JobSpec, SubsystemSpec
 
 
 @dataclass(frozen=True)

@@ -30,13 +30,13 @@ from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from pipelines.errors import CompabsError
-from pipelines.spec import JobSpec
+from pipelines.spec.model import JobSpec
 
-from .manager import JobManager, ServiceError, new_store
-from .routers import dashboard, health, jobs, schema
-from .routers.jobs import _StreamEnded
-from .models import ErrorDetail
-from .settings import Settings
+from service.manager import JobManager, ServiceError, new_store
+from service.routers import dashboard, health, jobs, schema
+from service.routers.jobs import _StreamEnded
+from service.models import ErrorDetail
+from service.settings import Settings
 
 log = logging.getLogger("compabs.service")
 

@@ -1,18 +1,18 @@
 """``compabs audit DIR``: re-check a finished job's stored abstraction and controller against the black boxes.
 
-What is checked (:func:`run_audit`), always against what the job *stored* (:func:`pipelines.artifacts.load_job`:
+What is checked (:func:`run_audit`), always against what the job *stored* (:func:`workers.jobdir.load_job`:
 the Zarr or ``.npz`` relations, ``interconnection.npz``, the controller files), never a recomputed abstraction:
 
 * every distinct subsystem: ``N`` random concrete transitions ``x -> f(x, u, w)``, a share of them on cell
   boundaries and box edges; the successor's cell(s) must be in the stored successor range of
-  ``(x̂, û, ŵ)`` unless the triple is stored as blocking (:func:`pipelines.audit.audit_subsystem`);
+  ``(x̂, û, ŵ)`` unless the triple is stored as blocking (:func:`pipelines.verification.audit.audit_subsystem`);
 * the interconnection: ``N`` random composed states; the cell of ``M(x)`` must be in ``M̂(x̂)``
-  (:func:`pipelines.audit.audit_interconnection`);
+  (:func:`pipelines.verification.audit.audit_interconnection`);
 * the composition: ``N`` random composed transitions, ``w = M(x)`` computed concretely and every subsystem
-  stepped with its share of it (:func:`pipelines.audit.audit_composition`);
+  stepped with its share of it (:func:`pipelines.verification.audit.audit_composition`);
 * the controller, if the job has one: closed-loop runs of the concrete system under it from random states of its
   domain (and the spec's initial states inside it); each must satisfy the specification
-  (:func:`pipelines.closed_loop.simulate_many`).
+  (:func:`pipelines.verification.closed_loop.simulate_many`).
 
 It prints a table, writes ``DIR/audit.json`` and exits with status 3 if anything was violated (2 for a user
 error: a missing or damaged file, named).
@@ -39,10 +39,10 @@ AUDIT_FILE = "audit.json"
 
 def _closed_loop(arts: Any, runs: int, rng: np.random.Generator) -> dict[str, Any]:
     """Closed-loop runs of the concrete system under the job's stored controller."""
-    from pipelines.closed_loop import simulate_many
+    from pipelines.verification.closed_loop import simulate_many
     from pipelines.controller import load_controller
-    from pipelines.job import spec_regions
-    from pipelines.spec import parse_spec, spec_hash
+    from workers.job import spec_regions
+    from pipelines.spec.model import parse_spec, spec_hash
 
     controller = load_controller(arts.directory)
     ctrl_spec = controller.meta.get("spec")
@@ -125,10 +125,10 @@ def run_audit(
     Raises
     ------
     CompabsError
-        A missing or damaged file (:class:`pipelines.artifacts.ArtifactError`), or a spec that no longer builds.
+        A missing or damaged file (:class:`workers.jobdir.ArtifactError`), or a spec that no longer builds.
     """
-    from pipelines.artifacts import load_job
-    from pipelines.audit import audit_composition, audit_interconnection, audit_subsystem
+    from workers.jobdir import load_job
+    from pipelines.verification.audit import audit_composition, audit_interconnection, audit_subsystem
 
     report = progress or (lambda *_: None)
     arts = load_job(directory, allowed_modules)

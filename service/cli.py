@@ -19,8 +19,8 @@ import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
 
-from .execute import json_default as _json_default
-from .execute import save_relations  # noqa: F401  (kept importable from here)
+from service.execute import json_default as _json_default
+from service.execute import save_relations  # noqa: F401  (kept importable from here)
 
 
 class _Bars:
@@ -64,9 +64,9 @@ def _parse_sets(items: Sequence[str]) -> dict[str, float]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from pipelines.spec import load_spec
+    from pipelines.spec.model import load_spec
 
-    from .execute import execute_job
+    from service.execute import execute_job
 
     spec = load_spec(args.spec, _parse_sets(args.set))
     if args.audit_transitions is not None:
@@ -100,11 +100,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from pipelines.closed_loop import simulate
+    from pipelines.verification.closed_loop import simulate
     from pipelines.controller import load_controller
-    from pipelines.job import spec_regions
+    from workers.job import spec_regions
     from pipelines.network import build_network
-    from pipelines.spec import parse_spec
+    from pipelines.spec.model import parse_spec
 
     controller = load_controller(args.dir)
     spec = parse_spec(controller.meta["spec"])
@@ -124,7 +124,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
-    from pipelines.spec import json_schema
+    from pipelines.spec.model import json_schema
 
     print(json.dumps(json_schema(), indent=2))
     return 0
@@ -156,10 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(func=cmd_simulate)
     s = sub.add_parser("schema", help="print the JSON Schema of job specs")
     s.set_defaults(func=cmd_schema)
-    from .audit_cmd import add_parser as add_audit_parser
+    from service.audit_cmd import add_parser as add_audit_parser
 
     add_audit_parser(sub)
-    from .serve import add_parser as add_serve_parser
+    from service.serve import add_parser as add_serve_parser
 
     add_serve_parser(sub)
     return p

@@ -23,9 +23,9 @@ import numpy as np
 from pipelines.errors import CompabsError, SpecError
 
 if TYPE_CHECKING:  # the CLI imports this module; keep its start-up free of pydantic models it may not need
-    from pipelines.spec import JobSpec
+    from pipelines.spec.model import JobSpec
 
-#: ``progress(stage, done, total, message)``, as for :func:`pipelines.job.run_abstraction`.
+#: ``progress(stage, done, total, message)``, as for :func:`workers.job.run_abstraction`.
 Progress = Callable[[str, int, int, str], None]
 
 #: The stages in the order a job runs them (the order of progress bars and of the API's ``stages``).
@@ -127,7 +127,7 @@ def execute_job(
     JobCancelled
         Or whatever else ``progress`` raised.
     """
-    from pipelines.job import run_abstraction
+    from workers.job import run_abstraction
 
     progress = progress or _no_progress
     out = Path(out_dir)
@@ -136,7 +136,7 @@ def execute_job(
     except OSError as exc:
         raise SpecError(f"--out {out}: cannot create the directory: {exc.strerror}") from None
     synthesize = bool(spec.options.synthesis and synthesis)
-    # With synthesis to run, the audit runs beside it in a child process (pipelines.audit_beside): it needs
+    # With synthesis to run, the audit runs beside it in a child process (workers.processes.audit_beside): it needs
     # nothing synthesis makes, and its violations set the job's status at the end either way.
     if in_process:
         result = run_abstraction(spec, progress=progress, allowed_modules=allowed_modules, audit=audit,
@@ -151,7 +151,7 @@ def execute_job(
         result.report["runner"] = runner
     try:
         if synthesize:
-            from pipelines.job import run_synthesis
+            from workers.job import run_synthesis
 
             extra = run_synthesis(result, out, progress=progress)
             result.report["stage_seconds"].update(extra.pop("stage_seconds"))
@@ -161,7 +161,7 @@ def execute_job(
         result.cancel_audit()  # an error or a cancellation: stop the child (nothing when finished)
     try:
         if in_process:
-            from pipelines.artifacts import save_interconnection
+            from workers.jobdir import save_interconnection
 
             save_relations(result, out)
             save_interconnection(result.interconnection, out, spec)  # what `compabs audit` checks (runner does its own)

@@ -31,12 +31,12 @@ from typing import Any
 import yaml
 
 from pipelines.errors import CompabsError, SpecError
-from pipelines.spec import JobSpec, parse_spec
+from pipelines.spec.model import JobSpec, parse_spec
 
-from .execute import JobCancelled, execute_job
-from .models import job_json, summarize
-from .settings import Settings
-from .store import JobRecord, JobStore
+from service.execute import JobCancelled, execute_job
+from service.models import job_json, summarize
+from service.settings import Settings
+from service.store import JobRecord, JobStore
 
 log = logging.getLogger("compabs.service")
 
@@ -131,7 +131,7 @@ def validate_spec(spec: JobSpec, settings: Settings) -> None:
     CompabsError
         A SpecError / ExpressionError naming the field or the offending token.
     """
-    from pipelines.job import spec_regions
+    from workers.job import spec_regions
     from pipelines.network import build_network
 
     n = _replicas(spec)

@@ -1,6 +1,6 @@
 """The API's JSON shapes, as pydantic models: the one source of the OpenAPI schema and of the job JSON.
 
-The job spec itself is :class:`pipelines.spec.JobSpec` (published at ``GET /schema``).
+The job spec itself is :class:`pipelines.spec.model.JobSpec` (published at ``GET /schema``).
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from .execute import STAGES
-from .store import JobRecord
+from service.execute import STAGES
+from service.store import JobRecord
 
 Status = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 from pipelines.errors import SpecError
 
 if TYPE_CHECKING:  # every `compabs` command builds this parser: keep pydantic out of its start-up
-    from .settings import Settings
+    from service.settings import Settings
 
 #: Seconds uvicorn waits for open connections (event streams never end by themselves) before stopping.
 GRACEFUL_SECONDS = 3
@@ -49,7 +49,7 @@ def settings_from_args(args: argparse.Namespace, environ: dict[str, str] | None 
     SpecError
         An invalid setting, naming the variable or option.
     """
-    from .settings import Settings
+    from service.settings import Settings
 
     environ = dict(os.environ if environ is None else environ)
     if args.token_env != "COMPABS_TOKEN" and args.token_env not in environ:
@@ -67,7 +67,7 @@ def settings_from_args(args: argparse.Namespace, environ: dict[str, str] | None 
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from .app import create_app
+    from service.app import create_app
 
     settings = settings_from_args(args)
     if settings.token is None and settings.host not in ("127.0.0.1", "localhost", "::1"):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines.artifacts import INTERCONNECTION_ARRAYS, load_interconnection, load_job
+from workers.jobdir import INTERCONNECTION_ARRAYS, load_interconnection, load_job
 from service.cli import main
 
 from .conftest import EXAMPLES

@@ -1,4 +1,4 @@
-"""The audit in a child process beside synthesis (``pipelines.audit_beside``): the same report as in the job's
+"""The audit in a child process beside synthesis (``workers.processes.audit_beside``): the same report as in the job's
 process, errors of the child as clear errors, nothing left behind when a job stops."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from pipelines import audit_beside
-from pipelines.audit_beside import BackgroundAudit
+import workers.processes.audit_beside as audit_beside
+from workers.processes.audit_beside import BackgroundAudit
 from pipelines.errors import BlackBoxError, CompabsError
-from pipelines.job import run_abstraction
-from pipelines.spec import load_spec
+from workers.job import run_abstraction
+from pipelines.spec.model import load_spec
 
 from .conftest import EXAMPLES
 
@@ -61,12 +61,12 @@ def test_a_child_that_fails_is_a_clear_error_and_leaves_no_files():
 def test_a_users_error_in_the_child_is_raised_as_it_is(tmp_path, monkeypatch):
     """A CompabsError in the child (say a black box that returns NaN on an audit sample) reaches the caller with
     its class and message; the child side is ``main``, run here with the audit replaced by one that fails."""
-    import pipelines.job
+    import workers.job
 
     def failing(*args, **kwargs):
         raise BlackBoxError("subsystem 'agent' returned NaN at x=[3.5]")
 
-    monkeypatch.setattr(pipelines.job, "run_audit", failing)
+    monkeypatch.setattr(workers.job, "run_audit", failing)
     src, dst = tmp_path / "in.pickle", tmp_path / "out.pickle"
     src.write_bytes(pickle.dumps((None, {}, None, 10, None)))
     assert audit_beside.main([str(src), str(dst)]) == 0
@@ -88,7 +88,7 @@ import os, signal, sys
 from pathlib import Path
 sys.path.insert(0, {root!r})
 from tests.test_audit_beside import small
-from pipelines.job import run_abstraction
+from workers.job import run_abstraction
 r = run_abstraction(small(audit_transitions=50_000_000), audit_beside=True)
 p = r.pending_audit
 print(p._proc.pid, p._dir, flush=True)

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from pipelines import compiled
-from pipelines import growth_bound as gb
-from pipelines import subsystem
+import pipelines.abstraction.kernels as compiled
+import pipelines.abstraction.growth_bound as gb
+import pipelines.abstraction.cells as subsystem
 from pipelines.errors import BlackBoxError
 from pipelines.network import build_network
-from pipelines.spec import load_spec, parse_spec
-from pipelines.subsystem import abstract_cells, chunk_ranges
+from pipelines.spec.model import load_spec, parse_spec
+from pipelines.abstraction.cells import abstract_cells, chunk_ranges
 
 from .conftest import EXAMPLES
 

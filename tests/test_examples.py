@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from pipelines.job import run_abstraction
-from pipelines.spec import load_spec
+from workers.job import run_abstraction
+from pipelines.spec.model import load_spec
 from service.cli import main
 
 from .conftest import EXAMPLES

@@ -1,4 +1,4 @@
-"""Tests of the safe-expression compiler (:mod:`pipelines.expr`).
+"""Tests of the safe-expression compiler (:mod:`pipelines.expressions.compiler`).
 
 Shapes throughout: each variable array is ``(dim, B)``, every result is ``(out_dim, B)`` float64.
 """
@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipelines.errors import CompabsError, ExpressionError, SpecError
-from pipelines.expr import FUNCTIONS, MAX_DEPTH, MAX_NODES, CompiledExpression, compile_expression
+from pipelines.expressions.compiler import FUNCTIONS, MAX_DEPTH, MAX_NODES, CompiledExpression, compile_expression
 
 SUB = {"x": 1, "u": 1, "w": 1}  # a subsystem: state, input, internal input
 HOSTILE_VARS = {"x": 2, "u": 1, "w": 1}

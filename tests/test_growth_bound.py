@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipelines.growth_bound import (
+from pipelines.abstraction.growth_bound import (
     pair_maxima_scalar,
     scp_parameters_scalar,
     scp_reference,
@@ -180,7 +180,7 @@ def test_closed_form_scp_equals_vertex_enumeration_in_batch():
 
 
 def test_pair_maxima_batch_last_is_exact():
-    from pipelines.growth_bound import pair_maxima_batch_last
+    from pipelines.abstraction.growth_bound import pair_maxima_batch_last
 
     rng = np.random.default_rng(4)
     V = rng.normal(size=(7, 9, 4))
@@ -196,7 +196,7 @@ def test_pair_maxima_batch_last_is_exact():
 
 
 def test_small_and_large_batches_take_different_paths_to_the_same_bits(monkeypatch):
-    import pipelines.growth_bound as gb
+    import pipelines.abstraction.growth_bound as gb
 
     rng = np.random.default_rng(8)
     _, V = _random_cells(rng, 300, 12, 4)

@@ -17,12 +17,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipelines.audit import audit_interconnection
+from pipelines.verification.audit import audit_interconnection
 from pipelines.errors import CertificationError, LipschitzError, SpecError
-from pipelines.interconnection import InterconnectionAbstraction, abstract_interconnection
-from pipelines.mdec import decompose_row, mdec
+from pipelines.interconnection.core import InterconnectionAbstraction, abstract_interconnection
+from pipelines.interconnection.mdec import decompose_row, mdec
 from pipelines.network import Network, build_network
-from pipelines.spec import parse_spec
+from pipelines.spec.model import parse_spec
 
 TANK_MAP = (
     "[0, sqrt(x[0]), (sqrt(x[0])+sqrt(x[1]))/2, 0, sqrt(x[3]), "
@@ -419,7 +419,7 @@ def test_direct_falls_back_to_certify_above_sigma():
 
 # ============================================================================ many coordinates, one output alone
 def test_unravel_beyond_numpys_64_axes():
-    from pipelines.interconnection import _unravel
+    from pipelines.interconnection.core import _unravel
 
     for shape in [(3,), (4, 1, 5), (2, 3, 4, 5), (1,) * 5]:
         flat = np.arange(int(np.prod(shape)))
@@ -453,7 +453,7 @@ def split_network() -> Network:
 
 def test_direct_nodes_evaluate_one_output_alone_and_are_unchanged(monkeypatch):
     """Entry j of a list map evaluated by itself gives the node that evaluating the whole map gives."""
-    from pipelines import interconnection as ic
+    import pipelines.interconnection.core as ic
 
     net = split_network()
     alone = abstract_interconnection(net, np.random.default_rng(3))
@@ -475,7 +475,7 @@ def test_direct_nodes_evaluate_one_output_alone_and_are_unchanged(monkeypatch):
 @pytest.mark.parametrize("map_,p", [("x[0:2]", 2), ("[x[0:2], x[2]]", 3), ("mean(x)", 1)])
 def test_maps_that_are_not_a_list_of_entries_are_evaluated_whole(map_, p):
     net = network(4, 0, 32, 1, map=map_, internal={"lb": 0, "ub": 32, "eta": 1}, samples=20, error="linear")
-    sampler = __import__("pipelines.interconnection", fromlist=["_Sampler"])._Sampler(net)
+    sampler = __import__("pipelines.interconnection.core", fromlist=["_Sampler"])._Sampler(net)
     for j in range(p):
         evaluate, alone = sampler.column(j)
         assert not alone
@@ -485,7 +485,7 @@ def test_maps_that_are_not_a_list_of_entries_are_evaluated_whole(map_, p):
 
 def test_an_output_evaluated_alone_is_checked_like_the_whole_map():
     from pipelines.errors import BlackBoxError
-    from pipelines.interconnection import _Sampler
+    from pipelines.interconnection.core import _Sampler
 
     net = network(2, 0, 32, 1, map="[x[0] / 2, 2 * sqrt(x[1])]", internal={"lb": 0, "ub": 32, "eta": 1},
                   samples=50, error="direct", lipschitz=2.0)

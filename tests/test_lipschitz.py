@@ -5,10 +5,10 @@ import pytest
 import yaml
 
 from pipelines.errors import BlackBoxError, LipschitzError
-from pipelines.job import _abstract_one, _resolve_constant, local_mapper
-from pipelines.lipschitz import estimate_lipschitz
+from workers.job import _abstract_one, _resolve_constant, local_mapper
+from pipelines.abstraction.lipschitz import estimate_lipschitz
 from pipelines.network import build_network
-from pipelines.spec import parse_spec
+from pipelines.spec.model import parse_spec
 
 from .conftest import EXAMPLES
 
@@ -59,7 +59,7 @@ def test_estimated_constants_give_a_sound_abstraction():
     sub, members = _consensus_agent({"x": "estimate", "w": "estimate"})
     rel, info = _run(sub, members)
     assert info["lipschitz"]["x"]["source"].startswith("estimated")
-    from pipelines.audit import audit_subsystem
+    from pipelines.verification.audit import audit_subsystem
 
     assert audit_subsystem(sub, rel, 100_000, np.random.default_rng(0)).violations == 0
 

@@ -1,4 +1,4 @@
-"""The partitioned ``∃u.CPre`` (pipelines/parallel_cpre.py): real helper processes, exact results."""
+"""The partitioned ``∃u.CPre`` (workers/processes/partitioned_cpre.py): real helper processes, exact results."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from pipelines.parallel_cpre import (
+from workers.processes.partitioned_cpre import (
     HelperError,
     PartitionedPredecessors,
     damped_cuts,
@@ -18,7 +18,7 @@ from pipelines.parallel_cpre import (
     split_digits,
     update_density,
 )
-from pipelines.synthesis import cobuchi, reach, safe
+from pipelines.synthesis.game import cobuchi, reach, safe
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 
 
@@ -231,7 +231,7 @@ def test_processes_must_be_positive():
 
 
 def test_resolve_processes():
-    from pipelines.synthesis import resolve_processes
+    from pipelines.synthesis.game import resolve_processes
 
     assert 1 <= resolve_processes("auto") <= min(4, os.cpu_count() or 1)
     assert resolve_processes(3) == 3
@@ -243,7 +243,7 @@ def test_resolve_processes():
 def test_auto_processes_split_only_the_shared_cpre():
     """'auto': one process for the per-subsystem CPre (measured not to pay on the tanks), the CPUs for the
     shared one."""
-    from pipelines.synthesis import resolve_processes
+    from pipelines.synthesis.game import resolve_processes
 
     for shared, order in ((False, "interleaved"), (True, "shared_top")):
         game = build(random_net(np.random.default_rng(9), shared), order)

@@ -19,7 +19,7 @@ import pytest
 import yaml
 from fastapi.testclient import TestClient
 
-from pipelines.spec import json_schema, parse_spec
+from pipelines.spec.model import json_schema, parse_spec
 from service.app import create_app
 from service.cli import main
 from service.manager import new_store
@@ -320,7 +320,7 @@ def test_a_whole_job_events_results_and_no_path_traversal(client, tmp_path):
     assert set(progress[0]) == {"stage", "done", "total", "message"}
     order = ["plan", "lipschitz", "subsystems", "interconnection", "audit", "synthesis", "closed_loop"]
     seen = [p["stage"] for p in progress]
-    # Each stage once, in order; the audit runs beside synthesis (pipelines.audit_beside): it starts before
+    # Each stage once, in order; the audit runs beside synthesis (workers.processes.audit_beside): it starts before
     # synthesis and reports its end after the closed loop.
     runs = [s for i, s in enumerate(seen) if i == 0 or seen[i - 1] != s]
     assert runs == order + ["audit"]

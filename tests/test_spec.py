@@ -7,7 +7,7 @@ import yaml
 
 from pipelines.errors import SpecError
 from pipelines.network import build_network
-from pipelines.spec import json_schema, load_spec, parse_spec
+from pipelines.spec.model import json_schema, load_spec, parse_spec
 
 from .conftest import EXAMPLES
 
@@ -117,7 +117,7 @@ def test_consensus_centres_that_overflow_are_a_spec_error(centers):
     """Found by hypothesis through POST /jobs: a tiny step made the centre count inf (a 500 before)."""
     import yaml
 
-    from pipelines.job import spec_regions
+    from workers.job import spec_regions
     from pipelines.network import build_network
 
     data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
@@ -140,7 +140,7 @@ def test_synthesis_processes_option(value, ok):
 
 
 def test_synthesis_processes_is_not_part_of_the_spec_hash():
-    from pipelines.spec import spec_hash
+    from pipelines.spec.model import spec_hash
 
     data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
     base = spec_hash(parse_spec(yaml.safe_dump(data)))

@@ -6,11 +6,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipelines.audit import audit_subsystem
-from pipelines.growth_bound import subgrid_counts
+from pipelines.verification.audit import audit_subsystem
+from pipelines.abstraction.growth_bound import subgrid_counts
 from pipelines.network import build_network
-from pipelines.spec import load_spec
-from pipelines.subsystem import (
+from pipelines.spec.model import load_spec
+from pipelines.abstraction.cells import (
     STATISTICS_SAMPLE,
     SubsystemRelation,
     abstract_cells,
@@ -94,7 +94,7 @@ def test_blocking_means_the_box_leaves_the_state_set():
 
 def test_a_subsystem_without_internal_inputs():
     """reads: [] gives a relation with one (empty) internal cell, sound like the others."""
-    from pipelines.spec import parse_spec
+    from pipelines.spec.model import parse_spec
 
     spec = parse_spec({
         "subsystems": [{"name": "leaky", "state": {"lb": 0, "ub": 10, "eta": 0.5}, "input": {"lb": 0, "ub": 1, "eta": 0.5},
@@ -202,10 +202,10 @@ def test_scp_relation_matches_the_reference_lp_on_real_cells(case, which, monkey
     """On a subset of the triples of each example: theta from the reference LP (HiGHS, every sample pair) on
     the pipeline's own samples, the box C +- min(radius, Lipschitz radius) snapped to cells, must give the
     relation's lo/hi/blocking exactly; the radii agree to 1e-9."""
-    import pipelines.subsystem as subsystem
+    import pipelines.abstraction.cells as subsystem
 
     monkeypatch.setattr(subsystem, "BLOCK_POINTS", 1 << 40)  # the chunk's samples in one call, recorded below
-    from pipelines.growth_bound import (
+    from pipelines.abstraction.growth_bound import (
         lipschitz_radius,
         pair_maxima_scalar,
         scp_parameters_scalar,
@@ -286,7 +286,7 @@ def test_the_other_scp_objective_is_counted_on_a_fixed_sample():
 
 def _planar() -> list:
     """A subsystem with a 2-D state and a 2-D internal input (the per-triple LP path, multi-axis slopes)."""
-    from pipelines.spec import parse_spec
+    from pipelines.spec.model import parse_spec
 
     spec = parse_spec({
         "subsystems": [{"name": "p", "replicate": 2, "reads": [0, 1],
@@ -305,7 +305,7 @@ def test_blocks_of_triples_give_the_same_bits_as_one_pass(case, monkeypatch):
     """abstract_cells in blocks of a few triples (block edges inside a state cell and inside an input's row)
     equals one pass over the chunk: relation, successor counts (the sampled statistics too) and the slope
     records, whose ties keep the first triple."""
-    import pipelines.subsystem as subsystem
+    import pipelines.abstraction.cells as subsystem
 
     for sub in _planar() if case == "planar" else _distinct(case):
         L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from pipelines.grid import UniformGrid
-from pipelines.interconnection import NodeRelation
-from pipelines.region import AbstractRegion
-from pipelines.subsystem import SubsystemRelation
-from pipelines.symbolic import (
+from pipelines.interconnection.core import NodeRelation
+from pipelines.spec.regions import AbstractRegion
+from pipelines.abstraction.cells import SubsystemRelation
+from pipelines.symbolic.model import (
     BDDMemoryError,
     SubsystemLayout,
     SymbolicModel,
@@ -152,7 +152,7 @@ def test_to_next_equals_renaming_and_refuses_next_state_bits(order):
 
 def test_cudd_keeps_its_tables_small():
     """Garbage collection and the computed table are bounded (``GC_LOOSE_UP_TO``, ``MAX_CACHE_ENTRIES``)."""
-    from pipelines.symbolic import GC_LOOSE_UP_TO, MAX_CACHE_ENTRIES
+    from pipelines.symbolic.model import GC_LOOSE_UP_TO, MAX_CACHE_ENTRIES
 
     m = SymbolicModel([SubsystemLayout(0, (8,), 1, (), "a", 0)], [], order="interleaved")
     cfg = m.bdd.configure()
@@ -342,7 +342,7 @@ def test_out_of_memory_is_a_clear_error():
 
 
 def test_block_order_minimises_the_linear_arrangement_of_coupled_subsystems():
-    from pipelines.symbolic import block_order
+    from pipelines.symbolic.model import block_order
 
     tanks = {(0, 1), (0, 2), (1, 2), (3, 4), (2, 5), (3, 5), (4, 5), (5, 6), (4, 6), (2, 7), (5, 8), (7, 8), (7, 9), (8, 9)}
 
@@ -363,7 +363,7 @@ def test_block_order_minimises_the_linear_arrangement_of_coupled_subsystems():
 
 
 def test_reader_order_puts_every_block_below_what_it_reads_and_keeps_chains_together():
-    from pipelines.symbolic import reader_order
+    from pipelines.symbolic.model import reader_order
 
     # (reader, read) of the 10 tanks (positions 0..9 = tanks 1..10)
     tanks = {(1, 0), (2, 0), (2, 1), (4, 3), (5, 2), (5, 3), (5, 4), (5, 6), (6, 4), (7, 2), (8, 5), (8, 7),

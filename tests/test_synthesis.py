@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 
 from pipelines.grid import UniformGrid
-from pipelines.interconnection import NodeRelation
-from pipelines.job import run_abstraction
-from pipelines.region import abstract_region
-from pipelines.spec import load_spec
-from pipelines.subsystem import SubsystemRelation
-from pipelines.symbolic import SubsystemLayout, SymbolicModel, tree_owners
-from pipelines.synthesis import CHAIN_ORDERS, Game, reach, reach_and_stay, reach_avoid, safe, synthesize
+from pipelines.interconnection.core import NodeRelation
+from workers.job import run_abstraction
+from pipelines.spec.regions import abstract_region
+from pipelines.spec.model import load_spec
+from pipelines.abstraction.cells import SubsystemRelation
+from pipelines.symbolic.model import SubsystemLayout, SymbolicModel, tree_owners
+from pipelines.synthesis.game import CHAIN_ORDERS, Game, reach, reach_and_stay, reach_avoid, safe, synthesize
 
 from .conftest import EXAMPLES
 

@@ -33,8 +33,8 @@ import pytest
 import yaml
 
 from pipelines.errors import BlackBoxError, LipschitzError
-from pipelines.job import run_abstraction
-from pipelines.spec import parse_spec
+from workers.job import run_abstraction
+from pipelines.spec.model import parse_spec
 from service.cli import main
 from service.execute import execute_job
 from workers.errors import StoreError, TaskTimeoutError
@@ -132,7 +132,7 @@ def test_hung_black_box_times_out_while_another_job_completes(tmp_path, client, 
 
 
 def test_task_timeout_is_not_part_of_the_spec_hash():
-    from pipelines.spec import spec_hash
+    from pipelines.spec.model import spec_hash
 
     assert spec_hash(spec_of(task_timeout=3)) == spec_hash(spec_of(task_timeout=600)) == spec_hash(spec_of(task_timeout=None))
 
@@ -173,7 +173,7 @@ def test_worker_killed_in_every_runner_stage(tmp_path, client, reference, capsys
     assert report["audit"]["violations"] == 0 and report["closed_loop"]["violations"] == 0
     assert report["runner"]["chunks_computed"] == 9
 
-    from pipelines.artifacts import load_job
+    from workers.jobdir import load_job
 
     arts = load_job(out)
     assert arts.relation_source == "zarr"
@@ -233,7 +233,7 @@ def test_runner_killed_between_chunk_data_and_marker(tmp_path, client, reference
     spec_file.write_text(spec.model_dump_json())
     out, flag, k = tmp_path / "out", tmp_path / "paused", 5
     client.run(_pause_after_data, str(flag), 4 * k)
-    code = ("import sys; from pipelines.spec import load_spec; from workers.runner import run_job; "
+    code = ("import sys; from pipelines.spec.model import load_spec; from workers.runner import run_job; "
             "run_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)")
     proc = subprocess.Popen([sys.executable, "-c", code, str(spec_file), str(out), client.scheduler.address],
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -1,7 +1,7 @@
 """Hostile expressions (issue 7): payloads meant to escape the whitelist never run.
 
 Every payload of ``tests/test_expr.py``'s ``HOSTILE`` list plus the ones below goes through
-:func:`pipelines.expr.compile_expression` and, as a subsystem's dynamics and as the interconnection map, through
+:func:`pipelines.expressions.compiler.compile_expression` and, as a subsystem's dynamics and as the interconnection map, through
 the spec parser and :func:`pipelines.network.build_network` (where the server compiles them). Each must be
 rejected with an :class:`ExpressionError` in under a second whose message names the offending token, and
 nothing may run: a canary builtin ``__canary__`` and a canary file ``CANARY`` in the working directory (the
@@ -18,9 +18,9 @@ import pytest
 import yaml
 
 from pipelines.errors import CompabsError, ExpressionError
-from pipelines.expr import compile_expression
+from pipelines.expressions.compiler import compile_expression
 from pipelines.network import build_network
-from pipelines.spec import parse_spec
+from pipelines.spec.model import parse_spec
 
 from .conftest import EXAMPLES
 from .test_expr import HOSTILE, HOSTILE_CONSTS, HOSTILE_VARS
@@ -198,7 +198,7 @@ def test_resource_payloads_are_float_and_fast(canary):
         # As dynamics the job fails at the first sample, naming the subsystem and the cell.
         data = _small_with("dynamics", text)
         from pipelines.errors import BlackBoxError
-        from pipelines.subsystem import abstract_cells
+        from pipelines.abstraction.cells import abstract_cells
 
         sub = build_network(parse_spec(data), ()).subsystems[0]
         with pytest.raises(BlackBoxError, match=r"agent\[0\]' dynamics: returned .*not finite.*state cell \d+, input \d+, internal cell \d+"):

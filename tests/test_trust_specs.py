@@ -2,7 +2,7 @@
 
 Specs are small.yaml with one to three random mutations (a field set to any JSON value, a number set to an
 edge value, a field deleted, an unknown field added, an expression replaced by expression-like text), plus
-wholly random JSON documents. Through :func:`pipelines.spec.parse_spec` and
+wholly random JSON documents. Through :func:`pipelines.spec.model.parse_spec` and
 :func:`pipelines.network.build_network` every one must be accepted or raise a :class:`CompabsError` whose message
 names a mutated field; any other exception fails the test. Through ``POST /jobs`` (FastAPI's TestClient, the
 real app with its SQLite store, jobs in-process) every response must be 2xx, or 4xx with a JSON ``detail``;
@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 
 from pipelines.errors import CompabsError
 from pipelines.network import build_network
-from pipelines.spec import JobSpec, parse_spec
+from pipelines.spec.model import JobSpec, parse_spec
 
 from .conftest import EXAMPLES
 from .trust_log import record

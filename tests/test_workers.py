@@ -21,8 +21,8 @@ import pytest
 import yaml
 
 from pipelines.errors import BlackBoxError
-from pipelines.job import run_abstraction
-from pipelines.spec import load_spec, parse_spec, spec_hash
+from workers.job import run_abstraction
+from pipelines.spec.model import load_spec, parse_spec, spec_hash
 
 from .conftest import EXAMPLES, ROOT
 
@@ -131,7 +131,7 @@ def small_reference():
 # ----------------------------------------------------------------------------------------------- store units
 def test_marker_round_trip_is_exact():
     from pipelines.network import build_network
-    from pipelines.subsystem import abstract_cells
+    from pipelines.abstraction.cells import abstract_cells
 
     spec = small_spec(dynamics=None)
     sub = build_network(spec, None).subsystems[0]
@@ -200,7 +200,7 @@ def test_embedded_cluster_survives_the_removal_of_a_worker_it_never_saw(caplog):
 
 
 def _loaded_kernels() -> list[str]:
-    from pipelines import compiled
+    import pipelines.abstraction.kernels as compiled
 
     return sorted(name for name in ("scalar_block", "scalar_sample_pass", "pair_maxima_batch_last",
                                     "scp_parameters_batch_last", "hull_and_bound")
@@ -353,7 +353,7 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
     spec_file = tmp_path / "spec.json"
     spec_file.write_text(spec.model_dump_json())
     code = (
-        "import sys; from pipelines.spec import load_spec; from workers.runner import run_job; "
+        "import sys; from pipelines.spec.model import load_spec; from workers.runner import run_job; "
         "run_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)"
     )
     out = tmp_path / "out"
@@ -464,7 +464,7 @@ def test_task_that_kills_its_workers_is_a_clear_error(tmp_path, client):
 
 def test_store_write_outside_a_chunk_is_refused(tmp_path, client):
     from pipelines.network import build_network
-    from pipelines.subsystem import abstract_cells
+    from pipelines.abstraction.cells import abstract_cells
     from workers.store import RelationStore, group_name
 
     spec = small_spec(chunk_cells=4, dynamics=None)

@@ -20,7 +20,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from .errors import ClusterError
+from workers.errors import ClusterError
 
 logger = logging.getLogger(__name__)
 
@@ -151,7 +151,7 @@ def _check_imports(client: Any, scheduler: bool) -> None:
 
     def probe_and_warm() -> str:
         probe()
-        from pipelines import compiled
+        import pipelines.abstraction.kernels as compiled
 
         compiled.warm_up()
         return "ok"

@@ -1,6 +1,6 @@
 """Running a job on a Dask cluster, resumable through the relation store.
 
-:func:`run_job` runs the one definition of the stages (:func:`pipelines.job.run_abstraction`) with a mapper,
+:func:`run_job` runs the one definition of the stages (:func:`workers.job.run_abstraction`) with a mapper,
 :class:`StoreMapper`, that sends the per-cell chunks to the cluster: for each chunk whose done-marker is in the
 store it reads the chunk back (*reused*); every other chunk becomes one :func:`workers.tasks.abstract_chunk`
 task (*computed*), which writes the chunk and its marker. Results are rebuilt from the store and yielded as
@@ -71,15 +71,15 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 from pipelines.errors import CompabsError
-from pipelines.job import AbstractionResult, Progress, run_abstraction
+from workers.job import AbstractionResult, Progress, run_abstraction
 from pipelines.network import Network, Subsystem, build_network
-from pipelines.spec import JobSpec
-from pipelines.subsystem import CellsResult, abstract_cells
+from pipelines.spec.model import JobSpec
+from pipelines.abstraction.cells import CellsResult, abstract_cells
 
-from .cluster import connect
-from .errors import ClusterError, StoreError, TaskTimeoutError
-from .store import RelationStore, group_name
-from .tasks import abstract_chunk
+from workers.cluster import connect
+from workers.errors import ClusterError, StoreError, TaskTimeoutError
+from workers.store import RelationStore, group_name
+from workers.tasks import abstract_chunk
 
 #: Black-box evaluations per task (see "Chunk size" above).
 TASK_POINTS = 100_000_000
@@ -117,7 +117,7 @@ def _chunk_size(args: Sequence[tuple], n_x: int) -> int:
 
 
 class StoreMapper:
-    """The ``mapper`` given to :func:`pipelines.job.run_abstraction`.
+    """The ``mapper`` given to :func:`workers.job.run_abstraction`.
 
     ``mapper(abstract_cells, args)`` yields :class:`CellsResult` objects, reused chunks first, then computed
     ones in completion order. Any other function is mapped over the cluster plainly, with its results returned
@@ -247,7 +247,7 @@ class StoreMapper:
 
 
 def _client_info(client: Any) -> dict[str, Any]:
-    from .cluster import _dashboard
+    from workers.cluster import _dashboard
 
     return {
         "scheduler": client.scheduler.address,
@@ -323,8 +323,8 @@ def run_job(
         )
         try:
             store.consolidate()
-            if "://" not in os.fspath(out_dir):  # the audit reads it back (pipelines.artifacts)
-                from pipelines.artifacts import save_interconnection
+            if "://" not in os.fspath(out_dir):  # the audit reads it back (workers.jobdir)
+                from workers.jobdir import save_interconnection
 
                 save_interconnection(result.interconnection, out_dir, spec)
         except OSError as exc:

@@ -4,7 +4,7 @@ Layout under ``DIR/relations.zarr`` (``DIR`` a local path or any fsspec URL)::
 
     relations.zarr/                 root group; attributes:
                                       layout        store layout version (LAYOUT_VERSION)
-                                      spec_hash     pipelines.spec.spec_hash of the job that wrote it
+                                      spec_hash     pipelines.spec.model.spec_hash of the job that wrote it
                                       spec_name     the spec's name (for people)
                                       code_version  the compabs package version that wrote it
                                       grids         subsystem name -> {key, state, input, internal, groups}
@@ -55,10 +55,10 @@ from typing import Any
 import numpy as np
 
 from pipelines.network import Network, Subsystem
-from pipelines.spec import JobSpec, spec_hash
-from pipelines.subsystem import CellsResult, SlopeRecord
+from pipelines.spec.model import JobSpec, spec_hash
+from pipelines.abstraction.cells import CellsResult, SlopeRecord
 
-from .errors import StoreError, StoreMismatchError
+from workers.errors import StoreError, StoreMismatchError
 
 STORE_NAME = "relations.zarr"
 #: Version of the layout above; a store of another layout is treated as stale.

@@ -19,10 +19,10 @@ import time
 from typing import Any
 
 from pipelines.network import Subsystem
-from pipelines.subsystem import CellsResult, abstract_cells
+from pipelines.abstraction.cells import CellsResult, abstract_cells
 
-from .errors import TaskTimeoutError
-from .store import write_chunk
+from workers.errors import TaskTimeoutError
+from workers.store import write_chunk
 
 #: Seconds a timed-out task waits for its thread to stop after asking it to.
 STOP_GRACE = 1.0
@@ -50,7 +50,7 @@ def abstract_chunk(
         The store group of this subsystem and these constants (:func:`workers.store.group_name`); it exists
         already, created by the runner.
     sub, start, stop, L_x, L_w, method, objective
-        As :func:`pipelines.subsystem.abstract_cells`; ``[start, stop)`` is exactly one chunk of the group.
+        As :func:`pipelines.abstraction.cells.abstract_cells`; ``[start, stop)`` is exactly one chunk of the group.
     timeout : float, optional
         Seconds the computation may take (``options.task_timeout``); ``None``: no limit. See :func:`_watched`.
 

@@ -14,9 +14,9 @@ import secrets
 from fastapi import Depends, HTTPException, Request, Security
 from fastapi.security import APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
 
-from ..manager import JobManager
-from ..models import ErrorDetail
-from ..store import JobRecord
+from service.manager import JobManager
+from service.models import ErrorDetail
+from service.store import JobRecord
 
 _bearer = HTTPBearer(auto_error=False, description="the server's token (COMPABS_TOKEN)")
 _query = APIKeyQuery(

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from ..manager import JobManager
-from ..models import Health
-from .common import get_manager
+from service.manager import JobManager
+from service.models import Health
+from service.routers.common import get_manager
 
 router = APIRouter(tags=["health"])
 

@@ -15,10 +15,10 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
-from ..manager import JobManager
-from ..models import ErrorDetail, Job, JobList, ProgressEvent
-from ..store import TERMINAL, JobRecord
-from .common import AUTH_RESPONSES, get_manager, job_or_404, require_token
+from service.manager import JobManager
+from service.models import ErrorDetail, Job, JobList, ProgressEvent
+from service.store import TERMINAL, JobRecord
+from service.routers.common import AUTH_RESPONSES, get_manager, job_or_404, require_token
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)
 

@@ -8,9 +8,9 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 
-from pipelines.spec import json_schema
+from pipelines.spec.model import json_schema
 
-from .common import AUTH_RESPONSES, require_token
+from service.routers.common import AUTH_RESPONSES, require_token
 
 router = APIRouter(dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)
 

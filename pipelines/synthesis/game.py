@@ -50,10 +50,10 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, NamedTuple, Sequence
 
 from dd import cudd
 
-from .symbolic import Function, SymbolicModel
+from pipelines.symbolic.model import Function, SymbolicModel
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .job import AbstractionResult
+    from workers.job import AbstractionResult
 
 Chain = list[tuple[Function, list[str]]]  # (relation, next-state bits it quantifies), in schedule order
 
@@ -391,7 +391,7 @@ class Game:
         says why); CUDD running out of memory in a helper is raised, as it would be here.
         """
         if part is None and self._pool is not None:
-            from .parallel_cpre import HelperError
+            from workers.processes.partitioned_cpre import HelperError
 
             try:
                 return self._pool(Z, outside, within)
@@ -411,7 +411,7 @@ class Game:
             result = predecessors_of(self.model, chain, admissible, self.M, self.w_bits, self.u_bits, Z, outside,
                                      part)
         if part is None and self.processes > 1 and time.perf_counter() - t0 >= self.parallel_after:
-            from .parallel_cpre import PartitionedPredecessors
+            from workers.processes.partitioned_cpre import PartitionedPredecessors
 
             self._pool = PartitionedPredecessors(self, self.processes)
         return result
@@ -724,7 +724,7 @@ def synthesize(
     report : dict
         JSON-ready: build times and node counts, per-result summaries.
     """
-    from .region import abstract_region
+    from pipelines.spec.regions import abstract_region
 
     t0 = time.perf_counter()
     game = Game.from_abstraction(abstraction, order=order, method=method, max_memory=max_memory,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .network import Subsystem
+from pipelines.network import Subsystem
 
 
 @dataclass(frozen=True)

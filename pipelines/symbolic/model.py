@@ -55,13 +55,13 @@ from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
 import numpy as np
 from dd import cudd
 
-from .errors import CompabsError
+from pipelines.errors import CompabsError
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
-    from .interconnection import InterconnectionAbstraction, NodeRelation
-    from .network import Network, Subsystem
-    from .region import AbstractRegion
-    from .subsystem import SubsystemRelation
+    from pipelines.interconnection.core import InterconnectionAbstraction, NodeRelation
+    from pipelines.network import Network, Subsystem
+    from pipelines.spec.regions import AbstractRegion
+    from pipelines.abstraction.cells import SubsystemRelation
 
 Function = cudd.Function
 

@@ -43,7 +43,7 @@ Departures from the paper (METHOD §4), and why
 * After lasso, ``M̄_j`` and ``b_j`` are refitted by ordinary least squares on the support, so that a linear map
   is identified exactly (lasso shrinks its coefficients). ``alpha`` is scikit-learn's (its objective divides
   the squared error by ``2 N``, unlike Eq. (lasso)).
-* MDec uses partial sums (see :mod:`pipelines.mdec`); an intermediate ``z`` lives on a covering grid of the
+* MDec uses partial sums (see :mod:`pipelines.interconnection.mdec`); an intermediate ``z`` lives on a covering grid of the
   interval range of its partial sum, spacing ``intermediate_eta`` (default: the spacing of its output's grid).
 * Relations are clipped to the output grid. For ``z`` this is exact (the grid covers the range); for ``w_j`` it
   relies on the declared internal box holding every value of ``M_j`` (Definition intercon), which is checked on
@@ -71,11 +71,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .blackbox import BlackBox
-from .errors import CertificationError, LipschitzError, SpecError
-from .grid import UniformGrid
-from .mdec import NodePlan, mdec
-from .network import Network
+from pipelines.blackbox import BlackBox
+from pipelines.errors import CertificationError, LipschitzError, SpecError
+from pipelines.grid import UniformGrid
+from pipelines.interconnection.mdec import NodePlan, mdec
+from pipelines.network import Network
 
 #: Largest number of cells of the support grid on which ``certify`` evaluates ``M`` (METHOD §4).
 MAX_CERTIFY_CELLS = 4_000_000
@@ -430,7 +430,7 @@ class _Sampler:
 
         The values are checked like :meth:`__call__` (finite, inside internal box ``j``). Where the map is a
         list literal ``[e_0, e_1, ...]`` of elementwise entries, row ``j`` of the map is entry ``j`` evaluated
-        alone (``pipelines.expr`` stacks the entries' values, one row each, each computed by its own compiled
+        alone (``pipelines.expressions.compiler`` stacks the entries' values, one row each, each computed by its own compiled
         closure), so entry ``j`` is compiled on its own (through the same expression compiler, with the
         map's constants) and the other outputs are not computed. It is also checked to give the map's row
         ``j`` bit for bit on a few states. Otherwise (a vector expression, a module function, nested lists,
@@ -456,7 +456,7 @@ class _Sampler:
 
     def _entry(self, j: int) -> BlackBox | None:
         """Entry ``j`` of a list-literal map as a black box of its own, or ``None`` (see :meth:`column`)."""
-        from .spec import is_module_function
+        from pipelines.spec.model import is_module_function
 
         source = self.map.source
         if is_module_function(source):

@@ -54,7 +54,7 @@ from typing import Callable, Mapping, NoReturn, Sequence, Union
 
 import numpy as np
 
-from .errors import ExpressionError
+from pipelines.errors import ExpressionError
 
 __all__ = ["CompiledExpression", "compile_expression", "FUNCTIONS", "MAX_NODES", "MAX_DEPTH"]
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .grid import UniformGrid
-from .network import Network, Subsystem
-from .subsystem import SubsystemRelation
+from pipelines.grid import UniformGrid
+from pipelines.network import Network, Subsystem
+from pipelines.abstraction.cells import SubsystemRelation
 
 #: Points per batch of black-box evaluations.
 BATCH = 250_000
@@ -183,7 +183,7 @@ def audit_composition(
     ----------
     network : Network
     relations : dict of str to SubsystemRelation
-        By subsystem key (``Subsystem.key``), as :class:`pipelines.job.AbstractionResult` holds them.
+        By subsystem key (``Subsystem.key``), as :class:`workers.job.AbstractionResult` holds them.
     ia : InterconnectionAbstraction
     count : int
         Composed transitions to draw.

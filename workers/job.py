@@ -16,13 +16,13 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .audit import AuditResult, audit_composition, audit_interconnection, audit_subsystem
-from .errors import LipschitzError
-from .lipschitz import estimate_lipschitz
-from .network import Network, Subsystem, build_network
-from .region import AbstractRegion, abstract_region
-from .spec import JobSpec, spec_hash
-from .subsystem import SLOPE_RTOL, CellsResult, SubsystemRelation, abstract_cells, assemble, chunk_ranges
+from pipelines.verification.audit import AuditResult, audit_composition, audit_interconnection, audit_subsystem
+from pipelines.errors import LipschitzError
+from pipelines.abstraction.lipschitz import estimate_lipschitz
+from pipelines.network import Network, Subsystem, build_network
+from pipelines.spec.regions import AbstractRegion, abstract_region
+from pipelines.spec.model import JobSpec, spec_hash
+from pipelines.abstraction.cells import SLOPE_RTOL, CellsResult, SubsystemRelation, abstract_cells, assemble, chunk_ranges
 
 Progress = Callable[[str, int, int, str], None]
 Mapper = Callable[[Callable[..., Any], Sequence[tuple]], Iterable[Any]]
@@ -239,7 +239,7 @@ def run_abstraction(
         Modules a ``module:function`` may name (``None``: any, the local command line).
     chunk_points : int, optional
         Black-box evaluations per chunk task when ``options.chunk_cells`` is not set (``None``: the default of
-        :func:`~pipelines.subsystem.chunk_ranges`). A runner picks it from its per-task overhead.
+        :func:`~pipelines.abstraction.cells.chunk_ranges`). A runner picks it from its per-task overhead.
     audit_beside : bool
         Start the audit in a child process and return without waiting (:mod:`.audit_beside`): synthesis needs
         nothing the audit makes, so it runs on another core meanwhile. The caller must call
@@ -251,7 +251,7 @@ def run_abstraction(
         Subclasses name what is wrong: SpecError, ExpressionError, BlackBoxError, LipschitzError,
         CertificationError.
     """
-    from .interconnection import abstract_interconnection
+    from pipelines.interconnection.core import abstract_interconnection
 
     rng = np.random.default_rng(spec.options.seed)
     seconds: dict[str, float] = {}
@@ -261,7 +261,7 @@ def run_abstraction(
     network = build_network(spec, allowed_modules)
     for s in network.subsystems:
         if s.triples > spec.options.max_cells:
-            from .errors import SpecError
+            from pipelines.errors import SpecError
 
             raise SpecError(
                 f"subsystem '{s.name}': {s.triples} (x, u, w) triples exceed options.max_cells = "
@@ -305,7 +305,7 @@ def run_abstraction(
     pending = None
     if audit and spec.options.audit_transitions:
         if audit_beside:
-            from .audit_beside import BackgroundAudit
+            from workers.processes.audit_beside import BackgroundAudit
 
             pending = BackgroundAudit(network, relations, ia, spec.options.audit_transitions, rng)
             audit_report = {"transitions_checked": 0, "violations": 0, "pending": True}
@@ -385,10 +385,10 @@ def run_synthesis(
     ``synthesis``, ``closed_loop`` and ``figures``.
     """
 
-    from .closed_loop import simulate, simulate_many
-    from .controller import controller_of
-    from .figures import domain_slice_figure, trajectory_figure
-    from .synthesis import synthesize
+    from pipelines.verification.closed_loop import simulate, simulate_many
+    from pipelines.controller import controller_of
+    from pipelines.figures import domain_slice_figure, trajectory_figure
+    from pipelines.synthesis.game import synthesize
 
     spec = abstraction.spec
     opts = spec.options
@@ -414,7 +414,7 @@ def run_synthesis(
     controller = controller_of(game, main, meta)
     files = {}
     if out_dir is not None:
-        from .artifacts import save_interconnection
+        from workers.jobdir import save_interconnection
 
         out = Path(out_dir)
         save_interconnection(abstraction.interconnection, out, spec)  # what the controller was built from (audit)

@@ -33,7 +33,7 @@ of memory in a helper is a :class:`~.symbolic.BDDMemoryError`, raised to the cal
 
 Transport: BDDs as DDDMP files in a private temporary directory; a helper declares the variables from the
 model's header (:meth:`.SymbolicModel.from_header`), so levels match. Messages are pickled tuples of strings
-and numbers on two pipes; helpers are ``python -m pipelines.parallel_cpre`` child processes (not
+and numbers on two pipes; helpers are ``python -m workers.processes.partitioned_cpre`` child processes (not
 ``multiprocessing``'s spawn, which would re-run the caller's ``__main__`` script).
 """
 
@@ -53,12 +53,12 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from .children import start_module
-from .errors import CompabsError
-from .symbolic import BDDMemoryError, Function, SymbolicModel
+from workers.processes.children import start_module
+from pipelines.errors import CompabsError
+from pipelines.symbolic.model import BDDMemoryError, Function, SymbolicModel
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .synthesis import Game, Within
+    from pipelines.synthesis.game import Game, Within
 
 log = logging.getLogger(__name__)
 
@@ -194,7 +194,7 @@ class _Helper:
         self.index = index
         to_child_r, to_child_w = os.pipe()
         from_child_r, from_child_w = os.pipe()
-        self.proc = start_module("pipelines.parallel_cpre", str(to_child_r), str(from_child_w),
+        self.proc = start_module("workers.processes.partitioned_cpre", str(to_child_r), str(from_child_w),
                                  pass_fds=(to_child_r, from_child_w), stdin=subprocess.DEVNULL)
         os.close(to_child_r)
         os.close(from_child_w)
@@ -410,7 +410,7 @@ class PartitionedPredecessors:
 # ====================================================================================== the helper's side
 def _serve(inp: Connection, out: Connection) -> None:
     """Answer ``problem`` and ``pred`` messages until ``None`` or end of input."""
-    from .synthesis import predecessors_of
+    from pipelines.synthesis.game import predecessors_of
 
     model: SymbolicModel | None = None
     problem: tuple | None = None

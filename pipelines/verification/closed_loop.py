@@ -13,9 +13,9 @@ from typing import Callable
 
 import numpy as np
 
-from .grid import UniformGrid
-from .network import Network
-from .region import AbstractRegion
+from pipelines.grid import UniformGrid
+from pipelines.network import Network
+from pipelines.spec.regions import AbstractRegion
 
 #: policy(x) -> admissible concrete inputs at x, shape (k, m_total); k = 0 outside the controller's domain.
 #: A :class:`~pipelines.controller.Controller` may be passed instead: its ``choose`` draws one input directly.

@@ -29,12 +29,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .errors import CompabsError
-from .grid import UniformGrid
-from .interconnection import InterconnectionAbstraction, NodeRelation
-from .network import Network, build_network
-from .spec import JobSpec, parse_spec, spec_hash
-from .subsystem import SubsystemRelation
+from pipelines.errors import CompabsError
+from pipelines.grid import UniformGrid
+from pipelines.interconnection.core import InterconnectionAbstraction, NodeRelation
+from pipelines.network import Network, build_network
+from pipelines.spec.model import JobSpec, parse_spec, spec_hash
+from pipelines.abstraction.cells import SubsystemRelation
 
 INTERCONNECTION_META = "interconnection.json"
 INTERCONNECTION_ARRAYS = "interconnection.npz"

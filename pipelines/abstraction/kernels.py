@@ -30,7 +30,7 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 @_jit
 def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`pipelines.subsystem._scalar_sample_pass` in one read of the samples.
+    """:func:`pipelines.abstraction.cells._scalar_sample_pass` in one read of the samples.
 
     Parameters
     ----------
@@ -76,7 +76,7 @@ def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 @_jit
 def hull_and_bound(vmax: np.ndarray, vmin: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The sample hull and the quick lower bound of the SCP radius that :func:`pipelines.subsystem._abstract_block`
+    """The sample hull and the quick lower bound of the SCP radius that :func:`pipelines.abstraction.cells._abstract_block`
     tries before the pair maxima, from the per-state-sample extremes.
 
     Parameters
@@ -112,7 +112,7 @@ def hull_and_bound(vmax: np.ndarray, vmin: np.ndarray, half: int) -> tuple[np.nd
 
 @_jit
 def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
-    """:func:`pipelines.growth_bound.pair_maxima_batch_last`:
+    """:func:`pipelines.abstraction.growth_bound.pair_maxima_batch_last`:
     ``E[k] = max_l max(vmax[l + k] - vmin[l], vmax[l] - vmin[l + k])``.
 
     Parameters
@@ -143,7 +143,7 @@ def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
 def scp_parameters_batch_last(
     E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray, tie_rtol: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`pipelines.growth_bound.scp_parameters_batch_last`: the closed-form SCP (Eq. 4.5, METHOD §2) per
+    """:func:`pipelines.abstraction.growth_bound.scp_parameters_batch_last`: the closed-form SCP (Eq. 4.5, METHOD §2) per
     column, ``theta1 = clip(min_{d_i <= w} max_{d_j > w} (r_j - r_i) / (d_j - d_i), 0, L_x)``,
     ``theta2 = max(0, max_k r_k - theta1 d_k)``, with ``d_k = k h_x``, ``r_k = E_k + rho``.
 
@@ -202,7 +202,7 @@ def _cell_range(
     snap_rtol: float,
 ) -> tuple[int, int, bool]:
     """Successor cells of the box ``[lo, hi]`` along one state axis (Definition 4.2), as ``_abstract_block``
-    computes them: :func:`pipelines.growth_bound.widen`, :meth:`pipelines.grid.UniformGrid.cells_touching`
+    computes them: :func:`pipelines.abstraction.growth_bound.widen`, :meth:`pipelines.grid.UniformGrid.cells_touching`
     (``fp_rtol = FP_RTOL``, ``snap_rtol = SNAP_RTOL``), clipped to the ``size`` cells of the grid.
 
     Returns
@@ -276,7 +276,7 @@ def scalar_block(
     tie_rtol: float,
     skip_rtol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Everything :func:`pipelines.subsystem._abstract_block` computes after the black box, for a scalar state
+    """Everything :func:`pipelines.abstraction.cells._abstract_block` computes after the black box, for a scalar state
     with at most one internal-input sub-grid axis, in one pass per triple: the four growth bounds (Lemma 4.3,
     the sample hull, the SCP of Theorem 4.4 under both objectives), their successor cells (Definition 4.2) and
     blocking flags, the successor statistics and the slopes for Lipschitz validation. The same values as that

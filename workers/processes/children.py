@@ -15,8 +15,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-PACKAGE_ROOT = str(Path(__file__).resolve().parent.parent)
-"""The directory holding this ``pipelines`` package."""
+PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
+"""The directory holding the ``pipelines`` and ``workers`` packages."""
 
 
 def start_module(module: str, *args: str, **popen: Any) -> subprocess.Popen:

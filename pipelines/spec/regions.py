@@ -14,9 +14,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from .errors import SpecError
-from .grid import UniformGrid
-from .spec import Region
+from pipelines.errors import SpecError
+from pipelines.grid import UniformGrid
+from pipelines.spec.model import Region
 
 IndexBox = tuple[np.ndarray, np.ndarray]  # (first, last), each shape (n,), inclusive
 

@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import SpecError
+from pipelines.errors import SpecError
 
 
 @dataclass(frozen=True)

@@ -1,12 +1,12 @@
 """The audit in a child process, beside synthesis (``run_abstraction(audit_beside=True)``).
 
 Synthesis needs nothing the audit makes, and the audit (Theorems 4.2 and 4.7 checked on random transitions,
-:func:`~pipelines.job.run_audit`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
+:func:`~workers.job.run_audit`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
 GIL: a thread would not overlap it, a process does. On the 10 tanks the 2.6 s audit then costs no wall time
 (the per-subsystem synthesis uses one core). The job still fails on a violation, after synthesis, as before: a
 violation never stopped synthesis, it sets the job's status at the end.
 
-The child is ``python -m pipelines.audit_beside IN OUT PARENT_PID`` (not ``multiprocessing``, whose ``spawn``
+The child is ``python -m workers.processes.audit_beside IN OUT PARENT_PID`` (not ``multiprocessing``, whose ``spawn``
 re-runs the caller's ``__main__`` and whose ``fork`` copies a process that may hold Dask's threads). ``IN`` is a
 pickle of the network (black boxes included: a ``module:function`` pickles by reference and was allowed
 already), the relations, the interconnection abstraction, the transition count and the random generator, whose
@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .children import start_module
-from .errors import CompabsError
+from workers.processes.children import start_module
+from pipelines.errors import CompabsError
 
 
 class BackgroundAudit:
@@ -36,7 +36,7 @@ class BackgroundAudit:
     Parameters
     ----------
     network, relations, ia, count, rng
-        As for :func:`~pipelines.job.run_audit`; ``rng`` is copied (this process's generator is left alone).
+        As for :func:`~workers.job.run_audit`; ``rng`` is copied (this process's generator is left alone).
     """
 
     def __init__(self, network: Any, relations: dict, ia: Any, count: int, rng: Any) -> None:
@@ -47,7 +47,7 @@ class BackgroundAudit:
                 pickle.dump((network, relations, ia, int(count), rng), fh, protocol=pickle.HIGHEST_PROTOCOL)
             with open(self._err, "wb") as err:  # a file, not a pipe: a chatty child cannot block on a full pipe
                 self._proc = start_module(
-                    "pipelines.audit_beside", str(self._in), str(self._out), str(os.getpid()),
+                    "workers.processes.audit_beside", str(self._in), str(self._out), str(os.getpid()),
                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
                 )
         except BaseException:
@@ -60,7 +60,7 @@ class BackgroundAudit:
         Returns
         -------
         report : dict
-            As :func:`~pipelines.job.run_audit` returns it.
+            As :func:`~workers.job.run_audit` returns it.
         seconds : float
             The audit's own wall time in the child.
         waited : float
@@ -124,7 +124,7 @@ def main(argv: list[str]) -> int:
     ``argv`` is ``IN OUT [PARENT_PID]``; with a parent pid the child stops (and removes ``IN``'s folder) when
     that process dies.
     """
-    from .job import run_audit
+    from workers.job import run_audit
 
     src, dst, *parent = argv
     if parent:

@@ -2,7 +2,7 @@
 
 A spec describes an interconnected system the way the paper does (Section 3): subsystems
 ``Xi_i = (X_i, U_i, W_i, f_i)`` given as black boxes, an interconnection map ``M`` that can only be sampled,
-and a specification over the composed state. Dynamics and maps are safe expressions (:mod:`pipelines.expr`)
+and a specification over the composed state. Dynamics and maps are safe expressions (:mod:`pipelines.expressions.compiler`)
 or, for local runs, a ``module:function`` name.
 
 Numbers that may vary between runs (the network size ``N``) are ``parameters``; they can be used in
@@ -19,7 +19,7 @@ from typing import Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .errors import SpecError
+from pipelines.errors import SpecError
 
 Vector = Union[float, list[float]]
 MODULE_FUNCTION = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$")
@@ -216,7 +216,7 @@ class JobSpec(_Model):
     def _param_names(cls, v):
         import keyword
 
-        from .expr import FUNCTIONS
+        from pipelines.expressions.compiler import FUNCTIONS
 
         reserved = {"x", "u", "w", "pi", "e"} | set(FUNCTIONS)
         for name in v:

@@ -22,10 +22,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import compiled
-from .errors import BlackBoxError
-from .grid import SNAP_RTOL, UniformGrid
-from .growth_bound import (
+import pipelines.abstraction.kernels as compiled
+from pipelines.errors import BlackBoxError
+from pipelines.grid import SNAP_RTOL, UniformGrid
+from pipelines.abstraction.growth_bound import (
     FP_RTOL,
     SCP_TIE_RTOL,
     hull_margin,
@@ -37,7 +37,7 @@ from .growth_bound import (
     subgrid_counts,
     widen,
 )
-from .network import Subsystem
+from pipelines.network import Subsystem
 
 METHODS = ("lipschitz", "scp", "scp_radius", "hull")
 #: Relative slack when comparing an observed slope with a given Lipschitz constant: slopes are differences
