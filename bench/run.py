@@ -202,12 +202,13 @@ def _jsonable(obj: Any, depth: int = 0) -> Any:
 # ====================================================================================== cases (child side)
 def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
     """A spec end to end in this process: abstraction (with audit), synthesis, closed loop, files."""
-    from workers.job import run_abstraction, run_synthesis
+    from workers.control import run_synthesis
+    from workers.job import run_abstraction
     from pipelines.spec.model import load_spec
 
     spec = load_spec(p["spec"], p.get("set"))
     clock = StageClock(emit)
-    r = run_abstraction(spec, progress=clock, audit_beside=True)  # as execute_job runs a job with synthesis
+    r = run_abstraction(spec, progress=clock, audit_beside=True)  # as run_job runs a job with synthesis
     rep = r.report
     emit({"type": "info", "stage_seconds": rep["stage_seconds"], "abstract_states": rep["abstract_states"],
           "region_states": rep.get("region_states"),
@@ -237,7 +238,7 @@ def child_scalability(p: dict, emit: Callable[[dict], None]) -> None:
     """One N of the scalability example: abstraction stages (no audit) and the composition."""
     from workers.job import run_abstraction
     from pipelines.spec.model import load_spec
-    from pipelines.synthesis.game import Game
+    from pipelines.synthesis.cpre import ControllablePredecessor
 
     spec = load_spec(EXAMPLES / "scalability.yaml", {"N": p["N"]})
     clock = StageClock(emit)
@@ -252,7 +253,7 @@ def child_scalability(p: dict, emit: Callable[[dict], None]) -> None:
               "final_node_mean_w_cells": final[0].mean_cells() if final else None,
               "w_cells": network_w_cells(r)}})
     clock.mark("other")
-    game = Game.from_abstraction(r)
+    game = ControllablePredecessor.from_network(r.network, r.relations, r.interconnection)
     clock.mark("composition")
     bs = game.model.build_seconds
     emit({"type": "info", "composition": {
@@ -293,7 +294,7 @@ def _floor_function(sub, network) -> tuple[Callable, Callable]:
     """
     import numpy as np
 
-    from pipelines.expressions.compiler import compile_expression
+    from pipelines.expressions import compile_expression
     from pipelines.spec.model import is_module_function
 
     src = sub.spec.dynamics
@@ -329,7 +330,8 @@ def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
     """(a) Per-cell stage against the bare evaluation of the black box on the same samples."""
     from pipelines.network import build_network
     from pipelines.spec.model import load_spec
-    from pipelines.abstraction.cells import abstract_cells, chunk_ranges
+    from pipelines.abstraction.cells import abstract_cells
+    from pipelines.abstraction.relation import chunk_ranges
 
     import pipelines.abstraction.kernels as compiled
 
@@ -399,7 +401,8 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
     )
     from pipelines.network import build_network
     from pipelines.spec.model import load_spec
-    from pipelines.abstraction.cells import abstract_cells, chunk_ranges
+    from pipelines.abstraction.cells import abstract_cells
+    from pipelines.abstraction.relation import chunk_ranges
 
     spec = load_spec(p["spec"], p.get("set"))
     network = build_network(spec, None)
@@ -487,14 +490,14 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
 def child_workers(p: dict, emit: Callable[[dict], None]) -> None:
     """(c) The per-cell stage on an embedded Dask cluster of ``p['workers']`` workers, fresh store."""
     from pipelines.spec.model import load_spec
-    from workers.runner import run_job
+    from workers.job import abstract_job
 
     spec = load_spec(p["spec"], p.get("set"))
     if p.get("samples"):
         spec = _with_samples(spec, p["samples"], p.get("input_eta"))
     clock = StageClock(emit)
     with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
-        r, info = run_job(spec, out, workers=p["workers"], audit=False, progress=clock)
+        r, info = abstract_job(spec, out, workers=p["workers"], audit=False, progress=clock)
         clock.mark("other")  # cluster shutdown and the store's consolidation
     emit({"type": "info", "stage_seconds": r.report["stage_seconds"], "abstract_states": r.report["abstract_states"],
           "runner": _jsonable({k: info.get(k) for k in ("workers", "chunks_total", "chunks_computed",
@@ -507,8 +510,11 @@ def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
 
     from pipelines.network import build_network
     from pipelines.spec.model import load_spec
-    from pipelines.abstraction.cells import abstract_cells, assemble, chunk_ranges
+    from pipelines.abstraction.cells import abstract_cells
+    from pipelines.abstraction.relation import assemble, chunk_ranges
     from pipelines.symbolic.model import SymbolicModel
+    from pipelines.symbolic.relations import subsystem_relation
+    from pipelines.symbolic.tree import range_leaves, tree
 
     spec = load_spec(p["spec"], p.get("set"))
     network = build_network(spec, None)
@@ -541,8 +547,8 @@ def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
         return m, m.subsystem_digits(m.subsystems[sub.index])
 
     def bulk(m, dg):
-        ids, leaves = m.range_leaves(dg["xn"], lo2, hi2, blk)
-        return m.tree(dg["x"] + dg["u"] + dg["w"], values, ids, leaves)
+        ids, leaves = range_leaves(m, dg["xn"], lo2, hi2, blk)
+        return tree(m, dg["x"] + dg["u"] + dg["w"], values, ids, leaves)
 
     def naive(m, dg):
         digits = dg["x"] + dg["u"] + dg["w"]
@@ -574,7 +580,7 @@ def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
             nodes = f.dag_size
     m, _ = fresh()
     c0 = time.process_time()
-    m.subsystem_relation(m.subsystems[sub.index], rel)
+    subsystem_relation(m, m.subsystems[sub.index], rel)
     full = time.process_time() - c0
     constraints = int((~blk).sum())
     emit({"type": "row", "row": {

@@ -31,7 +31,8 @@ sys.path.insert(0, str(ROOT))
 from workers.job import run_abstraction  # noqa: E402
 from pipelines.network import build_network  # noqa: E402
 from pipelines.spec.model import JobSpec, load_spec  # noqa: E402
-from pipelines.abstraction.cells import abstract_cells, chunk_ranges  # noqa: E402
+from pipelines.abstraction.cells import CellTask, abstract_cells  # noqa: E402
+from pipelines.abstraction.relation import chunk_ranges  # noqa: E402
 
 
 def stressed(spec: JobSpec, factor: int) -> JobSpec:
@@ -46,10 +47,10 @@ def stage_seconds(spec: JobSpec, workers: int | None) -> tuple[float, dict]:
     if workers is None:
         r = run_abstraction(spec, audit=False)
         return r.report["stage_seconds"]["subsystems"], {}
-    from workers.runner import run_job
+    from workers.job import abstract_job
 
     with tempfile.TemporaryDirectory() as out:
-        r, info = run_job(spec, out, workers=workers, audit=False)
+        r, info = abstract_job(spec, out, workers=workers, audit=False)
     return r.report["stage_seconds"]["subsystems"], info
 
 
@@ -70,9 +71,9 @@ def task_overhead(spec: JobSpec, n_tasks: int = 40) -> dict[str, float]:
         over, comp = [], []
         for i in range(n + 2):
             t0 = time.perf_counter()
-            fut = client.submit(abstract_chunk, store.url, group, sub, i % sub.state_grid.size,
-                                i % sub.state_grid.size + 1, L_x, L_w, sub.spec.growth_bound,
-                                sub.spec.scp_objective, pure=False)
+            cell = i % sub.state_grid.size
+            task = CellTask(sub, cell, cell + 1, L_x, L_w, sub.spec.growth_bound, sub.spec.scp_objective)
+            fut = client.submit(abstract_chunk, store.url, group, task, pure=False)
             meta = fut.result()
             store.read(group, meta)
             dt = time.perf_counter() - t0
@@ -88,9 +89,9 @@ def task_overhead(spec: JobSpec, n_tasks: int = 40) -> dict[str, float]:
     # Throughput: many one-cell tasks on both workers at once; worker time not spent computing, per task.
     tiny = spec.model_copy(update={"options": spec.options.model_copy(update={"chunk_cells": 1})})
     with tempfile.TemporaryDirectory() as out:
-        from workers.runner import run_job
+        from workers.job import abstract_job
 
-        r, info = run_job(tiny, out, workers=2, audit=False)
+        r, info = abstract_job(tiny, out, workers=2, audit=False)
     stage = r.report["stage_seconds"]["subsystems"]
     pipelined = (stage * info["workers"] - info["task_compute_seconds"]) / info["chunks_computed"]
     return {

@@ -97,7 +97,7 @@ class BlackBox:
             self._fn = fn
         else:
             from pipelines.errors import ExpressionError
-            from pipelines.expressions.compiler import compile_expression
+            from pipelines.expressions import compile_expression
 
             # An argument of dimension 0 (a subsystem that reads no internal variable) is not a variable.
             used = {k: d for k, d in self._inputs.items() if d > 0}

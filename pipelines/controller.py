@@ -5,12 +5,14 @@ bit widths, the grids, the spec). :func:`load_controller` reads one without the 
 :meth:`Controller.inputs` quantizes a concrete state and returns the admissible concrete inputs there.
 
 A :class:`LayeredController` is the same controller stored as what it is made of (the fixed point's iterates
-and the game's relations) and evaluated at one state at a time; where the explicit BDD is huge (consensus) it
-is the form that fits on disk and answers in milliseconds.
+and the controllable predecessor's ingredients) and evaluated at one state at a time
+(:func:`~.synthesis.cpre.cpre_at_state`); where the explicit BDD is huge (consensus) it is the form that fits on
+disk and answers in milliseconds.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,9 +20,14 @@ import numpy as np
 
 from pipelines.errors import CompabsError
 from pipelines.grid import UniformGrid
+from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
+from pipelines.symbolic.files import dump, load_all
+from pipelines.symbolic.model import Function
+from pipelines.synthesis.cpre import cpre_at_state
 
-if TYPE_CHECKING:  # pragma: no cover - dd is imported where a controller is loaded, not here
-    from pipelines.symbolic.model import Sampler
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.synthesis.cpre import ControllablePredecessor
+    from pipelines.synthesis.fixed_points import SynthesisResult
 
 CONTROLLER_FILE = "controller"
 
@@ -82,7 +89,7 @@ class Controller:
     def input_indices(self, idx: np.ndarray) -> np.ndarray:
         """Per-subsystem flat input indices allowed at a cell, shape (k, N)."""
         m = self._model
-        return m.enumerate(self.input_set(idx), m.u_digits())
+        return enumerate_cells(m, self.input_set(idx), m.u_digits())
 
     def choose(self, x: np.ndarray, rng: np.random.Generator, how: str = "random") -> np.ndarray | None:
         """One admissible concrete input at ``x``, shape (m_total,): uniform over the admissible joint inputs
@@ -116,7 +123,7 @@ class Controller:
         hit = self._samplers.get(key)
         if hit is None:
             m = self._model
-            hit = m.sampler(self.input_set(idx), m.u_digits())
+            hit = sampler(m, self.input_set(idx), m.u_digits())
             if len(self._samplers) >= INPUT_CACHE:
                 self._samplers.clear()
             self._samplers[key] = hit
@@ -144,14 +151,14 @@ class Controller:
     def sample_cells(self, count: int, rng: np.random.Generator) -> np.ndarray:
         """Cells drawn uniformly from the controller's domain, shape (count, n) (empty if the domain is).
 
-        Exact model counts guide a walk down the domain BDD (:meth:`SymbolicModel.sample`), so a domain of
+        Exact model counts guide a walk down the domain BDD (:func:`~.symbolic.counting.sample`), so a domain of
         1e-5 of the state space costs no more than a large one, where rejection sampling would fail.
         """
         m = self._model
-        return m.sample(self._domain, m.x_digits(), rng, size=count)
+        return sample(m, self._domain, m.x_digits(), rng, size=count)
 
-    def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
-        return self._model.dump(Path(directory) / name, self._bdd, {**self._meta, "form": "explicit"})
+    def save(self, directory: str | os.PathLike[str], name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
+        return dump(self._model, Path(directory) / name, self._bdd, {**self._meta, "form": "explicit"})
 
     @property
     def nodes(self) -> int:
@@ -164,7 +171,7 @@ INPUT_CACHE = 100_000
 
 
 class LayeredController(Controller):
-    """A progress controller kept as layers and evaluated on line (:class:`~pipelines.synthesis.game.SynthesisResult`).
+    """A progress controller kept as layers and evaluated on line (:class:`~.synthesis.fixed_points.SynthesisResult`).
 
     At a cell first in ``layers[k]`` the admissible inputs are ``CPre(layers[k-1])`` at that cell (Algorithm 5's
     reachability controller), in ``layers[0]`` ``CPre(layers[0])`` if ``stay`` (the invariant of Reach(Safe)) or
@@ -174,9 +181,11 @@ class LayeredController(Controller):
     ----------
     model : SymbolicModel
     admissible : Function
-        States and inputs where every admissible internal input lets every subsystem move (``Game.admissible``).
+        States and inputs where every admissible internal input lets every subsystem move
+        (:attr:`~.synthesis.cpre.ControllablePredecessor.admissible`).
     chain : sequence of (Function, list of str)
-        The partitioned relations and the next-state bits each lets quantify (``Game.chain``).
+        The partitioned relations and the next-state bits each lets quantify
+        (:attr:`~.synthesis.cpre.ControllablePredecessor.chain`).
     M : Function or None
         The interconnection over states and internal inputs for the shared-``w`` CPre, else ``None``.
     layers : sequence of Function
@@ -187,8 +196,6 @@ class LayeredController(Controller):
     """
 
     def __init__(self, model, admissible, chain, M, layers, stay: bool, meta: dict) -> None:  # noqa: PLR0913
-        from pipelines.synthesis.game import Game
-
         if not layers:
             raise CompabsError("a layered controller needs at least one layer")
         self._layers = tuple(layers)
@@ -196,21 +203,15 @@ class LayeredController(Controller):
         self._chain = [(rel, list(bits)) for rel, bits in chain]
         self._M = M
         self._admissible = admissible
-        # A Game without preparation: cpre_at only reads these attributes.
-        game = Game.__new__(Game)
-        game.model, game.bdd, game.admissible, game.chain = model, model.bdd, admissible, self._chain
-        game.method = "shared" if M is not None else "per_subsystem"
-        game.M, game.w_bits = M, model.w_bits
-        self._game = game
-        self._next: dict[int, object] = {}
+        self._next: dict[int, Function] = {}
         self._inputs: dict[tuple[int, ...], object] = {}
         super().__init__(model, self._layers[-1], meta)
         self._domain = self._layers[-1]
 
     @classmethod
-    def from_result(cls, game, result, meta: dict) -> "LayeredController":
-        """The controller of a layered :class:`~pipelines.synthesis.game.SynthesisResult` of ``game``."""
-        return cls(game.model, game.admissible, game.chain, game.M, result.layers, result.stay, meta)
+    def from_result(cls, cpre: ControllablePredecessor, result: SynthesisResult, meta: dict) -> LayeredController:
+        """The controller of a layered :class:`~.synthesis.fixed_points.SynthesisResult` of ``cpre``."""
+        return cls(cpre.model, cpre.admissible, cpre.chain, cpre.M, result.layers, result.stay, meta)
 
     @property
     def nodes(self) -> int:
@@ -245,13 +246,14 @@ class LayeredController(Controller):
             src = 0 if k == 0 else k - 1
             if src not in self._next:
                 self._next[src] = m.to_next(self._layers[src])
-            out = self._game.cpre_at(m.state_assignment(list(key)), self._next[src])
+            out = cpre_at_state(m, self._chain, self._admissible, self._M, m.state_assignment(list(key)),
+                                self._next[src])
         if len(self._inputs) >= INPUT_CACHE:
             self._inputs.clear()
         self._inputs[key] = out
         return out
 
-    def save(self, directory: str | Path, name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
+    def save(self, directory: str | os.PathLike[str], name: str = CONTROLLER_FILE) -> tuple[Path, ...]:
         roots = [self._admissible, *(r for r, _ in self._chain), *self._layers]
         if self._M is not None:
             roots.append(self._M)
@@ -263,17 +265,15 @@ class LayeredController(Controller):
             "layers": len(self._layers),
             "shared": self._M is not None,
         }
-        return self._model.dump(Path(directory) / name, roots, meta)
+        return dump(self._model, Path(directory) / name, roots, meta)
 
 
-def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Controller:
+def load_controller(directory: str | os.PathLike[str], name: str = CONTROLLER_FILE) -> Controller:
     """Load a controller written by ``compabs run`` (``DIR/controller.dddmp`` and ``DIR/controller.json``)."""
-    from pipelines.symbolic.model import SymbolicModel
-
     base = Path(directory) / name
     if not base.with_name(base.name + ".json").exists():
         raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
-    model, roots, meta = SymbolicModel.load_all(base)
+    model, roots, meta = load_all(base)
     if meta.get("form") != "layered":
         (bdd,) = roots
         return Controller(model, bdd, meta)
@@ -283,8 +283,8 @@ def load_controller(directory: str | Path, name: str = CONTROLLER_FILE) -> Contr
     return LayeredController(model, admissible, list(zip(chain, meta["chain_next_bits"])), M, layers, meta["stay"], meta)
 
 
-def controller_of(game, result, meta: dict) -> Controller:
-    """The controller of a :class:`~pipelines.synthesis.game.SynthesisResult`, explicit or layered."""
+def controller_of(cpre: ControllablePredecessor, result: SynthesisResult, meta: dict) -> Controller:
+    """The controller of a :class:`~.synthesis.fixed_points.SynthesisResult` of ``cpre``, explicit or layered."""
     if result.layers:
-        return LayeredController.from_result(game, result, meta)
-    return Controller(game.model, result.controller, meta)
+        return LayeredController.from_result(cpre, result, meta)
+    return Controller(cpre.model, result.controller, meta)

@@ -12,14 +12,16 @@ running jobs to stop where they can resume, then closes the cluster. Run it in o
 (``compabs serve``): every process would start its own cluster and job threads.
 
 Errors are JSON ``{"detail": "..."}`` everywhere: a spec error (any :class:`~pipelines.errors.CompabsError`)
-is 422 with its message, a cap 413/422/429 naming the cap and its value, a bug 500 without a traceback.
+is 422 with its message, a cap 413/422/429 naming the cap and its value, a bug 500 without a traceback. The
+queue and the job store raise :mod:`service.errors`; :data:`ERROR_STATUS` is their HTTP status.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Any, AsyncIterator
+from typing import Any
 
 import anyio
 from fastapi import FastAPI, Request
@@ -27,15 +29,15 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from pipelines.errors import CompabsError
 from pipelines.spec.model import JobSpec
-
-from service.manager import JobManager, ServiceError, new_store
+from service.errors import BadSpec, JobNotFound, NotReady, QueueFull, ServiceError, UnsupportedMediaType
+from service.manager import JobManager, new_store
+from service.models import ErrorDetail
 from service.routers import dashboard, health, jobs, schema
 from service.routers.jobs import _StreamEnded
-from service.models import ErrorDetail
 from service.settings import Settings
 
 log = logging.getLogger("compabs.service")
@@ -86,7 +88,7 @@ class BodyLimitMiddleware:
                     return
         seen = 0
 
-        async def limited() -> dict[str, Any]:
+        async def limited() -> Message:
             nonlocal seen
             message = await receive()
             if message["type"] == "http.request":
@@ -96,6 +98,26 @@ class BodyLimitMiddleware:
             return message
 
         await self.app(scope, limited, send)
+
+
+#: The HTTP status of each :class:`~service.errors.ServiceError` (a subclass not listed takes its nearest base's:
+#: ``CapExceeded`` is a ``BadSpec``).
+ERROR_STATUS: dict[type[ServiceError], int] = {
+    ServiceError: 400,
+    UnsupportedMediaType: 415,
+    BadSpec: 422,
+    QueueFull: 429,
+    NotReady: 503,
+    JobNotFound: 404,
+}
+
+
+def status_of(exc: ServiceError) -> int:
+    """The HTTP status of ``exc``: :data:`ERROR_STATUS` of its class or its nearest listed base."""
+    for cls in type(exc).__mro__:
+        if cls in ERROR_STATUS:
+            return ERROR_STATUS[cls]
+    return ERROR_STATUS[ServiceError]  # unreachable: every ServiceError has ServiceError in its MRO
 
 
 def _validation_message(exc: RequestValidationError) -> str:
@@ -113,7 +135,7 @@ def _install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+        return JSONResponse({"detail": exc.message}, status_code=status_of(exc))
 
     @app.exception_handler(BodyTooLarge)
     async def body_too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:

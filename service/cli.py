@@ -19,8 +19,7 @@ import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
 
-from service.execute import json_default as _json_default
-from service.execute import save_relations  # noqa: F401  (kept importable from here)
+from workers.jobdir import json_default as _json_default
 
 
 class _Bars:
@@ -66,14 +65,14 @@ def _parse_sets(items: Sequence[str]) -> dict[str, float]:
 def cmd_run(args: argparse.Namespace) -> int:
     from pipelines.spec.model import load_spec
 
-    from service.execute import execute_job
+    from workers.job import run_job
 
     spec = load_spec(args.spec, _parse_sets(args.set))
     if args.audit_transitions is not None:
         spec = spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": args.audit_transitions})})
     bars = _Bars(not args.quiet)
     try:
-        report = execute_job(
+        report = run_job(
             spec, Path(args.out), scheduler=args.scheduler or os.environ.get("COMPABS_SCHEDULER"),
             workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
             audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite,
@@ -100,11 +99,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from pipelines.verification.closed_loop import simulate
     from pipelines.controller import load_controller
-    from workers.job import spec_regions
     from pipelines.network import build_network
     from pipelines.spec.model import parse_spec
+    from pipelines.spec.regions import spec_regions
+    from pipelines.verification.closed_loop import simulate
 
     controller = load_controller(args.dir)
     spec = parse_spec(controller.meta["spec"])
@@ -135,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="abstract (and audit) the system of a job spec")
     r.add_argument("spec", help="job spec, YAML or JSON")
-    r.add_argument("--out", required=True, help="output directory (report.json, relations/)")
+    r.add_argument("--out", required=True, help="output directory (report.json, relations.zarr, controller, figures)")
     r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a spec parameter")
     r.add_argument("--audit-transitions", type=int, default=None, help="override options.audit_transitions")
     r.add_argument("--no-audit", action="store_true", help="skip the audit")

@@ -5,10 +5,10 @@ every expression compiles against the whitelist (``build_network``), the regions
 hold. Only then is the job stored as ``queued``, so bad input never reaches a worker.
 
 Running: a :class:`JobManager` starts up to ``max_running`` jobs, oldest first, each in its own thread that
-calls :func:`service.execute.execute_job` with the API's long-lived Dask client. The thread's progress
+calls :func:`workers.job.run_job` with the API's long-lived Dask client. The thread's progress
 callback persists events (throttled to one per ``PROGRESS_INTERVAL`` seconds per stage, plus each stage's
 first and last) and is where cancellation happens: once the job's flag is set it raises
-:class:`~service.execute.JobCancelled`, which unwinds the stage; on a cluster the runner's mapper then cancels
+:class:`~workers.job.JobCancelled`, which unwinds the stage; on a cluster the runner's mapper then cancels
 the job's outstanding Dask tasks.
 
 Restart: jobs the store shows as ``running`` when an API starts were interrupted (the process died or was
@@ -32,11 +32,11 @@ import yaml
 
 from pipelines.errors import CompabsError, SpecError
 from pipelines.spec.model import JobSpec, parse_spec
-
-from service.execute import JobCancelled, execute_job
+from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, UnsupportedMediaType
 from service.models import job_json, summarize
 from service.settings import Settings
-from service.store import JobRecord, JobStore
+from service.store import ACTIVE, JobRecord, JobStatus, JobStore
+from workers.job import JobCancelled, run_job
 
 log = logging.getLogger("compabs.service")
 
@@ -44,15 +44,6 @@ log = logging.getLogger("compabs.service")
 PROGRESS_INTERVAL = 0.25
 #: Content types read as YAML (which also reads JSON); ``application/json`` is read as JSON.
 YAML_TYPES = frozenset({"application/yaml", "application/x-yaml", "text/yaml", "text/x-yaml", "text/plain"})
-
-
-class ServiceError(Exception):
-    """A request the service refuses, with its HTTP status and a message naming the cause and the fix."""
-
-    def __init__(self, status_code: int, detail: str) -> None:
-        super().__init__(detail)
-        self.status_code = status_code
-        self.detail = detail
 
 
 # ============================================================================================ submission
@@ -78,17 +69,14 @@ def parse_body(body: bytes, content_type: str | None) -> dict[str, Any]:
 
     Raises
     ------
-    ServiceError
-        415 for an unsupported content type.
+    UnsupportedMediaType
+        For a content type that is neither JSON nor YAML.
     SpecError
         For a body that does not parse, naming the line or position.
     """
     media = (content_type or "").split(";")[0].strip().lower()
     if media and media != "application/json" and media not in YAML_TYPES and not media.endswith("+json"):
-        raise ServiceError(
-            415, f"content type {media!r} is not accepted: send the spec as application/json, or as YAML with "
-            "application/yaml (text/yaml, text/plain)"
-        )
+        raise UnsupportedMediaType(media)
     try:
         text = body.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -115,9 +103,9 @@ def _replicas(spec: JobSpec) -> float:
     total = 0.0
     for s in spec.subsystems:
         r = s.replicate
-        if isinstance(r, str):
-            r = spec.parameters.get(r, 1)  # an undefined name is build_network's error, with its message
-        total += max(float(r), 0.0)
+        # an undefined name is build_network's error, with its message
+        count = float(spec.parameters.get(r, 1)) if isinstance(r, str) else float(r)
+        total += max(count, 0.0)
     return total
 
 
@@ -126,35 +114,38 @@ def validate_spec(spec: JobSpec, settings: Settings) -> None:
 
     Raises
     ------
-    ServiceError
-        422 naming the cap exceeded and its value.
+    CapExceeded
+        Naming the cap exceeded and its value.
     CompabsError
         A SpecError / ExpressionError naming the field or the offending token.
     """
-    from workers.job import spec_regions
     from pipelines.network import build_network
+    from pipelines.spec.regions import spec_regions
 
     n = _replicas(spec)
     if n > settings.max_subsystems:
-        raise ServiceError(
-            422, f"the spec has {n:g} subsystems after replicate; this server's cap max_subsystems is "
-            f"{settings.max_subsystems}"
+        raise CapExceeded(
+            "max_subsystems", settings.max_subsystems,
+            f"the spec has {n:g} subsystems after replicate; this server's cap max_subsystems is "
+            f"{settings.max_subsystems}",
         )
     fields = [(f"subsystems[{i}].dynamics", s.dynamics) for i, s in enumerate(spec.subsystems)]
     fields.append(("interconnection.map", spec.interconnection.map))
     for where, text in fields:
         if len(text) > settings.max_expression_length:
-            raise ServiceError(
-                422, f"{where} is {len(text)} characters; this server's cap max_expression_length is "
-                f"{settings.max_expression_length}"
+            raise CapExceeded(
+                "max_expression_length", settings.max_expression_length,
+                f"{where} is {len(text)} characters; this server's cap max_expression_length is "
+                f"{settings.max_expression_length}",
             )
     network = build_network(spec, tuple(settings.allowed_modules))
     for sub in network.subsystems:
         if sub.triples > settings.max_cells:
-            raise ServiceError(
-                422, f"subsystem '{sub.name}' has {sub.triples} (x, u, w) cell triples ({sub.state_grid.size} states x "
+            raise CapExceeded(
+                "max_cells", settings.max_cells,
+                f"subsystem '{sub.name}' has {sub.triples} (x, u, w) cell triples ({sub.state_grid.size} states x "
                 f"{sub.input_grid.size} inputs x {sub.n_w_cells} internal cells); this server's cap max_cells is "
-                f"{settings.max_cells}: coarsen its grids (larger eta, smaller boxes)"
+                f"{settings.max_cells}: coarsen its grids (larger eta, smaller boxes)",
             )
     spec_regions(spec, network)
 
@@ -204,72 +195,82 @@ class JobManager:
 
     # ------------------------------------------------------------------ submission
     def check_capacity(self) -> None:
-        """429 when ``max_concurrent_jobs`` jobs are queued or running."""
-        active = self.store.count(("queued", "running"))
+        """Raise :class:`QueueFull` when ``max_concurrent_jobs`` jobs are queued or running."""
+        active = self.store.count(ACTIVE)
         if active >= self.settings.max_concurrent_jobs:
-            raise ServiceError(
-                429, f"this server has {active} queued or running jobs, its cap max_concurrent_jobs is "
-                f"{self.settings.max_concurrent_jobs}: wait for one to finish, or cancel one (DELETE /jobs/{{id}})"
-            )
+            raise QueueFull(active, self.settings.max_concurrent_jobs)
 
     def submit(self, body: bytes, content_type: str | None, name: str | None = None) -> JobRecord:
         """Validate a submitted spec and queue it.
 
         Raises
         ------
-        ServiceError, CompabsError
+        QueueFull
+            When ``max_concurrent_jobs`` jobs are queued or running.
+        NotReady
+            When the manager is shutting down.
+        BadSpec
+            For a ``name`` that is empty or longer than 256 characters.
+        UnsupportedMediaType, CapExceeded, CompabsError
             See :func:`parse_body` and :func:`validate_spec`.
         """
         self.check_capacity()  # before parsing: a full server answers at once
         spec = parse_spec(parse_body(body, content_type))
         validate_spec(spec, self.settings)
         if name is not None and not (0 < len(name) <= 256):
-            raise ServiceError(422, "query parameter name: must be 1 to 256 characters")
+            raise BadSpec("query parameter name: must be 1 to 256 characters")
         job_id = uuid.uuid4().hex[:16]
         with self._lock:
             if self._stopping:
-                raise ServiceError(503, "the server is shutting down; submit the job again when it is back")
+                raise NotReady("the server is shutting down; submit the job again when it is back")
             self.check_capacity()  # again under the lock: two submissions must not both take the last place
             rec = self.store.create(job_id, name or spec.name, spec.model_dump_json())
         self._kick()
         return rec
 
-    def cancel(self, job_id: str) -> JobRecord | None:
+    def get(self, job_id: str) -> JobRecord:
+        """The job ``job_id``; :class:`~service.errors.JobNotFound` if there is none."""
+        return self.store.require(job_id)
+
+    def cancel(self, job_id: str) -> JobRecord:
         """Cancel a job: a queued one at once; a running one once its thread stops (its Dask tasks cancelled).
 
-        Returns the job as it is now (``None`` if there is no such job); cancelling an ended job changes nothing.
+        Returns the job as it is now; cancelling an ended job changes nothing.
+
+        Raises
+        ------
+        JobNotFound
+            When there is no such job.
         """
         with self._lock:
-            rec = self.store.get(job_id)
-            if rec is None or rec.terminal:
+            rec = self.store.require(job_id)
+            if rec.terminal:
                 return rec
-            if rec.status == "queued":
-                return self.store.set_status(job_id, "cancelled")
             entry = self._running.get(job_id)
-            if entry is None:  # "running" with no thread here: nothing to stop
-                return self.store.set_status(job_id, "cancelled")
+            if rec.status == JobStatus.QUEUED or entry is None:  # running with no thread here: nothing to stop
+                return self.store.set_status(job_id, JobStatus.CANCELLED) or rec
             self.store.request_cancel(job_id)
             entry.flag.set("cancelled by request")
-            return self.store.get(job_id)
+            return self.store.get(job_id) or rec
 
     # ------------------------------------------------------------------ lifecycle
     def recover(self) -> None:
         """End or re-queue the jobs an earlier API process left ``running`` (call once, before :meth:`start`)."""
-        for rec in self.store.list(limit=1_000_000, statuses=("running",)):
+        for rec in self.store.list(limit=1_000_000, statuses=(JobStatus.RUNNING,)):
             if rec.id in self._running:
                 continue
             if rec.cancel_requested:
-                self.store.set_status(rec.id, "cancelled")
+                self.store.set_status(rec.id, JobStatus.CANCELLED)
             elif rec.attempts > self.settings.max_resumes:
                 self.store.set_status(
-                    rec.id, "failed",
+                    rec.id, JobStatus.FAILED,
                     error=f"the API stopped {rec.attempts} times while this job was running, so it is not resumed "
                     f"again (max_resumes = {self.settings.max_resumes}); its finished chunks are kept in the job's "
                     "directory. Submit the spec again to retry, or check the server log for what stops the API.",
                 )
             else:
                 log.info("job %s was running when the API stopped: re-queued, it resumes from its stored chunks", rec.id)
-                self.store.set_status(rec.id, "queued")
+                self.store.set_status(rec.id, JobStatus.QUEUED)
 
     def start(self) -> None:
         self._kick()
@@ -304,15 +305,15 @@ class JobManager:
         """Start queued jobs, oldest first, while fewer than ``max_running`` run."""
         with self._lock:
             while not self._stopping and len(self._running) < self.settings.max_running:
-                queued = [r for r in self.store.list(limit=len(self._running) + 1, statuses=("queued",))
+                queued = [r for r in self.store.list(limit=len(self._running) + 1, statuses=(JobStatus.QUEUED,))
                           if r.id not in self._running]
                 if not queued:
                     return
                 rec = queued[0]
                 started = self.store.set_status(
-                    rec.id, "running", started=True, attempts_delta=1, dask_dashboard=self.cluster.get("dashboard"),
+                    rec.id, JobStatus.RUNNING, started=True, attempts_delta=1, dask_dashboard=self.cluster.get("dashboard"),
                 )
-                if started is None or started.status != "running":
+                if started is None or started.status != JobStatus.RUNNING:
                     continue
                 flag = _Flag()
                 thread = threading.Thread(target=self._run, args=(rec.id, flag), name=f"compabs-job-{rec.id}", daemon=True)
@@ -350,7 +351,7 @@ class JobManager:
         out = self.settings.jobs_dir / job_id
         try:
             spec = parse_spec(json.loads(rec.spec))
-            report = execute_job(
+            report = run_job(
                 spec, out, client=self.client, in_process=self.settings.in_process or self.client is None,
                 progress=self._progress(job_id, flag), allowed_modules=tuple(self.settings.allowed_modules),
             )
@@ -359,15 +360,15 @@ class JobManager:
                 # Stopped by (or failing because of) the API's shutdown, e.g. its Dask client closing: resume later.
                 # Not counted as an attempt: the job did nothing wrong.
                 log.info("job %s interrupted by the API stopping (%s); re-queued", job_id, type(exc).__name__)
-                self.store.set_status(job_id, "queued", attempts_delta=-1)
+                self.store.set_status(job_id, JobStatus.QUEUED, attempts_delta=-1)
             elif isinstance(exc, JobCancelled):
-                self.store.set_status(job_id, "cancelled")
+                self.store.set_status(job_id, JobStatus.CANCELLED)
             elif isinstance(exc, CompabsError):
-                self.store.set_status(job_id, "failed", error=str(exc))
+                self.store.set_status(job_id, JobStatus.FAILED, error=str(exc))
             else:
                 log.exception("job %s failed with an internal error", job_id)
                 self.store.set_status(
-                    job_id, "failed",
+                    job_id, JobStatus.FAILED,
                     error=f"internal error ({type(exc).__name__}: {exc}); the server log has the details. "
                     "Please report it with the spec.",
                 )
@@ -381,9 +382,9 @@ class JobManager:
         elif closed.get("violations"):
             error = f"{closed['violations']} closed-loop runs violated the specification: {closed.get('first_violation')}"
         if error:
-            self.store.set_status(job_id, "failed", error=error, summary=summary, figures=[])
+            self.store.set_status(job_id, JobStatus.FAILED, error=error, summary=summary, figures=[])
         else:
-            self.store.set_status(job_id, "succeeded", summary=summary, figures=list(report.get("figures", [])))
+            self.store.set_status(job_id, JobStatus.SUCCEEDED, summary=summary, figures=list(report.get("figures", [])))
 
 
 def new_store(settings: Settings) -> JobStore:

@@ -10,10 +10,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from service.execute import STAGES
-from service.store import JobRecord
-
-Status = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+from service.store import JobRecord, JobStatus
+from workers.job import STAGES
 
 
 class ErrorDetail(BaseModel):
@@ -49,7 +47,7 @@ class Job(BaseModel):
 
     id: str
     name: str
-    status: Status
+    status: JobStatus = Field(description="queued, running, then succeeded, failed or cancelled")
     created_at: datetime
     started_at: datetime | None = None
     finished_at: datetime | None = None
@@ -62,7 +60,7 @@ class Job(BaseModel):
     summary: JobSummary | None = None
 
     @classmethod
-    def of(cls, rec: JobRecord) -> "Job":
+    def of(cls, rec: JobRecord) -> Job:
         order = {s: i for i, s in enumerate(STAGES)}
         stages = []
         for name in sorted(rec.stages, key=lambda s: (order.get(s, len(order)), s)):
@@ -74,7 +72,7 @@ class Job(BaseModel):
         return cls(
             id=rec.id, name=rec.name, status=rec.status, created_at=rec.created_at, started_at=rec.started_at,
             finished_at=rec.finished_at, error=rec.error, stages=stages, dask_dashboard=rec.dask_dashboard,
-            figures=list(rec.figures) if rec.status == "succeeded" else [],
+            figures=list(rec.figures) if rec.status == JobStatus.SUCCEEDED else [],
             summary=JobSummary.model_validate(rec.summary) if rec.summary else None,
         )
 

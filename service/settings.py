@@ -4,29 +4,31 @@ Every field ``name`` is read from the environment variable ``COMPABS_<NAME>`` (`
 ``COMPABS_DATA_DIR``, ``COMPABS_MAX_CELLS``, ...); lists (``allowed_modules``) are comma-separated, booleans
 are ``1/0``, ``true/false``, ``yes/no``. ``compabs serve`` options override the environment.
 
-Caps (each refusal names the cap and its value, so a user knows what to change or whom to ask):
+Caps (each refusal names the cap and its value, so a user knows what to change or whom to ask; the refusals are
+:mod:`service.errors`, and ``service.app.ERROR_STATUS`` gives their HTTP status):
 
 ``max_body_bytes`` (1 MiB)
-    Request bodies larger than this get 413 before anything is parsed. The largest paper case spec is ~3 kB.
+    Request bodies larger than this are refused before anything is parsed. The largest paper case spec is ~3 kB.
 ``max_cells`` (10,000,000)
     ``(x, u, w)`` cell triples per subsystem: state cells x input points x internal cells, the size of one
     subsystem's relation (``Subsystem.triples``). The per-cell stage evaluates the black box ``samples`` times per
     triple, so 10^7 triples at 100 samples is 10^9 evaluations, minutes on two workers, and a relation of
-    ~100 MB; the paper's cases need at most ~6,000 triples per subsystem. 422 when exceeded.
+    ~100 MB; the paper's cases need at most ~6,000 triples per subsystem. ``CapExceeded`` when exceeded.
 ``max_subsystems`` (256)
     Subsystems after ``replicate`` is expanded (checked before anything is built, so ``replicate: 1e9`` costs
-    nothing). 422.
+    nothing). ``CapExceeded``.
 ``max_expression_length`` (2,000 characters)
-    Each ``dynamics`` and the interconnection ``map``. 422.
+    Each ``dynamics`` and the interconnection ``map``. ``CapExceeded``.
 ``max_concurrent_jobs`` (16)
-    Queued plus running jobs; a submission beyond it gets 429.
+    Queued plus running jobs; a submission beyond it is refused with ``QueueFull``.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -56,7 +58,7 @@ class Settings(BaseModel):
     max_cells: int = Field(default=10_000_000, ge=1, description="largest (x, u, w) cell triples per subsystem")
     max_subsystems: int = Field(default=256, ge=1, description="largest number of subsystems after replicate")
     max_expression_length: int = Field(default=2000, ge=1, description="longest dynamics or map expression, characters")
-    max_concurrent_jobs: int = Field(default=16, ge=1, description="queued + running jobs beyond which POST /jobs gets 429")
+    max_concurrent_jobs: int = Field(default=16, ge=1, description="queued + running jobs beyond which POST /jobs is refused")
     max_running: int = Field(
         default=1, ge=1, le=64,
         description="jobs running at once (each on the shared cluster; synthesis of each runs in this process)",
@@ -93,7 +95,7 @@ class Settings(BaseModel):
         return self.data_dir / "jobs"
 
     @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: Any) -> "Settings":
+    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
         """Settings from ``COMPABS_*`` variables, then ``overrides`` (those that are not ``None``).
 
         Raises

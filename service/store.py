@@ -21,25 +21,60 @@ writer anyway, and the per-job ``seq`` is read and incremented inside the lock).
 
 from __future__ import annotations
 
+import builtins
 import threading
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from enum import Enum
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, overload
 
 from sqlalchemy import JSON, Boolean, DateTime, ForeignKey, Integer, String, Text, create_engine, event, func, select
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 from sqlalchemy.pool import StaticPool
 
-#: Job statuses; the last three are terminal (never change again).
-STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
-TERMINAL = frozenset({"succeeded", "failed", "cancelled"})
-ACTIVE = ("queued", "running")
+from service.errors import JobNotFound
+
+
+class JobStatus(str, Enum):
+    """A job's status: queued, running, then one of the terminal succeeded, failed or cancelled.
+
+    The values are the strings the API shows and the job store's ``status`` column holds.
+    """
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+    def __str__(self) -> str:  # the value, in messages and f-strings alike (not "JobStatus.FAILED")
+        return self.value
+
+
+#: The statuses a job never leaves.
+TERMINAL = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELLED})
+#: The statuses that hold a place in the queue (``max_concurrent_jobs``).
+ACTIVE = frozenset({JobStatus.QUEUED, JobStatus.RUNNING})
+
+
+def _values(statuses: Iterable[JobStatus | str]) -> list[str]:
+    """The column values of ``statuses`` (``ValueError`` for a string that is no status)."""
+    return [JobStatus(s).value for s in statuses]
 
 
 def utcnow() -> datetime:
     return datetime.now(timezone.utc)
+
+
+@overload
+def _utc(dt: datetime) -> datetime: ...
+
+
+@overload
+def _utc(dt: None) -> None: ...
 
 
 def _utc(dt: datetime | None) -> datetime | None:
@@ -89,7 +124,7 @@ class JobRecord:
 
     id: str
     name: str
-    status: str
+    status: JobStatus
     spec: str
     created_at: datetime
     started_at: datetime | None
@@ -108,9 +143,9 @@ class JobRecord:
         return self.status in TERMINAL
 
     @classmethod
-    def of(cls, row: JobRow) -> "JobRecord":
+    def of(cls, row: JobRow) -> JobRecord:
         return cls(
-            id=row.id, name=row.name, status=row.status, spec=row.spec, created_at=_utc(row.created_at),
+            id=row.id, name=row.name, status=JobStatus(row.status), spec=row.spec, created_at=_utc(row.created_at),
             started_at=_utc(row.started_at), finished_at=_utc(row.finished_at), error=row.error,
             cancel_requested=bool(row.cancel_requested), attempts=row.attempts or 0, dask_dashboard=row.dask_dashboard,
             stages=dict(row.stages or {}), summary=row.summary, figures=list(row.figures or []),
@@ -187,21 +222,35 @@ class JobStore:
             row = s.get(JobRow, job_id)
             return None if row is None else JobRecord.of(row)
 
-    def list(self, limit: int = 100, statuses: Iterable[str] | None = None) -> list[JobRecord]:
+    def require(self, job_id: str) -> JobRecord:
+        """The job ``job_id``.
+
+        Raises
+        ------
+        JobNotFound
+            When there is no such job (ids longer than 64 characters are not looked up).
+        """
+        rec = self.get(job_id) if len(job_id) <= 64 else None
+        if rec is None:
+            raise JobNotFound(job_id)
+        return rec
+
+    def list(self, limit: int = 100, statuses: Iterable[JobStatus] | None = None) -> builtins.list[JobRecord]:
         """Jobs newest first (``statuses``: only those; oldest first then, for the queue)."""
         with Session(self.engine) as s:
             q = select(JobRow)
             if statuses is not None:
-                q = q.where(JobRow.status.in_(list(statuses))).order_by(JobRow.created_at, JobRow.id)
+                q = q.where(JobRow.status.in_(_values(statuses))).order_by(JobRow.created_at, JobRow.id)
             else:
                 q = q.order_by(JobRow.created_at.desc(), JobRow.id.desc())
             return [JobRecord.of(r) for r in s.scalars(q.limit(limit))]
 
-    def count(self, statuses: Iterable[str]) -> int:
+    def count(self, statuses: Iterable[JobStatus]) -> int:
         with Session(self.engine) as s:
-            return s.scalar(select(func.count()).select_from(JobRow).where(JobRow.status.in_(list(statuses)))) or 0
+            q = select(func.count()).select_from(JobRow).where(JobRow.status.in_(_values(statuses)))
+            return s.scalar(q) or 0
 
-    def events_after(self, job_id: str, seq: int, limit: int = 1000) -> list[EventRecord]:
+    def events_after(self, job_id: str, seq: int, limit: int = 1000) -> builtins.list[EventRecord]:
         with Session(self.engine) as s:
             q = (select(EventRow).where(EventRow.job_id == job_id, EventRow.seq > seq)
                  .order_by(EventRow.seq).limit(limit))
@@ -224,14 +273,12 @@ class JobStore:
         With ``new`` the row is inserted first (``create``); otherwise a missing job gives ``None``.
         """
         with self._lock, Session(self.engine) as s, s.begin():
+            row = new if new is not None else s.get(JobRow, job_id)
+            if row is None:
+                return None
             if new is not None:
                 s.add(new)
                 s.flush()
-                row = new
-            else:
-                row = s.get(JobRow, job_id)
-                if row is None:
-                    return None
             if change(s, row) == "status":
                 s.flush()
                 self._add_event(s, row, "status", self._snapshot(JobRecord.of(row)))
@@ -242,7 +289,7 @@ class JobStore:
 
     def create(self, job_id: str, name: str, spec_json: str) -> JobRecord:
         """A new queued job and its first status event."""
-        row = JobRow(id=job_id, name=name, status="queued", spec=spec_json, created_at=utcnow(), stages={},
+        row = JobRow(id=job_id, name=name, status=JobStatus.QUEUED.value, spec=spec_json, created_at=utcnow(), stages={},
                      figures=[], attempts=0, cancel_requested=False, last_seq=0)
         rec = self._write(job_id, lambda s, r: "status", new=row)
         assert rec is not None  # inserted, never missing
@@ -251,11 +298,11 @@ class JobStore:
     def set_status(
         self,
         job_id: str,
-        status: str,
+        status: JobStatus,
         *,
         error: str | None = None,
         summary: dict[str, Any] | None = None,
-        figures: list[str] | None = None,
+        figures: builtins.list[str] | None = None,
         dask_dashboard: str | None = None,
         started: bool = False,
         attempts_delta: int = 0,
@@ -263,14 +310,18 @@ class JobStore:
         """Move a job to ``status`` (terminal statuses set ``finished_at``) and record a status event.
 
         A terminal job never changes again: the call then returns it unchanged.
+
+        Raises
+        ------
+        ValueError
+            For a ``status`` that is no :class:`JobStatus` value.
         """
-        if status not in STATUSES:
-            raise ValueError(f"unknown status {status!r}")
+        status = JobStatus(status)
 
         def change(s: Session, row: JobRow) -> str | None:
-            if row.status in TERMINAL:
+            if JobStatus(row.status) in TERMINAL:
                 return None
-            row.status = status
+            row.status = status.value
             row.error = error
             if started:
                 row.started_at = row.started_at or utcnow()

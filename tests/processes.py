@@ -44,10 +44,14 @@ class Proc:
         self.argv = list(argv)
         self.log = log
         self._log_file = open(log, "wb")
-        self.popen = subprocess.Popen(
-            self.argv, env=dict(env), cwd=cwd, stdin=subprocess.DEVNULL, stdout=self._log_file,
-            stderr=subprocess.STDOUT, start_new_session=True,
-        )
+        try:
+            self.popen = subprocess.Popen(
+                self.argv, env=dict(env), cwd=cwd, stdin=subprocess.DEVNULL, stdout=self._log_file,
+                stderr=subprocess.STDOUT, start_new_session=True,
+            )
+        except BaseException:
+            self._log_file.close()
+            raise
 
     def tail(self, lines: int = 40, skip: str | None = None) -> str:
         """The log's last ``lines`` lines, without those containing ``skip``."""

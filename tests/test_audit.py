@@ -1,7 +1,7 @@
 """``compabs audit DIR``: the stored abstraction and controller of a finished job, checked against the black boxes.
 
-The job here is small.yaml run in-process (``relations/*.npz``); the Zarr path (a cluster run) is audited in
-``tests/test_trust_cluster.py``. Each corruption test damages one stored array in a copy of the job and
+The job here is small.yaml run in-process; its relations are in ``relations.zarr`` as a cluster run's are (one
+format), and a cluster run is audited in ``tests/test_trust_cluster.py``. Each corruption test damages one stored array in a copy of the job and
 expects exit status 3 with the part and the cell named: the audit must read what was stored, not recompute it.
 """
 
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+import zarr
 
 from workers.jobdir import INTERCONNECTION_ARRAYS, load_interconnection, load_job
 from service.cli import main
@@ -87,7 +88,7 @@ def test_a_finished_job_passes_its_audit(job, capsys):
     assert set(parts) == {"subsystem agent[0]", "interconnection", "composition"}
     assert all(p["transitions_checked"] >= 90_000 and p["violations"] == 0 for p in parts.values())
     assert parts["subsystem agent[0]"]["members"] == ["agent[0]", "agent[1]"]
-    assert result["relation_source"] == "npz" and result["seed"] == 7
+    assert result["relation_source"] == "zarr" and result["seed"] == 7
     closed = result["closed_loop"]
     assert closed["runs"] >= 20 and closed["violations"] == 0 and closed["form"] in ("explicit", "layered")
     for name in parts:
@@ -120,12 +121,13 @@ def test_the_stored_interconnection_is_what_the_job_built(job):
 def test_a_shrunk_relation_interval_is_caught(job, capsys):
     arts = load_job(job)
     (key,) = arts.relations
-    path = job / "relations" / f"{key}.npz"
-    with np.load(path) as data:
-        arrays = {k: data[k].copy() for k in data.files}
+    group = zarr.open_group(str(job / "relations.zarr"), path=arts.relation_files[key], mode="r+",
+                            use_consolidated=False)
+    arrays = {k: group[k][:] for k in ("lo", "hi", "blocking")}
     sub = arts.network.subsystems[0]
     x, u, w, c = shrink_one_interval(arrays, sub)
-    np.savez_compressed(path, **arrays)
+    group["hi"][:] = arrays["hi"]
+    group["lo"][:] = arrays["lo"]
 
     code, out, err, result = audit(job, capsys, "--runs", "0")
     assert code == 3, out + err
@@ -137,7 +139,7 @@ def test_a_shrunk_relation_interval_is_caught(job, capsys):
     assert comp["violations"] > 0 and f"state cell {x}, input {u}, internal cell {w}" in comp["first_violation"]
     assert result["parts"]["interconnection"]["violations"] == 0
     assert "error: the audit" in err and f"state cell {x}" in out
-    record("audit: shrunk stored relation interval (npz)", faults=1, failed_cleanly=1, wrong=0)
+    record("audit: shrunk stored relation interval (zarr)", faults=1, failed_cleanly=1, wrong=0)
 
 
 def test_a_shrunk_interconnection_node_is_caught(job, capsys):
@@ -181,4 +183,4 @@ def test_relations_of_another_spec_are_refused(job, capsys):
     (job / "report.json").write_text(json.dumps(report))
     assert main(["audit", str(job), "--transitions", "10"]) == 2
     err = capsys.readouterr().err
-    assert "relations/" in err and "is missing" in err, err
+    assert "relations.zarr" in err and "mixes two jobs" in err, err

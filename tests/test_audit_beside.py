@@ -61,12 +61,12 @@ def test_a_child_that_fails_is_a_clear_error_and_leaves_no_files():
 def test_a_users_error_in_the_child_is_raised_as_it_is(tmp_path, monkeypatch):
     """A CompabsError in the child (say a black box that returns NaN on an audit sample) reaches the caller with
     its class and message; the child side is ``main``, run here with the audit replaced by one that fails."""
-    import workers.job
+    import pipelines.verification.audit
 
     def failing(*args, **kwargs):
         raise BlackBoxError("subsystem 'agent' returned NaN at x=[3.5]")
 
-    monkeypatch.setattr(workers.job, "run_audit", failing)
+    monkeypatch.setattr(pipelines.verification.audit, "audit_abstraction", failing)
     src, dst = tmp_path / "in.pickle", tmp_path / "out.pickle"
     src.write_bytes(pickle.dumps((None, {}, None, 10, None)))
     assert audit_beside.main([str(src), str(dst)]) == 0
@@ -110,8 +110,18 @@ def test_the_child_stops_and_cleans_up_when_its_parent_is_killed():
                          text=True, timeout=300, cwd=root)
     assert run.returncode == -9, run.stderr[-2000:]
     pid, folder = run.stdout.split()
-    deadline = time.monotonic() + 30
-    while psutil.pid_exists(int(pid)) and psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE:
-        assert time.monotonic() < deadline, "the audit's child outlived its parent by 30 s"
-        time.sleep(0.1)
-    assert not Path(folder).exists()
+    try:
+        deadline = time.monotonic() + 30
+        while psutil.pid_exists(int(pid)) and psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE:
+            assert time.monotonic() < deadline, "the audit's child outlived its parent by 30 s"
+            time.sleep(0.1)
+        assert not Path(folder).exists()
+    finally:
+        # On failure, stop the orphaned child here rather than let it audit on beside the next tests (its command
+        # line names its folder, so a reused pid is left alone).
+        try:
+            child = psutil.Process(int(pid))
+            if folder in " ".join(child.cmdline()):
+                child.kill()
+        except psutil.Error:
+            pass

@@ -9,7 +9,8 @@ import yaml
 
 from pipelines import controller as ctl
 from pipelines.verification.closed_loop import simulate, simulate_many
-from workers.job import run_abstraction, run_synthesis
+from workers.control import run_synthesis
+from workers.job import run_abstraction
 from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
 from service.cli import main
@@ -76,7 +77,7 @@ def test_a_loaded_controller_drives_the_concrete_system(small_job):
     c = ctl.load_controller(out)
     net = build_network(spec, None)
     x0 = np.array(spec.options.initial_states[0])
-    from workers.job import spec_regions
+    from pipelines.spec.regions import spec_regions
 
     target = spec_regions(spec, net)["target"]
     run = simulate(net, c.inputs, x0, 60, np.random.default_rng(3), "reach_and_stay", target=target)
@@ -94,7 +95,7 @@ def test_runs_in_lockstep_are_the_runs_one_at_a_time(small_job, kind):
     out, spec, _ = small_job
     c = ctl.load_controller(out)
     net = build_network(spec, None)
-    from workers.job import spec_regions
+    from pipelines.spec.regions import spec_regions
 
     target = spec_regions(spec, net)["target"]
     rng = np.random.default_rng(7)

@@ -9,7 +9,8 @@ import pipelines.abstraction.cells as subsystem
 from pipelines.errors import BlackBoxError
 from pipelines.network import build_network
 from pipelines.spec.model import load_spec, parse_spec
-from pipelines.abstraction.cells import abstract_cells, chunk_ranges
+from pipelines.abstraction.cells import abstract_cells
+from pipelines.abstraction.relation import chunk_ranges
 
 from .conftest import EXAMPLES
 

@@ -5,9 +5,8 @@ Shapes throughout: each variable array is ``(dim, B)``, every result is ``(out_d
 
 from __future__ import annotations
 
-import time
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -15,7 +14,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipelines.errors import CompabsError, ExpressionError, SpecError
-from pipelines.expressions.compiler import FUNCTIONS, MAX_DEPTH, MAX_NODES, CompiledExpression, compile_expression
+from pipelines.expressions import FUNCTIONS, MAX_DEPTH, MAX_NODES, CompiledExpression, compile_expression
+
+from .conftest import assert_linear_compile
 
 SUB = {"x": 1, "u": 1, "w": 1}  # a subsystem: state, input, internal input
 HOSTILE_VARS = {"x": 2, "u": 1, "w": 1}
@@ -209,10 +210,11 @@ def test_public_attributes_are_read_only() -> None:
 
 
 def test_overflow_is_inf_not_a_big_int() -> None:
-    t0 = time.perf_counter()
+    # float64 powers first: with Python ints 2**1100 is exact (and 9**9**9 below would never return).
+    assert compile_expression("2**1100 + x[0]", SUB)(x=np.zeros((1, 1)))[0, 0] == np.inf
     f = compile_expression("9**9**9", SUB)
     out = f(x=np.ones((1, 3)))
-    assert time.perf_counter() - t0 < 1.0
+    assert out.dtype == np.float64
     assert out.shape == (1, 3) and np.all(np.isposinf(out))
     g = compile_expression("10**400 + x[0]", SUB)
     assert np.all(np.isposinf(g(x=np.ones((1, 2)))))
@@ -473,7 +475,6 @@ def test_enough_hostile_payloads() -> None:
 
 @pytest.mark.parametrize("payload, needle", HOSTILE, ids=[f"hostile{i}" for i in range(len(HOSTILE))])
 def test_hostile_payload_is_rejected(payload: str, needle: str) -> None:
-    t0 = time.perf_counter()
     try:
         compile_expression(payload, HOSTILE_VARS, HOSTILE_CONSTS)
     except ExpressionError as exc:
@@ -482,7 +483,7 @@ def test_hostile_payload_is_rejected(payload: str, needle: str) -> None:
         pytest.fail(f"{type(exc).__name__} instead of ExpressionError: {exc}")
     else:  # pragma: no cover
         pytest.fail(f"payload {payload!r} was accepted")
-    assert time.perf_counter() - t0 < 1.0
+    assert_linear_compile(compile_expression, payload, HOSTILE_VARS, HOSTILE_CONSTS)  # work linear in its length
     assert needle in message, message
     assert message.startswith("expression "), message
 
@@ -499,12 +500,7 @@ def test_compile_time_is_bounded_at_the_length_limit() -> None:
     ]
     for p in payloads:
         assert len(p) <= 4000
-        t0 = time.perf_counter()
-        try:
-            compile_expression(p, {"x": 1})
-        except ExpressionError:
-            pass
-        assert time.perf_counter() - t0 < 1.0, p[:40]
+        assert_linear_compile(compile_expression, p, {"x": 1})
 
 
 # --------------------------------------------------------------------------------------------------------

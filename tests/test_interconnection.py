@@ -17,12 +17,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipelines.verification.audit import audit_interconnection
 from pipelines.errors import CertificationError, LipschitzError, SpecError
-from pipelines.interconnection.core import InterconnectionAbstraction, abstract_interconnection
+from pipelines.interconnection import InterconnectionAbstraction, abstract_interconnection
 from pipelines.interconnection.mdec import decompose_row, mdec
 from pipelines.network import Network, build_network
 from pipelines.spec.model import parse_spec
+from pipelines.verification.audit import audit_interconnection
 
 TANK_MAP = (
     "[0, sqrt(x[0]), (sqrt(x[0])+sqrt(x[1]))/2, 0, sqrt(x[3]), "
@@ -419,16 +419,16 @@ def test_direct_falls_back_to_certify_above_sigma():
 
 # ============================================================================ many coordinates, one output alone
 def test_unravel_beyond_numpys_64_axes():
-    from pipelines.interconnection.core import _unravel
+    from pipelines.interconnection.grids import unravel
 
     for shape in [(3,), (4, 1, 5), (2, 3, 4, 5), (1,) * 5]:
         flat = np.arange(int(np.prod(shape)))
-        got = _unravel(flat, shape)
+        got = unravel(flat, shape)
         assert all(np.array_equal(a, b) for a, b in zip(got, np.unravel_index(flat, shape)))
     shape = (1,) * 40 + (3,) + (1,) * 40 + (2,)
-    got = _unravel(np.arange(6), shape)
+    got = unravel(np.arange(6), shape)
     assert len(got) == 82 and got[40].tolist() == [0, 0, 1, 1, 2, 2] and got[81].tolist() == [0, 1] * 3
-    assert _unravel(np.arange(1), ()) == ()
+    assert unravel(np.arange(1), ()) == ()
 
 
 def test_max_of_70_states_is_certified_on_one_cell():
@@ -453,14 +453,14 @@ def split_network() -> Network:
 
 def test_direct_nodes_evaluate_one_output_alone_and_are_unchanged(monkeypatch):
     """Entry j of a list map evaluated by itself gives the node that evaluating the whole map gives."""
-    import pipelines.interconnection.core as ic
+    from pipelines.interconnection.sampling import Sampler
 
     net = split_network()
     alone = abstract_interconnection(net, np.random.default_rng(3))
-    sampler = ic._Sampler(net)
+    sampler = Sampler(net)
     assert all(sampler.column(j)[1] for j in range(4))
-    monkeypatch.setattr(ic._Sampler, "_entry", lambda self, j: None)
-    assert not ic._Sampler(net).column(1)[1]
+    monkeypatch.setattr(Sampler, "_entry", lambda self, j: None)
+    assert not Sampler(net).column(1)[1]
     whole = abstract_interconnection(net, np.random.default_rng(3))
     assert alone.output_modes == whole.output_modes == ("direct",) * 4
     for a, b in zip(alone.nodes, whole.nodes):
@@ -475,7 +475,9 @@ def test_direct_nodes_evaluate_one_output_alone_and_are_unchanged(monkeypatch):
 @pytest.mark.parametrize("map_,p", [("x[0:2]", 2), ("[x[0:2], x[2]]", 3), ("mean(x)", 1)])
 def test_maps_that_are_not_a_list_of_entries_are_evaluated_whole(map_, p):
     net = network(4, 0, 32, 1, map=map_, internal={"lb": 0, "ub": 32, "eta": 1}, samples=20, error="linear")
-    sampler = __import__("pipelines.interconnection.core", fromlist=["_Sampler"])._Sampler(net)
+    from pipelines.interconnection.sampling import Sampler
+
+    sampler = Sampler(net)
     for j in range(p):
         evaluate, alone = sampler.column(j)
         assert not alone
@@ -485,11 +487,11 @@ def test_maps_that_are_not_a_list_of_entries_are_evaluated_whole(map_, p):
 
 def test_an_output_evaluated_alone_is_checked_like_the_whole_map():
     from pipelines.errors import BlackBoxError
-    from pipelines.interconnection.core import _Sampler
+    from pipelines.interconnection.sampling import Sampler
 
     net = network(2, 0, 32, 1, map="[x[0] / 2, 2 * sqrt(x[1])]", internal={"lb": 0, "ub": 32, "eta": 1},
                   samples=50, error="direct", lipschitz=2.0)
-    evaluate, alone = _Sampler(net).column(1)
+    evaluate, alone = Sampler(net).column(1)
     assert alone
     np.testing.assert_array_equal(evaluate(np.array([[3.0, 3.0], [4.0, 16.0]])), [4.0, 8.0])
     with pytest.raises(SpecError, match=r"w1 = 34\.0 at x = \[3\.0, 289\.0\] lies outside its box"):

@@ -5,7 +5,9 @@ import pytest
 import yaml
 
 from pipelines.errors import BlackBoxError, LipschitzError
-from workers.job import _abstract_one, _resolve_constant, local_mapper
+from pipelines.abstraction.lipschitz import resolve_constant
+from workers.executors import InProcess
+from workers.job import _abstract_subsystem
 from pipelines.abstraction.lipschitz import estimate_lipschitz
 from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
@@ -24,8 +26,8 @@ def _consensus_agent(lipschitz, dynamics=None):
 
 def _run(sub, members):
     rng = np.random.default_rng(0)
-    consts = {arg: _resolve_constant(sub, arg, rng) for arg in ("x", "w")}
-    return _abstract_one(sub, members, consts, local_mapper, lambda *a: None, 0, 1, None)
+    consts = {arg: resolve_constant(sub, arg, rng) for arg in ("x", "w")}
+    return _abstract_subsystem(members, consts, InProcess(), None, lambda *a: None, 0, 1)
 
 
 def test_the_papers_consensus_constant_is_rejected():

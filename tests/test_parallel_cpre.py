@@ -5,21 +5,23 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import weakref
 
 import numpy as np
 import pytest
 
-from workers.processes.partitioned_cpre import (
-    HelperError,
-    PartitionedPredecessors,
+from pipelines.symbolic.relations import state_set
+from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, resolve_processes
+from pipelines.synthesis.fixed_points import cobuchi, reach, safe
+from pipelines.synthesis.partition import (
     damped_cuts,
     equal_work_cuts,
     lexicographic_part,
     split_digits,
     update_density,
 )
-from pipelines.synthesis.game import cobuchi, reach, safe
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
+from workers.processes.partitioned_cpre import HelperError, PartitionedPredecessors
 
 
 def test_equal_work_cuts_split_the_work_evenly():
@@ -122,13 +124,13 @@ def test_partitioned_predecessors_equal_the_explicit_ones(seed, shared):
         for k in range(6):
             if k and pool.cells > 2:  # every cut position the balancing could choose
                 pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
-            Z, S, O = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
-            bZ, bS, bO = (m.state_set(np.array(ex.states)[v]) for v in (Z, S, O))
+            Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
+            bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
             want = ex.cpre(Z).any(axis=1)
             np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
             np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
             got = states_vector(m, pool(bZ, outside=bO), ex)
-            np.testing.assert_array_equal(got & O, want & O)
+            np.testing.assert_array_equal(got & Out, want & Out)
         assert pool.calls == 18 and len(pool.seconds) == len(pool.cuts) + 1
     finally:
         pool.close()
@@ -141,12 +143,12 @@ def test_fixed_points_with_helpers_equal_the_one_process_ones(shared):
     ex = Explicit(net)
     one = build(net, "shared_top" if shared else "interleaved")
     two = build(net, "shared_top" if shared else "interleaved")
-    two.processes, two.parallel_after = 2, 0.0  # helpers from the second call on
+    two.processes, two.parallel_after, two.partitioned = 2, 0.0, PartitionedPredecessors  # helpers from call 2 on
     S, T, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.6))
     try:
         for g in (one, two):
             g.results = []
-            bS, bT, bphi = (g.model.state_set(np.array(ex.states)[v]) for v in (S, T, phi))
+            bS, bT, bphi = (state_set(g.model, np.array(ex.states)[v]) for v in (S, T, phi))
             g.results.append(safe(g, bS, layered=True).domain)
             g.results.append(reach(g, bT, layered=True).domain)
             g.results.append(cobuchi(g, bphi).domain)
@@ -183,7 +185,7 @@ def test_helpers_import_the_callers_package_from_any_working_directory(tmp_path,
     pool = PartitionedPredecessors(game, 2)
     try:
         Z = random_set(rng, ex, 0.6)
-        got = states_vector(game.model, pool(game.model.state_set(np.array(ex.states)[Z])), ex)
+        got = states_vector(game.model, pool(state_set(game.model, np.array(ex.states)[Z])), ex)
         np.testing.assert_array_equal(got, ex.cpre(Z).any(axis=1))
     finally:
         pool.close()
@@ -209,10 +211,11 @@ def test_after_a_helper_dies_the_game_answers_in_one_process():
     net = random_net(rng, True)
     ex = Explicit(net)
     game = build(net, "shared_top")
-    game.processes, game.parallel_after = 2, 0.0
+    game.processes, game.parallel_after, game.partitioned = 2, 0.0, PartitionedPredecessors
     m = game.model
-    bZ = m.state_set(np.array(ex.states)[random_set(rng, ex, 0.6)])
+    bZ = state_set(m, np.array(ex.states)[random_set(rng, ex, 0.6)])
     want = game.predecessors(bZ)  # one process; starts the helpers
+    assert isinstance(game._pool, PartitionedPredecessors)
     game._pool.helpers[0].kill()
     game._pool.helpers[0].wait()
     assert game.predecessors(bZ) == want and game._pool is None and game.processes == 1
@@ -221,18 +224,61 @@ def test_after_a_helper_dies_the_game_answers_in_one_process():
     game.close()
 
 
+def test_without_a_factory_every_call_runs_here():
+    game = build(random_net(np.random.default_rng(8), True), "shared_top")
+    game.processes, game.parallel_after = 2, 0.0
+    want = game.predecessors(game.model.x_domain)
+    assert game.predecessors(game.model.x_domain) == want
+    assert game._pool is None and game.parallel == {}
+
+
+class _FailingParts:
+    """A ``partitioned`` factory's product that answers once, then fails as a dead helper would."""
+
+    digits, cuts, cut_cells, seconds = ("x0",), [1], [(1,)], [0.0, 0.0]
+
+    def __init__(self, cpre, processes):
+        # weak, as PartitionedPredecessors: a cycle through CUDD objects would leave their order to the collector
+        self.cpre, self.processes, self.calls, self.closed = weakref.ref(cpre), processes, 0, False
+
+    def __call__(self, Z, outside, within):
+        self.calls += 1
+        if self.calls > 1:
+            self.close()
+            raise PartitionFailed("part 1 died")
+        cpre = self.cpre()
+        return cpre.predecessors(Z, outside, within, part=cpre.model.x_domain)
+
+    def close(self):
+        self.closed = True
+
+
+def test_a_failed_part_is_recomputed_here_and_reported():
+    """The policy of :meth:`ControllablePredecessor.predecessors` with an injected factory: started after the
+    first call, used for the next, dropped on :class:`PartitionFailed` (same answer), never started again."""
+    assert issubclass(HelperError, PartitionFailed)
+    game = build(random_net(np.random.default_rng(8), True), "shared_top")
+    game.processes, game.parallel_after, game.partitioned = 3, 0.0, _FailingParts
+    Z = game.model.x_domain
+    want = game.predecessors(Z)
+    parts = game._pool
+    assert isinstance(parts, _FailingParts) and parts.processes == 3
+    assert game.predecessors(Z) == want and parts.calls == 1
+    assert game.predecessors(Z) == want and parts.closed and game._pool is None and game.processes == 1
+    assert game.predecessors(Z) == want and game._pool is None
+    assert game.parallel["calls"] == 2 and game.parallel["stopped"].startswith("part 1 died")
+
+
 def test_processes_must_be_positive():
     net = random_net(np.random.default_rng(7), False)
     with pytest.raises(ValueError, match="processes must be at least 1"):
         game = build(net, "interleaved")
-        type(game)(game.model, game.T, game.NB, game.parts, processes=0)
+        ControllablePredecessor(game.model, game.T, game.NB, game.parts, processes=0)
     with pytest.raises(ValueError, match="at least 2 processes"):
         PartitionedPredecessors(build(net, "interleaved"), 1)
 
 
 def test_resolve_processes():
-    from pipelines.synthesis.game import resolve_processes
-
     assert 1 <= resolve_processes("auto") <= min(4, os.cpu_count() or 1)
     assert resolve_processes(3) == 3
     for bad in (0, -1, True, "two", 1.5):
@@ -243,10 +289,8 @@ def test_resolve_processes():
 def test_auto_processes_split_only_the_shared_cpre():
     """'auto': one process for the per-subsystem CPre (measured not to pay on the tanks), the CPUs for the
     shared one."""
-    from pipelines.synthesis.game import resolve_processes
-
     for shared, order in ((False, "interleaved"), (True, "shared_top")):
         game = build(random_net(np.random.default_rng(9), shared), order)
-        auto = type(game)(game.model, game.T, game.NB, game.parts, processes="auto")
+        auto = ControllablePredecessor(game.model, game.T, game.NB, game.parts, processes="auto")
         assert auto.method == ("shared" if shared else "per_subsystem")
         assert auto.processes == (resolve_processes("auto") if shared else 1)

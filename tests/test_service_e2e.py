@@ -39,7 +39,11 @@ class Server:
                 "--workers", "2"]
         self.proc = Proc("compabs serve", argv, clean_env(), data.parent, log)
         self.http = httpx.Client(base_url=self.url, timeout=30)
-        wait_http_ok(f"{self.url}/health", START_TIMEOUT, [self.proc])
+        try:
+            wait_http_ok(f"{self.url}/health", START_TIMEOUT, [self.proc])
+        except BaseException:
+            self.close()  # a server that did not come up is stopped here: no caller holds it to close it
+            raise
 
     def job(self, job_id: str) -> dict[str, Any]:
         r = self.http.get(f"/jobs/{job_id}")

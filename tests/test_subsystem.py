@@ -10,14 +10,8 @@ from pipelines.verification.audit import audit_subsystem
 from pipelines.abstraction.growth_bound import subgrid_counts
 from pipelines.network import build_network
 from pipelines.spec.model import load_spec
-from pipelines.abstraction.cells import (
-    STATISTICS_SAMPLE,
-    SubsystemRelation,
-    abstract_cells,
-    assemble,
-    chunk_ranges,
-    statistics_sample,
-)
+from pipelines.abstraction.cells import STATISTICS_SAMPLE, abstract_cells, statistics_sample
+from pipelines.abstraction.relation import SubsystemRelation, assemble, chunk_ranges
 
 from .conftest import EXAMPLES
 

@@ -9,18 +9,24 @@ import math
 import numpy as np
 import pytest
 
+from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.grid import UniformGrid
-from pipelines.interconnection.core import NodeRelation
+from pipelines.interconnection import NodeRelation
 from pipelines.spec.regions import AbstractRegion
-from pipelines.abstraction.cells import SubsystemRelation
-from pipelines.symbolic.model import (
-    BDDMemoryError,
-    SubsystemLayout,
-    SymbolicModel,
-    bit_width,
-    factorize,
-    unique_rows,
+from pipelines.symbolic.counting import count, count_states, enumerate_cells, inputs_at, sample
+from pipelines.symbolic.files import dump, load
+from pipelines.symbolic.model import GC_LOOSE_UP_TO, MAX_CACHE_ENTRIES, BDDMemoryError, SymbolicModel, bit_width
+from pipelines.symbolic.order import SubsystemLayout, block_order, reader_order
+from pipelines.symbolic.relations import (
+    interconnection,
+    node_relation,
+    pair_set,
+    region,
+    state_set,
+    subsystem_relation,
+    subsystem_relations,
 )
+from pipelines.symbolic.tree import factorize, unique_rows
 
 
 # ------------------------------------------------------------------------------------------- helpers
@@ -141,7 +147,7 @@ def test_to_next_equals_renaming_and_refuses_next_state_bits(order):
     rng = np.random.default_rng(1)
     for _ in range(20):
         # random sets of states, and of states x inputs (the renaming must leave input bits alone)
-        f = m.state_set(rng.integers(0, [6, 5], size=(rng.integers(1, 12), 2)))
+        f = state_set(m, rng.integers(0, [6, 5], size=(rng.integers(1, 12), 2)))
         f |= f & m.var("u0_0") | (m.var("x1_2") & ~m.var("u1_0"))
         expected = m.bdd.let(dict(zip(m.x_bits, m.xn_bits)), f)
         assert m.to_next(f) == expected
@@ -152,8 +158,6 @@ def test_to_next_equals_renaming_and_refuses_next_state_bits(order):
 
 def test_cudd_keeps_its_tables_small():
     """Garbage collection and the computed table are bounded (``GC_LOOSE_UP_TO``, ``MAX_CACHE_ENTRIES``)."""
-    from pipelines.symbolic.model import GC_LOOSE_UP_TO, MAX_CACHE_ENTRIES
-
     m = SymbolicModel([SubsystemLayout(0, (8,), 1, (), "a", 0)], [], order="interleaved")
     cfg = m.bdd.configure()
     assert cfg["loose_up_to"] == GC_LOOSE_UP_TO and cfg["max_cache_hard"] == MAX_CACHE_ENTRIES
@@ -176,15 +180,15 @@ def test_bulk_relation_equals_naive_and_enumerates_back(case, order):
         n_w = math.prod(w_sizes[j] for j in s.reads) if s.reads else 1
         for p_block in (0.0, 0.3, 1.0):
             rel = random_relation(rng, s.state_shape, s.n_inputs, n_w, p_block)
-            T, NB = m.subsystem_relation(s, rel)
+            T, NB = subsystem_relation(m, s, rel)
             T_ref, NB_ref, rows = naive_relation(m, s, rel)
             assert T == T_ref
             assert NB == NB_ref
             dg = m.subsystem_digits(s)
-            got = m.enumerate(T, dg["x"] + dg["u"] + dg["w"] + dg["xn"])
+            got = enumerate_cells(m, T, dg["x"] + dg["u"] + dg["w"] + dg["xn"])
             np.testing.assert_array_equal(got, sorted_rows(rows))
-            assert m.count(T, dg["x"] + dg["u"] + dg["w"] + dg["xn"]) == rows.shape[0]
-            assert m.count(NB, dg["x"] + dg["u"] + dg["w"]) == int((~rel.blocking).sum())
+            assert count(m, T, dg["x"] + dg["u"] + dg["w"] + dg["xn"]) == rows.shape[0]
+            assert count(m, NB, dg["x"] + dg["u"] + dg["w"]) == int((~rel.blocking).sum())
 
 
 def test_identical_subsystems_rename_equals_build():
@@ -192,8 +196,8 @@ def test_identical_subsystems_rename_equals_build():
     rel = random_relation(np.random.default_rng(3), (5,), 3, 4)
     for order in ("interleaved", "shared_top"):
         m = SymbolicModel(layouts, [4, 4, 4], order=order)
-        T1, NB1 = m.subsystem_relations({"same": rel}, share="rename")
-        T2, NB2 = m.subsystem_relations({"same": rel}, share="build")
+        T1, NB1 = subsystem_relations(m, {"same": rel}, share="rename")
+        T2, NB2 = subsystem_relations(m, {"same": rel}, share="build")
         assert T1 == T2 and NB1 == NB2
         assert len({int(t) for t in T1}) == 3  # each over its own variables
 
@@ -227,7 +231,7 @@ def explicit_node_sets(nodes, x: tuple[int, ...]) -> dict[str, set[int]]:
 def test_interconnection_bdd_equals_explicit_exists_z(order):
     rng = np.random.default_rng(5)
     layouts = [SubsystemLayout(i, (k,), 2, (0,), f"k{i}", i) for i, k in enumerate((3, 4, 5))]
-    for trial in range(6):
+    for _ in range(6):
         nodes = [
             random_node(rng, "z0", 3, ["x0", "x1"], [3, 4]),
             random_node(rng, "z1", 2, ["x2"], [5]),
@@ -245,16 +249,16 @@ def test_interconnection_bdd_equals_explicit_exists_z(order):
                     pre &= cube(m, name, v)
                 for c in range(node.lo[combo], node.hi[combo] + 1):
                     r |= pre & cube(m, node.output, c)
-            assert m.node_relation(node) == r
+            assert node_relation(m, node) == r
             naive &= r
         naive = m.bdd.exist(m.z_bits, naive)
-        M = m.interconnection(nodes)
+        M = interconnection(m, nodes)
         assert M == naive
         rows = []
         for x in itertools.product(range(3), range(4), range(5)):
             env = explicit_node_sets(nodes, x)
             rows += [[*x, a, b] for a in sorted(env["w0"]) for b in sorted(env["w1"])]
-        got = m.enumerate(M, m.x_digits() + m.w_digits())
+        got = enumerate_cells(m, M, m.x_digits() + m.w_digits())
         np.testing.assert_array_equal(got, sorted_rows(np.array(rows, dtype=np.int64).reshape(-1, 5)))
 
 
@@ -265,40 +269,40 @@ def test_region_bdd_counts_equal_abstract_region_states():
     layouts = [SubsystemLayout(i, (k,), 2, (), f"k{i}", i) for i, k in enumerate(sizes)]
     m = SymbolicModel(layouts, [], order="interleaved")
     all_x = np.array(list(itertools.product(*(range(k) for k in sizes))))
-    for trial in range(20):
+    for _ in range(20):
         boxes = []
         for _ in range(rng.integers(1, 5)):
             a = rng.integers(0, sizes)
             b = a + rng.integers(-1, 4, size=3)  # sometimes empty, sometimes past the grid
             boxes.append((a, np.minimum(b, np.asarray(sizes) - 1)))
-        region = AbstractRegion(tuple(boxes))
-        f = m.region(region)
-        assert m.count_states(f) == region.states
-        np.testing.assert_array_equal(m.enumerate(f, m.x_digits()), all_x[region.contains(all_x)])
+        abstract = AbstractRegion(tuple(boxes))
+        f = region(m, abstract)
+        assert count_states(m, f) == abstract.states
+        np.testing.assert_array_equal(enumerate_cells(m, f, m.x_digits()), all_x[abstract.contains(all_x)])
 
 
 def test_exact_count_beyond_double_precision():
     """41^12 ≈ 2.25e19 > 2^64: CUDD's double count cannot say this exactly; ours must."""
     layouts = [SubsystemLayout(i, (41,), 1, (), "t", i) for i in range(12)]
     m = SymbolicModel(layouts, [], order="interleaved")
-    assert m.count_states(m.bdd.true) == 41**12
+    assert count_states(m, m.bdd.true) == 41**12
     first = np.full(12, 3)
     last = np.full(12, 19)
     second = (np.full(12, 10), np.full(12, 30))
-    region = AbstractRegion(((first, last), second))
-    assert m.count_states(m.region(region)) == region.states == 17**12 + 21**12 - 10**12
-    assert m.count_states(~m.region(region)) == 41**12 - region.states
+    abstract = AbstractRegion(((first, last), second))
+    assert count_states(m, region(m, abstract)) == abstract.states == 17**12 + 21**12 - 10**12
+    assert count_states(m, ~region(m, abstract)) == 41**12 - abstract.states
 
 
 def test_state_set_and_pair_set():
     layouts = [SubsystemLayout(0, (3,), 2, (), "a", 0), SubsystemLayout(1, (5,), 3, (), "b", 1)]
     m = SymbolicModel(layouts, [], order="shared_top")
     xs = np.array([[0, 4], [2, 1], [2, 1], [1, 0]])
-    np.testing.assert_array_equal(m.enumerate(m.state_set(xs), m.x_digits()), np.unique(xs, axis=0))
+    np.testing.assert_array_equal(enumerate_cells(m, state_set(m, xs), m.x_digits()), np.unique(xs, axis=0))
     us = np.array([[1, 2], [0, 0], [0, 1], [1, 1]])
-    C = m.pair_set(xs, us)
-    np.testing.assert_array_equal(m.inputs_at(C, [2, 1]), [[0, 0], [0, 1]])
-    assert m.inputs_at(C, [0, 0]).shape == (0, 2)
+    C = pair_set(m, xs, us)
+    np.testing.assert_array_equal(inputs_at(m, C, [2, 1]), [[0, 0], [0, 1]])
+    assert inputs_at(m, C, [0, 0]).shape == (0, 2)
 
 
 # ------------------------------------------------------------------------------------------- persistence
@@ -309,23 +313,23 @@ def test_dddmp_round_trip_of_a_controller(tmp_path, order):
     rng = np.random.default_rng(2)
     xs = np.stack([rng.integers(0, k, 40) for k in m.state_sizes], axis=1)
     us = np.stack([rng.integers(0, s.n_inputs, 40) for s in layouts], axis=1)
-    C = m.pair_set(xs, us)
-    bdd_path, head_path = m.dump(tmp_path / "controller", C, meta={"kind": "reach", "domain_states": 7})
+    C = pair_set(m, xs, us)
+    bdd_path, head_path = dump(m, tmp_path / "controller", C, meta={"kind": "reach", "domain_states": 7})
     assert bdd_path.suffix == ".dddmp" and head_path.suffix == ".json"
-    m2, C2, meta = SymbolicModel.load(bdd_path)
+    m2, C2, meta = load(bdd_path)
     assert meta == {"kind": "reach", "domain_states": 7}
     assert m2.variables == m.variables
     assert [m2.bdd.var_at_level(k) for k in range(len(m2.variables))] == m.variables
     assert m2.bdd.configure()["reordering"] is False
     assert m2.grids == {"note": "synthetic"}
     digits = m.x_digits() + m.u_digits()
-    np.testing.assert_array_equal(m2.enumerate(C2, digits), m.enumerate(C, digits))
+    np.testing.assert_array_equal(enumerate_cells(m2, C2, digits), enumerate_cells(m, C, digits))
     assert C2.dag_size == C.dag_size
     for x in xs[:5]:
-        np.testing.assert_array_equal(m2.inputs_at(C2, x), m.inputs_at(C, x))
+        np.testing.assert_array_equal(inputs_at(m2, C2, x), inputs_at(m, C, x))
     # constants survive too
-    m.dump(tmp_path / "empty", m.bdd.false)
-    m3, F, _ = SymbolicModel.load(tmp_path / "empty")
+    dump(m, tmp_path / "empty", m.bdd.false)
+    m3, F, _ = load(tmp_path / "empty")
     assert F == m3.bdd.false
 
 
@@ -338,12 +342,10 @@ def test_out_of_memory_is_a_clear_error():
             f = m.bdd.false
             for _ in range(200):
                 xs = rng.integers(0, 64, size=(2000, 8))
-                f |= m.state_set(xs)
+                f |= state_set(m, xs)
 
 
 def test_block_order_minimises_the_linear_arrangement_of_coupled_subsystems():
-    from pipelines.symbolic.model import block_order
-
     tanks = {(0, 1), (0, 2), (1, 2), (3, 4), (2, 5), (3, 5), (4, 5), (5, 6), (4, 6), (2, 7), (5, 8), (7, 8), (7, 9), (8, 9)}
 
     def length(order, edges):
@@ -363,8 +365,6 @@ def test_block_order_minimises_the_linear_arrangement_of_coupled_subsystems():
 
 
 def test_reader_order_puts_every_block_below_what_it_reads_and_keeps_chains_together():
-    from pipelines.symbolic.model import reader_order
-
     # (reader, read) of the 10 tanks (positions 0..9 = tanks 1..10)
     tanks = {(1, 0), (2, 0), (2, 1), (4, 3), (5, 2), (5, 3), (5, 4), (5, 6), (6, 4), (7, 2), (8, 5), (8, 7),
              (9, 7), (9, 8)}
@@ -388,8 +388,8 @@ def test_block_order_is_kept_in_the_header(tmp_path):
     lay = [SubsystemLayout(i, (3,), 2, (), f"k{i}", i, f"s{i}") for i in range(3)]
     m = SymbolicModel(lay, [], order="interleaved", blocks=[2, 0, 1])
     assert m.variables[0].startswith("u2") or m.variables[0].startswith("x2")
-    m.dump(tmp_path / "f", m.bdd.true)
-    m2, f, _ = SymbolicModel.load(tmp_path / "f")
+    dump(m, tmp_path / "f", m.bdd.true)
+    m2, f, _ = load(tmp_path / "f")
     assert m2.blocks == (2, 0, 1) and m2.variables == m.variables
     with pytest.raises(ValueError, match="not a permutation"):
         SymbolicModel(lay, [], blocks=[0, 0, 1])
@@ -403,8 +403,8 @@ def test_sample_draws_members_uniformly_and_first_is_deterministic(seed):
     members = rng.random((5, 5, 5)) < 0.3
     members[0, 0, 0] = True
     cells = np.argwhere(members)
-    f = m.state_set(cells)
-    draws = m.sample(f, m.x_digits(), rng, size=6000)
+    f = state_set(m, cells)
+    draws = sample(m, f, m.x_digits(), rng, size=6000)
     assert draws.shape == (6000, 3)
     assert members[tuple(draws.T)].all()  # only members, never an invalid code
     hist = np.zeros(members.shape)
@@ -412,7 +412,7 @@ def test_sample_draws_members_uniformly_and_first_is_deterministic(seed):
     expected = 6000 / len(cells)
     assert (hist[members] > 0).all()
     assert np.abs(hist[members] - expected).max() < 6 * math.sqrt(expected)  # uniform: every member near 6000/|f|
-    first = m.sample(f, m.x_digits(), None)
-    assert members[tuple(first)] and np.array_equal(first, m.sample(f, m.x_digits(), None))
-    assert m.sample(m.bdd.false, m.x_digits(), rng) is None
-    assert m.sample(m.bdd.false, m.x_digits(), rng, size=3).shape == (0, 3)
+    first = sample(m, f, m.x_digits(), None)
+    assert members[tuple(first)] and np.array_equal(first, sample(m, f, m.x_digits(), None))
+    assert sample(m, m.bdd.false, m.x_digits(), rng) is None
+    assert sample(m, m.bdd.false, m.x_digits(), rng, size=3).shape == (0, 3)

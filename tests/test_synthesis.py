@@ -15,14 +15,19 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.grid import UniformGrid
-from pipelines.interconnection.core import NodeRelation
-from workers.job import run_abstraction
-from pipelines.spec.regions import abstract_region
+from pipelines.interconnection import NodeRelation
 from pipelines.spec.model import load_spec
-from pipelines.abstraction.cells import SubsystemRelation
-from pipelines.symbolic.model import SubsystemLayout, SymbolicModel, tree_owners
-from pipelines.synthesis.game import CHAIN_ORDERS, Game, reach, reach_and_stay, reach_avoid, safe, synthesize
+from pipelines.spec.regions import abstract_region
+from pipelines.symbolic.counting import enumerate_cells, inputs_at
+from pipelines.symbolic.model import SymbolicModel
+from pipelines.symbolic.order import SubsystemLayout, tree_owners
+from pipelines.symbolic.relations import interconnection_parts, state_set, subsystem_relations
+from pipelines.synthesis.cpre import CHAIN_ORDERS, ControllablePredecessor
+from pipelines.synthesis.fixed_points import reach, reach_and_stay, reach_avoid, safe
+from pipelines.synthesis.synthesize import synthesize
+from workers.job import run_abstraction
 
 from .conftest import EXAMPLES
 
@@ -71,7 +76,7 @@ def random_net(rng: np.random.Generator, shared: bool) -> Net:
             nodes.append(random_node(rng, "w0", Kw, [f"x{i}" for i in sup], [shape[i] for i in sup], p_empty))
     else:
         w_sizes, reads = [], []
-        for i in range(N):
+        for _ in range(N):
             if rng.random() < 0.15:  # a subsystem that reads nothing
                 reads.append(())
                 continue
@@ -217,7 +222,7 @@ class Explicit:
 
 
 def controller_matrix(model: SymbolicModel, C, ex: Explicit) -> np.ndarray:
-    rows = model.enumerate(C, model.x_digits() + model.u_digits())
+    rows = enumerate_cells(model, C, model.x_digits() + model.u_digits())
     out = np.zeros((ex.nX, ex.nU), dtype=bool)
     if rows.size:
         xf = np.ravel_multi_index(tuple(rows[:, : ex.N].T), ex.shape)
@@ -227,18 +232,18 @@ def controller_matrix(model: SymbolicModel, C, ex: Explicit) -> np.ndarray:
 
 
 def states_vector(model: SymbolicModel, f, ex: Explicit) -> np.ndarray:
-    rows = model.enumerate(f, model.x_digits())
+    rows = enumerate_cells(model, f, model.x_digits())
     out = np.zeros(ex.nX, dtype=bool)
     if rows.size:
         out[np.ravel_multi_index(tuple(rows.T), ex.shape)] = True
     return out
 
 
-def build(net: Net, order: str, method: str = "auto", chain_order: str = "greedy") -> Game:
+def build(net: Net, order: str, method: str = "auto", chain_order: str = "greedy") -> ControllablePredecessor:
     z_sizes = {n.output: n.output_grid.size for n in net.nodes if n.output.startswith("z")}
     m = SymbolicModel(net.layouts, net.w_sizes, z_sizes, z_owner=tree_owners(net.nodes), order=order)
-    T, NB = m.subsystem_relations(net.relations)
-    return Game(m, T, NB, m.interconnection_parts(net.nodes), method, chain_order)
+    T, NB = subsystem_relations(m, net.relations)
+    return ControllablePredecessor(m, T, NB, interconnection_parts(m, net.nodes), method, chain_order)
 
 
 def random_set(rng, ex: Explicit, p: float) -> np.ndarray:
@@ -289,11 +294,11 @@ def test_fixed_points_match_the_explicit_solver(seed, shared):
     m = game.model
 
     S, T, A, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.15, 0.6))
-    bS, bT, bA, bphi = (m.state_set(np.array(ex.states)[v]) for v in (S, T, A, phi))
+    bS, bT, bA, bphi = (state_set(m, np.array(ex.states)[v]) for v in (S, T, A, phi))
 
     # CPre itself on a random set
     Z = random_set(rng, ex, 0.6)
-    np.testing.assert_array_equal(controller_matrix(m, game.cpre(m.state_set(np.array(ex.states)[Z])), ex),
+    np.testing.assert_array_equal(controller_matrix(m, game.cpre(state_set(m, np.array(ex.states)[Z])), ex),
                                   ex.cpre(Z))
 
     r = safe(game, bS)
@@ -340,7 +345,7 @@ def test_shared_cpre_equals_per_subsystem_cpre_where_both_apply(seed):
     for _ in range(5):
         Z = random_set(rng, ex, 0.6)
         for g in games:
-            bZ = g.model.state_set(np.array(ex.states)[Z])
+            bZ = state_set(g.model, np.array(ex.states)[Z])
             C = controller_matrix(g.model, g.cpre(bZ), ex)
             np.testing.assert_array_equal(C, ex.cpre(Z))
             np.testing.assert_array_equal(states_vector(g.model, g.predecessors(bZ), ex), C.any(axis=1))
@@ -348,7 +353,7 @@ def test_shared_cpre_equals_per_subsystem_cpre_where_both_apply(seed):
 
 @pytest.mark.parametrize("seed", range(8))
 def test_cpre_within_a_set_is_exact_there_and_empty_elsewhere(seed):
-    """``Game.within(S)`` restricts the relations to the projections of ``S``: CPre and the predecessors are
+    """``ControllablePredecessor.within(S)`` restricts the relations to the projections of ``S``: CPre and the predecessors are
     then ``CPre ∧ S`` exactly, for every ``Z`` (not only ``Z ⊆ S``), in both CPre methods."""
     rng = np.random.default_rng(900 + seed)
     shared = bool(seed % 2)
@@ -358,7 +363,7 @@ def test_cpre_within_a_set_is_exact_there_and_empty_elsewhere(seed):
     m = game.model
     for _ in range(4):
         S, Z = random_set(rng, ex, 0.7), random_set(rng, ex, 0.6)
-        bS, bZ = (m.state_set(np.array(ex.states)[v]) for v in (S, Z))
+        bS, bZ = (state_set(m, np.array(ex.states)[v]) for v in (S, Z))
         inside = game.within(bS)
         C = controller_matrix(m, game.cpre(bZ, inside), ex)
         np.testing.assert_array_equal(C, ex.cpre(Z) & S[:, None])
@@ -384,11 +389,11 @@ def test_blocking_for_one_admissible_w_makes_the_input_inadmissible():
     node = NodeRelation("w0", grid(2), ("x0",), (grid(2),), None, np.array([0, 0], np.int32),
                         np.array([1, 0], np.int32), 0.0)  # M̂(x=0) = {0, 1}, M̂(x=1) = {0}
     m = SymbolicModel(lay, [2], order="interleaved")
-    T, NB = m.subsystem_relations({"a": rel})
-    game = Game(m, T, NB, m.interconnection_parts([node]))
+    T, NB = subsystem_relations(m, {"a": rel})
+    game = ControllablePredecessor(m, T, NB, interconnection_parts(m, [node]))
     C = game.cpre(m.x_domain)
-    np.testing.assert_array_equal(m.inputs_at(C, [0]), [[1]])
-    np.testing.assert_array_equal(m.inputs_at(C, [1]), [[0], [1]])
+    np.testing.assert_array_equal(inputs_at(m, C, [0]), [[1]])
+    np.testing.assert_array_equal(inputs_at(m, C, [1]), [[0], [1]])
 
 
 def test_small_example_end_to_end_against_the_explicit_solver():
@@ -410,7 +415,8 @@ def test_small_example_end_to_end_against_the_explicit_solver():
     meta = {"state_grid": res.network.composed_state_grid().describe(),
             "input_grids": [s.input_grid.describe() for s in subs]}
     for order, form in (("shared_top", "auto"), ("interleaved", "explicit")):
-        game, results, report = synthesize(res, order=order, controller_form=form)
+        game, results, report = synthesize(res.network, res.relations, res.interconnection, res.spec.specification,
+                                           order=order, controller_form=form)
         assert game.method == "shared" and report["order"] == order
         for name, r in results.items():
             dom = states_vector(game.model, r.domain, ex)
@@ -425,7 +431,7 @@ def test_small_example_end_to_end_against_the_explicit_solver():
 
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
 def test_cpre_at_a_state_is_cpre_cofactored_there(shared):
-    """``Game.cpre_at`` (the layered controllers' one-state CPre, with ¬Z' cut to the reachable next cells) is
+    """``ControllablePredecessor.cpre_at`` (the layered controllers' one-state CPre, with ¬Z' cut to the reachable next cells) is
     ``CPre(Z)`` at that state, for every state and several sets."""
     rng = np.random.default_rng(90 + shared)
     net = random_net(rng, shared)
@@ -433,7 +439,7 @@ def test_cpre_at_a_state_is_cpre_cofactored_there(shared):
     game = build(net, "shared_top" if shared else "interleaved")
     m = game.model
     for p in (0.3, 0.6, 0.9):
-        bZ = m.state_set(np.array(ex.states)[random_set(rng, ex, p)])
+        bZ = state_set(m, np.array(ex.states)[random_set(rng, ex, p)])
         whole, Zn = game.cpre(bZ), m.to_next(bZ)
         for s in ex.states:
             state = m.state_assignment(list(s))
@@ -461,7 +467,7 @@ def test_layered_controllers_equal_explicit_ones_cell_for_cell(seed, shared, tmp
     ex = Explicit(net)
     game = build(net, ["interleaved", "shared_top"][seed % 2])
     m = game.model
-    S, T, A, phi = (m.state_set(np.array(ex.states)[random_set(rng, ex, p)]) for p in (0.8, 0.2, 0.15, 0.6))
+    S, T, A, phi = (state_set(m, np.array(ex.states)[random_set(rng, ex, p)]) for p in (0.8, 0.2, 0.15, 0.6))
     meta = {"state_grid": UniformGrid.product([grid(k) for k in ex.shape]).describe(),
             "input_grids": [grid(k).describe() for k in net.n_u]}
     cases = {

@@ -24,12 +24,12 @@ from pipelines.errors import BlackBoxError
 from workers.job import run_abstraction
 from pipelines.spec.model import load_spec, parse_spec, spec_hash
 
-from .conftest import EXAMPLES, ROOT
+from .conftest import EXAMPLES, ROOT, wait_idle
 
 import zarr
 from workers.cluster import connect
 from workers.errors import ClusterError, StoreError, StoreMismatchError
-from workers.runner import run_job
+from workers.job import abstract_job
 from workers.store import code_version, marker, result_from, write_chunk
 
 #: Seconds slow_agent sleeps per call inside a worker (two calls per chunk: samples and cell centres).
@@ -108,20 +108,8 @@ def marker_counts(out: Path) -> tuple[int, int]:
     return done, total
 
 
-def wait_idle(client, timeout: float = 30.0) -> None:
-    """Until the scheduler holds no task and no worker runs one (cancelled tasks still finish running)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        sched = client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks))
-        running = client.run(lambda dask_worker: len(dask_worker.state.executing))
-        if sched == 0 and not any(running.values()):
-            return
-        time.sleep(0.1)
-    raise AssertionError("cluster still busy")
-
-
 # ----------------------------------------------------------------------------------------------- fixtures
-# cluster and client: tests/conftest.py
+# cluster and client (one cluster per module, checked whole and idle around every test), wait_idle: tests/conftest.py
 @pytest.fixture(scope="module")
 def small_reference():
     spec = small_spec()
@@ -186,15 +174,17 @@ def test_embedded_cluster_survives_the_removal_of_a_worker_it_never_saw(caplog):
     closed. The embedded cluster logs and skips it, and closes cleanly."""
     with caplog.at_level("WARNING", logger="workers.cluster"):
         conn = connect(workers=1)
-        cluster = conn.client.cluster
-        conn.client.run_on_scheduler(_announce_unknown_worker_removed)
-        deadline = time.monotonic() + 30
-        while "never announced" not in caplog.text:
-            assert not cluster._watch_worker_status_task.done(), "the cluster's worker-status watcher died"
-            assert time.monotonic() < deadline, "the scheduler's message never reached the cluster"
-            time.sleep(0.05)
-        assert conn.client.submit(sum, [1, 2]).result(timeout=30) == 3  # the cluster works on
-        conn.close()
+        try:
+            cluster = conn.client.cluster
+            conn.client.run_on_scheduler(_announce_unknown_worker_removed)
+            deadline = time.monotonic() + 30
+            while "never announced" not in caplog.text:
+                assert not cluster._watch_worker_status_task.done(), "the cluster's worker-status watcher died"
+                assert time.monotonic() < deadline, "the scheduler's message never reached the cluster"
+                time.sleep(0.05)
+            assert conn.client.submit(sum, [1, 2]).result(timeout=30) == 3  # the cluster works on
+        finally:
+            conn.close()
     assert conn.client.status == "closed" and cluster.status.name == "closed"
     assert cluster.scheduler.status.name == "closed"
 
@@ -223,7 +213,7 @@ def _allocator_settings() -> dict[str, str | None]:
                                             "MALLOC_TOP_PAD_")}
 
 
-def test_embedded_workers_get_the_allocator_settings(cluster):
+def test_embedded_workers_get_the_allocator_settings(client):
     """The worker processes run with workers/dask.yaml's environment (not Dask's MALLOC_TRIM_THRESHOLD_=65536),
     and a large temporary of a task comes from the heap, not from a fresh mmap (measured with the defaults:
     321 MB mmapped)."""
@@ -231,7 +221,7 @@ def test_embedded_workers_get_the_allocator_settings(cluster):
 
     want = worker_environ()
     assert set(want) == {"MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"}
-    got = cluster.client.run(_allocator_settings)
+    got = client.run(_allocator_settings)
     assert len(got) == 2 and all(env == want for env in got.values()), got
 
     def mmapped_bytes_with_a_large_array() -> int:
@@ -252,7 +242,7 @@ def test_embedded_workers_get_the_allocator_settings(cluster):
         return held
 
     # In the task thread, where the per-cell stage runs (its own arena by default, which cannot hold 320 MB).
-    mmapped = cluster.client.submit(mmapped_bytes_with_a_large_array, pure=False).result()
+    mmapped = client.submit(mmapped_bytes_with_a_large_array, pure=False).result(timeout=120)
     assert mmapped < 320_000_000, f"a 320 MB array was mmapped: {DASK_CONFIG_FILE} not in effect?"
 
 
@@ -261,7 +251,7 @@ def _periodic_ms(dask_worker=None, dask_scheduler=None) -> dict[str, float]:
     return {k: pc.callback_time for k, pc in server.periodic_callbacks.items() if k in ("tick", "monitor", "profile")}
 
 
-def test_embedded_cluster_runs_dasks_periodic_work_as_the_config_says(cluster):
+def test_embedded_cluster_runs_dasks_periodic_work_as_the_config_says(client):
     """workers/dask.yaml's intervals (not Dask's 20 ms tick and 10 ms profiler) reach the scheduler and each
     worker process: they decide how much of two cores Dask's own periodic work takes from the tasks."""
     from dask.utils import parse_timedelta
@@ -273,9 +263,9 @@ def test_embedded_cluster_runs_dasks_periodic_work_as_the_config_says(cluster):
     monitor = 1000 * parse_timedelta(cfg["distributed.admin.system-monitor.interval"])
     profile = 1000 * parse_timedelta(cfg["distributed.worker.profile.interval"])
     assert tick >= 1000 and profile >= 100  # the measured settings, not Dask's 20 ms and 10 ms
-    got = cluster.client.run(_periodic_ms)
+    got = client.run(_periodic_ms)
     assert len(got) == 2 and all(v == {"tick": tick, "monitor": monitor, "profile": profile} for v in got.values()), got
-    assert cluster.client.run_on_scheduler(_periodic_ms) == {"tick": tick, "monitor": monitor}
+    assert client.run_on_scheduler(_periodic_ms) == {"tick": tick, "monitor": monitor}
 
 
 def test_image_installs_the_worker_config():
@@ -292,7 +282,7 @@ def test_tanks_distributed_equals_in_process(tmp_path, client):
     spec = spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": 100_000})})
     reference = run_abstraction(spec)
     events = []
-    result, info = run_job(spec, tmp_path, client=client, progress=lambda *e: events.append(e))
+    result, info = abstract_job(spec, tmp_path, client=client, progress=lambda *e: events.append(e))
 
     assert_same_relations(reference, result)
     assert without_timings(result.report) == without_timings(reference.report)
@@ -320,7 +310,7 @@ def test_tanks_distributed_equals_in_process(tmp_path, client):
         assert (g.attrs["L_x"], g.attrs["L_w"]) == (0.98, 0.49)
 
     # Same job again: everything is read back, nothing computed.
-    again, info2 = run_job(spec, tmp_path, client=client, audit=False)
+    again, info2 = abstract_job(spec, tmp_path, client=client, audit=False)
     assert info2["chunks_reused"] == 2 and info2["chunks_computed"] == 0
     assert_same_relations(reference, again)
 
@@ -338,7 +328,7 @@ def test_worker_killed_mid_job(tmp_path, client, small_reference):
             os.kill(victim, signal.SIGKILL)  # both workers are busy: 28 chunks still queued
             killed.append(done)
 
-    result, info = run_job(spec, tmp_path, client=client, audit=False, progress=progress)
+    result, info = abstract_job(spec, tmp_path, client=client, audit=False, progress=progress)
     assert killed
     assert_same_relations(reference, result)
     assert info["chunks_computed"] == info["chunks_total"] == 33
@@ -353,8 +343,8 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
     spec_file = tmp_path / "spec.json"
     spec_file.write_text(spec.model_dump_json())
     code = (
-        "import sys; from pipelines.spec.model import load_spec; from workers.runner import run_job; "
-        "run_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)"
+        "import sys; from pipelines.spec.model import load_spec; from workers.job import abstract_job; "
+        "abstract_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)"
     )
     out = tmp_path / "out"
     proc = subprocess.Popen(
@@ -377,7 +367,7 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
     done_before, total = marker_counts(out)
     assert total == 33 and 6 <= done_before < total
 
-    result, info = run_job(spec, out, client=client, audit=False)
+    result, info = abstract_job(spec, out, client=client, audit=False)
     assert info["chunks_computed"] == total - done_before
     assert info["chunks_reused"] == done_before
     assert_same_relations(reference, result)
@@ -386,7 +376,7 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
 
 def test_missing_marker_recomputes_that_chunk(tmp_path, client):
     spec = small_spec(chunk_cells=4, dynamics=None)
-    first, info = run_job(spec, tmp_path, client=client, audit=False)
+    first, info = abstract_job(spec, tmp_path, client=client, audit=False)
     assert info["chunks_computed"] == 9
     (group,) = [name for name, _ in store_of(tmp_path).groups()]
     # Data written, marker not: what a task killed between its two writes leaves behind.
@@ -394,7 +384,7 @@ def test_missing_marker_recomputes_that_chunk(tmp_path, client):
     assert marker_file.exists() and (tmp_path / "relations.zarr" / group / "lo" / "c" / "3").exists()
     marker_file.unlink()
     (marker_file.parent / "4.0123abcd.partial").write_text("{")  # a killed writer's temporary: ignored
-    again, info = run_job(spec, tmp_path, client=client, audit=False)
+    again, info = abstract_job(spec, tmp_path, client=client, audit=False)
     assert (info["chunks_computed"], info["chunks_reused"]) == (1, 8)
     assert_same_relations(first, again)
     assert marker_file.exists()
@@ -402,14 +392,14 @@ def test_missing_marker_recomputes_that_chunk(tmp_path, client):
 
 def test_changed_spec_is_refused_then_overwritten(tmp_path, client):
     spec = small_spec(chunk_cells=8, dynamics=None)
-    run_job(spec, tmp_path, client=client, audit=False)
+    abstract_job(spec, tmp_path, client=client, audit=False)
     changed = small_spec(chunk_cells=8, dynamics=None, samples=90)
     with pytest.raises(StoreMismatchError, match="another job") as err:
-        run_job(changed, tmp_path, client=client, audit=False)
+        abstract_job(changed, tmp_path, client=client, audit=False)
     assert "--overwrite" in str(err.value) and spec_hash(changed) in str(err.value)
     assert marker_counts(tmp_path) == (5, 5)  # refused: nothing deleted
 
-    result, info = run_job(changed, tmp_path, client=client, audit=False, overwrite=True)
+    result, info = abstract_job(changed, tmp_path, client=client, audit=False, overwrite=True)
     assert info["chunks_reused"] == 0 and info["chunks_computed"] == info["chunks_total"] == 5
     assert store_of(tmp_path).attrs["spec_hash"] == spec_hash(changed)
     assert_same_relations(run_abstraction(changed, audit=False), result)
@@ -419,14 +409,14 @@ def test_raised_lipschitz_constant_gets_its_own_group(tmp_path, client):
     # L_x = 1.0 is below the data's slope: the stage runs twice, the second time with the raised constant.
     spec = small_spec(chunk_cells=8, dynamics=None, lipschitz={"x": 1.0, "w": 0.16, "on_violation": "raise"})
     reference = run_abstraction(spec, audit=False)
-    result, info = run_job(spec, tmp_path, client=client, audit=False)
+    result, info = abstract_job(spec, tmp_path, client=client, audit=False)
     assert_same_relations(reference, result)
     assert without_timings(result.report) == without_timings(reference.report)
     assert reference.report["subsystems"][0]["lipschitz"]["x"]["source"] == "raised"
     groups = dict(store_of(tmp_path).groups())
     assert len(groups) == 2 and sorted(g.attrs["L_x"] for g in groups.values())[0] == 1.0
     assert info["chunks_computed"] == info["chunks_total"] == 10
-    again, info = run_job(spec, tmp_path, client=client, audit=False)
+    again, info = abstract_job(spec, tmp_path, client=client, audit=False)
     assert (info["chunks_reused"], info["chunks_computed"]) == (10, 0)
     assert_same_relations(reference, again)
 
@@ -435,7 +425,7 @@ def test_not_a_store_is_refused(tmp_path, client):
     (tmp_path / "relations.zarr").mkdir()
     (tmp_path / "relations.zarr" / "notes.txt").write_text("mine")
     with pytest.raises(StoreMismatchError, match="not a compabs relation store"):
-        run_job(small_spec(dynamics=None), tmp_path, client=client, audit=False)
+        abstract_job(small_spec(dynamics=None), tmp_path, client=client, audit=False)
     assert (tmp_path / "relations.zarr" / "notes.txt").exists()
 
 
@@ -443,7 +433,7 @@ def test_not_a_store_is_refused(tmp_path, client):
 def test_black_box_error_surfaces_unchanged(tmp_path, client):
     spec = small_spec(chunk_cells=4, dynamics="sqrt(x[0] - 16)")  # NaN below x = 16
     with pytest.raises(BlackBoxError) as err:
-        run_job(spec, tmp_path, client=client, audit=False)
+        abstract_job(spec, tmp_path, client=client, audit=False)
     message = str(err.value)
     assert "subsystem 'agent[0]' dynamics" in message and "not finite" in message and "state cell" in message
     text = "".join(traceback.format_exception(err.value))
@@ -458,7 +448,7 @@ def test_black_box_error_surfaces_unchanged(tmp_path, client):
 def test_task_that_kills_its_workers_is_a_clear_error(tmp_path, client):
     spec = small_spec(chunk_cells=33, dynamics="tests.test_workers:killer_agent")
     with pytest.raises(ClusterError, match=r"subsystem 'agent\[0\], agent\[1\]', chunk 0 \(state cells 0\.\.32\).*KilledWorker"):
-        run_job(spec, tmp_path, client=client, audit=False)
+        abstract_job(spec, tmp_path, client=client, audit=False)
     assert marker_counts(tmp_path) == (0, 1)
 
 

@@ -1,12 +1,15 @@
-"""Running the method on Dask (ARCHITECTURE: ``service -> workers -> pipelines``).
+"""Running the method (ARCHITECTURE: ``service -> workers -> pipelines``).
 
-Modules, one responsibility each:
-
+- :mod:`workers.job`: the one orchestrator: the stages of a job, defined once (``run_job``, ``abstract_job``,
+  ``run_abstraction``); :mod:`workers.control`: its synthesis, closed-loop and figure stages.
+- :mod:`workers.executors`: where the per-cell tasks run: in this process or on Dask (``InProcess``, ``OnDask``).
 - :mod:`workers.cluster`: ``connect()`` to an embedded LocalCluster or an external scheduler.
-- :mod:`workers.store`: the Zarr v3 relation store (``DIR/relations.zarr``), chunk writes and done-markers.
 - :mod:`workers.tasks`: ``abstract_chunk``, the task the cluster runs (importable by scheduler and workers).
-- :mod:`workers.runner`: ``run_job()``, the stages of ``workers.job`` with chunks on the cluster, resumable.
-- :mod:`workers.errors`: the runner's errors (all ``CompabsError``).
+- :mod:`workers.store`: the Zarr v3 relation store (``DIR/relations.zarr``), chunk writes and done-markers.
+- :mod:`workers.jobdir`: the job directory: every path, reader and writer.
+- :mod:`workers.audit`: ``audit_job``, the audit of a finished job's stored files (``compabs audit``).
+- :mod:`workers.processes`: local helper processes: the audit beside synthesis, the partitioned CPre.
+- :mod:`workers.errors`: the execution errors (all ``CompabsError``).
 
 Nothing is imported here, so ``import workers`` does not import Dask or Zarr.
 """

@@ -241,3 +241,13 @@ def connect(scheduler: str | None = None, workers: int = 2) -> Connection:
         "embedded": embedded,
     }
     return Connection(client, info)
+
+
+def client_info(client: Any) -> dict[str, Any]:
+    """What the report's ``runner`` section says of a cluster the caller connected to itself."""
+    return {
+        "scheduler": client.scheduler.address,
+        "workers": len(client.nthreads()),
+        "dashboard": _dashboard(client),
+        "embedded": False,
+    }

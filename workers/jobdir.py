@@ -1,14 +1,18 @@
-"""A finished job's stored abstraction, read back as it was written (for ``compabs audit``).
+"""The job directory: the one module that knows its layout, and reads and writes every file in it.
 
-A job directory holds ``spec.json`` and ``report.json`` (written last, so a report means the job finished), the
-subsystem relations (``relations.zarr`` from a cluster run, layout in :mod:`workers.store`, or
-``relations/<key>.npz`` from an ``--in-process`` run), the interconnection abstraction
-(``interconnection.npz`` + ``interconnection.json``, written here by :func:`save_interconnection`) and the
-controller files (``controller.dddmp``/``.json``, :func:`pipelines.controller.load_controller`).
+::
+
+    DIR/spec.json                    the job spec, as run (:func:`write_spec`)
+    DIR/relations.zarr/              the subsystem relations (:mod:`workers.store`), the one relation format
+    DIR/interconnection.json, .npz   the interconnection abstraction (:func:`save_interconnection`)
+    DIR/controller.dddmp, .json      the controller (:mod:`pipelines.controller`); controller_<fixed point>.* for
+                                     the other reach-and-stay fixed point
+    DIR/trajectory.png, domain_slice.png, closed_loop_example.json    the figures and the run they show
+    DIR/report.json                  written last, atomically: a report means the job's files are complete
+    DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
 
 :func:`load_job` rebuilds the network from ``spec.json`` and reads every stored relation exactly as stored;
-nothing is recomputed, so an audit of what it returns checks what a controller was synthesized from. Reading
-Zarr needs ``zarr`` (a dependency of the package); it is imported only for a Zarr store.
+nothing is recomputed, so an audit of what it returns checks what a controller was synthesized from.
 
 Interconnection files
 ---------------------
@@ -23,21 +27,31 @@ from __future__ import annotations
 
 import json
 import os
+import uuid
+import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from pipelines.errors import CompabsError
+from pipelines.abstraction.relation import SubsystemRelation
+from pipelines.errors import CompabsError, SpecError
 from pipelines.grid import UniformGrid
-from pipelines.interconnection.core import InterconnectionAbstraction, NodeRelation
+from pipelines.interconnection import InterconnectionAbstraction, NodeRelation
 from pipelines.network import Network, build_network
 from pipelines.spec.model import JobSpec, parse_spec, spec_hash
-from pipelines.abstraction.cells import SubsystemRelation
 
+SPEC = "spec.json"
+REPORT = "report.json"
+RELATIONS = "relations.zarr"
 INTERCONNECTION_META = "interconnection.json"
 INTERCONNECTION_ARRAYS = "interconnection.npz"
+#: Name (without suffix) of the controller files.
+CONTROLLER = "controller"
+EXAMPLE_RUN = "closed_loop_example.json"
+AUDIT = "audit.json"
 #: Version of the interconnection files' layout.
 INTERCONNECTION_FORMAT = 1
 
@@ -65,6 +79,101 @@ def _atomic_write(path: Path, write) -> None:
     with open(tmp, "wb") as fh:
         write(fh)
     tmp.replace(path)
+
+
+def json_default(o: Any) -> Any:
+    """``json.dumps`` fallback for numpy scalars and arrays in reports."""
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# ====================================================================================== paths and small files
+def create(out_dir: str | os.PathLike[str]) -> Path:
+    """The job directory, created if needed."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SpecError(f"--out {out}: cannot create the directory: {exc.strerror}") from None
+    return out
+
+
+def relations_url(out_dir: str | os.PathLike[str]) -> str:
+    """Where the relation store of a job directory (or fsspec URL) lives."""
+    s = os.fspath(out_dir)
+    if "://" in s:
+        return s.rstrip("/") + "/" + RELATIONS
+    return str(Path(s) / RELATIONS)
+
+
+def figure(out_dir: str | os.PathLike[str], name: str) -> Path:
+    """The path of figure ``name`` (``trajectory``, ``domain_slice``)."""
+    return Path(out_dir) / f"{name}.png"
+
+
+def write_spec(out_dir: str | os.PathLike[str], spec: JobSpec) -> Path:
+    path = Path(out_dir) / SPEC
+    path.write_text(json.dumps(spec.model_dump(mode="json"), indent=1))
+    return path
+
+
+def write_report(out_dir: str | os.PathLike[str], report: dict[str, Any]) -> Path:
+    """``report.json``, through a temporary and a rename: a report on disk means the job's files are complete."""
+    path = Path(out_dir) / REPORT
+    _atomic_write(path, lambda fh: fh.write(json.dumps(report, indent=2, default=json_default).encode()))
+    return path
+
+
+def write_audit(out_dir: str | os.PathLike[str], audit: dict[str, Any]) -> Path:
+    path = Path(out_dir) / AUDIT
+    _atomic_write(path, lambda fh: fh.write(json.dumps(audit, indent=2, default=json_default).encode()))
+    return path
+
+
+def write_example_run(out_dir: str | os.PathLike[str], runs: dict[str, Any]) -> Path:
+    path = Path(out_dir) / EXAMPLE_RUN
+    path.write_text(json.dumps(runs))
+    return path
+
+
+def has_controller(out_dir: str | os.PathLike[str]) -> bool:
+    return (Path(out_dir) / f"{CONTROLLER}.json").exists()
+
+
+def controller_files(out_dir: str | os.PathLike[str]) -> list[Path]:
+    """The controller's files: the DDDMP files its header lists (a layered controller has several), then the
+    header ``controller.json`` itself."""
+    out = Path(out_dir)
+    head = out / f"{CONTROLLER}.json"
+    roots = [f"{CONTROLLER}.dddmp"]
+    if head.exists():
+        roots = json.loads(head.read_text()).get("roots", roots)
+    return [out / name for name in (*roots, head.name)]
+
+
+def controller_archive(out_dir: str | os.PathLike[str]) -> Path | None:
+    """The controller's files as one zip in the job directory (made once: a controller can be gigabytes), or
+    ``None`` if the job has no controller; the unzipped files load with :func:`pipelines.controller.load_controller`."""
+    files = controller_files(out_dir)
+    if not all(f.is_file() for f in files):
+        return None
+    archive = Path(out_dir) / f"{CONTROLLER}.zip"
+    if not archive.is_file():
+        tmp = archive.with_name(f"{archive.name}.{uuid.uuid4().hex[:8]}.partial")
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
+            for f in files:
+                z.write(f, f.name)
+        tmp.replace(archive)  # atomic: two concurrent downloads never see half an archive
+    return archive
+
+
+def report_path(out_dir: str | os.PathLike[str]) -> Path:
+    return Path(out_dir) / REPORT
 
 
 # ====================================================================================== interconnection
@@ -207,20 +316,6 @@ def _check_shape(rel: SubsystemRelation, sub, where: str) -> None:
         )
 
 
-def _load_npz_relations(out: Path, network: Network, params: dict[str, dict[str, Any]]) -> dict[str, SubsystemRelation]:
-    rels = {}
-    subs = {s.key: s for s in network.subsystems}
-    for key, p in params.items():
-        path = out / "relations" / f"{key}.npz"
-        if not path.exists():
-            raise ArtifactError(f"{path} is missing (subsystem '{p['name']}'); run the job again")
-        with np.load(path, allow_pickle=False) as data:
-            rel = SubsystemRelation(p["method"], data["lo"], data["hi"], data["blocking"], p["L_x"], p["L_w"])
-        _check_shape(rel, subs[key], str(path))
-        rels[key] = rel
-    return rels
-
-
 def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict[str, dict[str, Any]]) -> tuple[dict[str, SubsystemRelation], dict[str, str]]:
     import zarr
 
@@ -280,9 +375,9 @@ class JobArtifacts:
     relations : dict of str to SubsystemRelation
         By subsystem key, as stored.
     relation_source : str
-        ``"zarr"`` or ``"npz"``.
+        ``"zarr"`` (the one format).
     relation_files : dict of str to str
-        Per key, the Zarr group or ``.npz`` file the relation came from.
+        Per key, the Zarr group the relation came from.
     interconnection : InterconnectionAbstraction
         As stored.
     """
@@ -298,7 +393,7 @@ class JobArtifacts:
 
     @property
     def has_controller(self) -> bool:
-        return (self.directory / "controller.json").exists()
+        return has_controller(self.directory)
 
 
 def load_job(directory: str | os.PathLike[str], allowed_modules: Sequence[str] | None = None) -> JobArtifacts:
@@ -321,14 +416,14 @@ def load_job(directory: str | os.PathLike[str], allowed_modules: Sequence[str] |
     out = Path(directory)
     if not out.is_dir():
         raise ArtifactError(f"{out} is not a directory; give the --out directory of a finished 'compabs run'")
-    for name in ("spec.json", "report.json"):
+    for name in (SPEC, REPORT):
         if not (out / name).exists():
             raise ArtifactError(
                 f"{out / name} is missing: {out} is not a finished job (report.json is written last); run the job"
             )
     try:
-        spec = parse_spec(json.loads((out / "spec.json").read_text()))
-        report = json.loads((out / "report.json").read_text())
+        spec = parse_spec(json.loads((out / SPEC).read_text()))
+        report = json.loads((out / REPORT).read_text())
     except ValueError as exc:
         raise ArtifactError(f"{out}: spec.json or report.json is not valid JSON ({exc})") from None
     if report.get("spec_hash") not in (None, spec_hash(spec)):
@@ -336,19 +431,14 @@ def load_job(directory: str | os.PathLike[str], allowed_modules: Sequence[str] |
                             "belong to different jobs")
     network = build_network(spec, allowed_modules)
     params = _relation_params(report, network)
-    zarr_dir = out / "relations.zarr"
-    if zarr_dir.is_dir():
-        rels, groups = _load_zarr_relations(str(zarr_dir), spec, network, params)
-        source, files = "zarr", groups
-    elif (out / "relations").is_dir():
-        rels = _load_npz_relations(out, network, params)
-        source, files = "npz", {k: f"relations/{k}.npz" for k in rels}
-    else:
-        raise ArtifactError(f"{out} holds no relations (relations.zarr or relations/); run the job again")
+    zarr_dir = out / RELATIONS
+    if not zarr_dir.is_dir():
+        raise ArtifactError(f"{out} holds no relations ({RELATIONS}); run the job again")
+    rels, files = _load_zarr_relations(str(zarr_dir), spec, network, params)
     ia = load_interconnection(out, spec)
     if ia.n != network.state_dim or ia.p != len(network.internal_grids):
         raise ArtifactError(
             f"{out / INTERCONNECTION_META}: maps {ia.n} states to {ia.p} internal variables; the spec has "
             f"{network.state_dim} and {len(network.internal_grids)}"
         )
-    return JobArtifacts(out, spec, network, report, rels, source, files, ia)
+    return JobArtifacts(out, spec, network, report, rels, "zarr", files, ia)

@@ -56,11 +56,11 @@ import numpy as np
 
 from pipelines.network import Network, Subsystem
 from pipelines.spec.model import JobSpec, spec_hash
-from pipelines.abstraction.cells import CellsResult, SlopeRecord
+from pipelines.abstraction.relation import CellsResult, SlopeRecord
 
 from workers.errors import StoreError, StoreMismatchError
+from workers.jobdir import relations_url
 
-STORE_NAME = "relations.zarr"
 #: Version of the layout above; a store of another layout is treated as stale.
 LAYOUT_VERSION = 1
 RELATION_ARRAYS = ("lo", "hi", "blocking")
@@ -74,14 +74,6 @@ def code_version() -> str:
         return version("compabs")
     except PackageNotFoundError:
         return "unknown"
-
-
-def store_url(out_dir: str | os.PathLike[str]) -> str:
-    """Where the relation store of output directory (or URL) ``out_dir`` lives."""
-    s = os.fspath(out_dir)
-    if "://" in s:
-        return s.rstrip("/") + "/" + STORE_NAME
-    return str(Path(s) / STORE_NAME)
 
 
 def group_name(sub: Subsystem, L_x: float, L_w: float, method: str, objective: str, chunk_cells: int) -> str:
@@ -253,7 +245,7 @@ class RelationStore:
         """
         import zarr
 
-        url = store_url(out_dir)
+        url = relations_url(out_dir)
         want = {"layout": LAYOUT_VERSION, "spec_hash": spec_hash(spec), "code_version": code_version()}
         try:
             try:
@@ -332,6 +324,10 @@ class RelationStore:
             if m in grids:
                 grids[m] = dict(grids[m], groups=sorted(set(grids[m].get("groups", [])) | {group}))
         self._root.attrs["grids"] = grids
+
+    def write(self, group: str, result: CellsResult, seconds: float) -> dict[str, Any]:
+        """Write one computed chunk and its marker (:func:`write_chunk`)."""
+        return write_chunk(self.url, group, result, seconds)
 
     def markers(self, group: str) -> dict[int, dict[str, Any]]:
         """Done-markers of a group: chunk index -> metadata. Unreadable markers count as not done."""

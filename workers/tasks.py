@@ -18,8 +18,8 @@ import threading
 import time
 from typing import Any
 
-from pipelines.network import Subsystem
-from pipelines.abstraction.cells import CellsResult, abstract_cells
+from pipelines.abstraction.cells import CellTask
+from pipelines.abstraction.relation import CellsResult
 
 from workers.errors import TaskTimeoutError
 from workers.store import write_chunk
@@ -28,18 +28,7 @@ from workers.store import write_chunk
 STOP_GRACE = 1.0
 
 
-def abstract_chunk(
-    store_url: str,
-    group: str,
-    sub: Subsystem,
-    start: int,
-    stop: int,
-    L_x: float,
-    L_w: float,
-    method: str,
-    objective: str,
-    timeout: float | None = None,
-) -> dict[str, Any]:
+def abstract_chunk(store_url: str, group: str, task: CellTask, timeout: float | None = None) -> dict[str, Any]:
     """Abstract state cells ``[start, stop)`` of a subsystem and write them into the store.
 
     Parameters
@@ -49,8 +38,8 @@ def abstract_chunk(
     group : str
         The store group of this subsystem and these constants (:func:`workers.store.group_name`); it exists
         already, created by the runner.
-    sub, start, stop, L_x, L_w, method, objective
-        As :func:`pipelines.abstraction.cells.abstract_cells`; ``[start, stop)`` is exactly one chunk of the group.
+    task : CellTask
+        The chunk to compute; ``[task.start, task.stop)`` is exactly one chunk of the group.
     timeout : float, optional
         Seconds the computation may take (``options.task_timeout``); ``None``: no limit. See :func:`_watched`.
 
@@ -67,14 +56,13 @@ def abstract_chunk(
         The computation ran longer than ``timeout``; nothing was written.
     """
     t0 = time.perf_counter()
-    args = (sub, start, stop, L_x, L_w, method, objective)
-    result = abstract_cells(*args) if timeout is None else _watched(args, timeout)
+    result = task.run() if timeout is None else _watched(task, timeout)
     seconds = time.perf_counter() - t0
     return write_chunk(store_url, group, result, seconds)
 
 
-def _watched(args: tuple, timeout: float) -> CellsResult:
-    """``abstract_cells(*args)`` in a watched thread: its result, its exception, or a TaskTimeoutError.
+def _watched(task: CellTask, timeout: float) -> CellsResult:
+    """``task.run()`` in a watched thread: its result, its exception, or a TaskTimeoutError.
 
     A thread cannot be killed. After ``timeout`` seconds the task asks it to stop (an asynchronous
     ``TaskTimeoutError`` delivered at its next Python bytecode: enough for a black box looping in Python), waits
@@ -82,12 +70,12 @@ def _watched(args: tuple, timeout: float) -> CellsResult:
     the error says ``stuck`` and the runner restarts the worker process to stop it. Nothing is written to the
     store either way: the data and marker writes happen only after a result.
     """
-    sub, start, stop = args[0], args[1], args[2]
+    sub, start, stop = task.subsystem, task.start, task.stop
     box: dict[str, Any] = {}
 
     def target() -> None:
         try:
-            box["result"] = abstract_cells(*args)
+            box["result"] = task.run()
         except BaseException as exc:  # handed to the task's thread below
             box["error"] = exc
 

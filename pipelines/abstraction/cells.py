@@ -38,46 +38,13 @@ from pipelines.abstraction.growth_bound import (
     widen,
 )
 from pipelines.network import Subsystem
+from pipelines.abstraction.relation import CellsResult, SlopeRecord
 
-METHODS = ("lipschitz", "scp", "scp_radius", "hull")
-#: Relative slack when comparing an observed slope with a given Lipschitz constant: slopes are differences
-#: of float64 values, and an excess below this is rounding, not evidence.
-SLOPE_RTOL = 1e-9
 #: Relative margin by which the SCP's lower bound ``max_{k <= S_x/2} E_k + rho`` must exceed the Lipschitz
 #: radius before a triple's LP is skipped (the radius is then the Lipschitz radius to the bit): far above the
 #: rounding of terms of size <= 2 lip (see ``_abstract_block``).
 SCP_SKIP_RTOL = 1e-9
-#: Black-box evaluations per chunk when neither the spec nor the caller says: a few tenths of a second.
-DEFAULT_CHUNK_POINTS = 2_000_000
 
-
-@dataclass(frozen=True)
-class SlopeRecord:
-    """The largest slope observed in the data, and where (for Lipschitz validation, METHOD §3)."""
-
-    slope: float = 0.0
-    x_cell: int = -1
-    u_index: int = -1
-    w_cell: int = -1
-
-    def merge(self, other: "SlopeRecord") -> "SlopeRecord":
-        return other if other.slope > self.slope else self
-
-
-@dataclass(frozen=True)
-class CellsResult:
-    """One chunk of a subsystem relation: state cells ``[start, stop)`` × all inputs × all internal cells."""
-
-    start: int
-    stop: int
-    lo: np.ndarray  # (c, n_u, n_w, n) int32; empty range (0, -1) where blocking
-    hi: np.ndarray
-    blocking: np.ndarray  # (c, n_u, n_w) bool
-    # method -> (sum of successor counts, non-blocking triples); for an SCP objective that does not build the
-    # relation, over a fixed sample of the triples unless asked for all (see abstract_cells)
-    successors: dict[str, tuple[int, int]]
-    slope_x: SlopeRecord = field(default_factory=SlopeRecord)
-    slope_w: SlopeRecord = field(default_factory=SlopeRecord)
 
 
 def _unit_offsets(counts: tuple[int, ...]) -> np.ndarray:
@@ -334,6 +301,30 @@ def abstract_cells(
     return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
 
 
+@dataclass(frozen=True)
+class CellTask:
+    """One chunk of Algorithm 1: state cells ``[start, stop)`` of a subsystem under every input and internal cell,
+    with the constants and growth bound it is computed with. The unit of work an executor runs
+    (:mod:`workers.executors`); :meth:`run` is pure, so a task gives the same bits wherever and however often it
+    runs."""
+
+    subsystem: Subsystem
+    start: int
+    stop: int
+    L_x: float
+    L_w: float
+    method: str
+    objective: str
+
+    @property
+    def constants(self) -> tuple[float, float, str, str]:
+        """What, besides the subsystem, decides the bits of every chunk: ``(L_x, L_w, method, objective)``."""
+        return (self.L_x, self.L_w, self.method, self.objective)
+
+    def run(self) -> CellsResult:
+        return abstract_cells(self.subsystem, self.start, self.stop, self.L_x, self.L_w, self.method, self.objective)
+
+
 class _Block(NamedTuple):
     """What :func:`_abstract_block` gives for its triples (flat, in order); :func:`abstract_cells` joins them."""
 
@@ -540,66 +531,3 @@ def _abstract_block(
     return _Block(lo, hi, blocking, successors, record(sx), record(sw))
 
 
-@dataclass(frozen=True)
-class SubsystemRelation:
-    """The finite abstraction ``f̂`` of one subsystem (Definition 4.2), as interval arrays.
-
-    ``lo[x, u, w, :]`` .. ``hi[x, u, w, :]`` is the per-dimension range of successor cell indices of the
-    triple with flat state cell ``x``, input ``u`` and flat internal cell ``w``; ``blocking[x, u, w]`` says the
-    input is not admissible there (its range is then empty, ``lo = 0``, ``hi = -1``).
-    """
-
-    method: str
-    lo: np.ndarray
-    hi: np.ndarray
-    blocking: np.ndarray
-    L_x: float
-    L_w: float
-
-    def successor_ranges(self, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Ranges and blocking flags of triples given by flat indices, each shape (B,)."""
-        return self.lo[x, u, w], self.hi[x, u, w], self.blocking[x, u, w]
-
-
-def assemble(results: list[CellsResult], n_x: int, method: str, L_x: float, L_w: float) -> SubsystemRelation:
-    """Put chunk results together in state-cell order."""
-    results = sorted(results, key=lambda r: r.start)
-    covered = sum(r.stop - r.start for r in results)
-    if covered != n_x or any(a.stop != b.start for a, b in zip(results, results[1:])):
-        raise RuntimeError(f"chunks cover {covered} of {n_x} state cells")  # a runner bug, not user input
-    return SubsystemRelation(
-        method,
-        np.concatenate([r.lo for r in results]),
-        np.concatenate([r.hi for r in results]),
-        np.concatenate([r.blocking for r in results]),
-        L_x,
-        L_w,
-    )
-
-
-def chunk_ranges(sub: Subsystem, chunk_cells: int | None, target_points: int | None = None) -> list[tuple[int, int]]:
-    """Split the state cells of a subsystem into chunks.
-
-    By default a chunk holds as many state cells as keep its black-box evaluations near ``target_points``
-    (a few tenths of a second of numpy work: large enough that per-task overhead is small, small enough to
-    bound memory).
-    """
-    n_x = sub.state_grid.size
-    if target_points is None:
-        target_points = DEFAULT_CHUNK_POINTS
-    if chunk_cells is None:
-        per_cell = sub.input_grid.size * sub.n_w_cells * max(1, sub.spec.samples)
-        chunk_cells = max(1, target_points // per_cell)
-    return [(s, min(n_x, s + chunk_cells)) for s in range(0, n_x, chunk_cells)]
-
-
-__all__ = [
-    "BlackBoxError",
-    "CellsResult",
-    "METHODS",
-    "SlopeRecord",
-    "SubsystemRelation",
-    "abstract_cells",
-    "assemble",
-    "chunk_ranges",
-]

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
+from pipelines.abstraction.relation import SLOPE_RTOL, SlopeRecord
+from pipelines.errors import LipschitzError
 from pipelines.network import Subsystem
 
 
@@ -98,3 +101,102 @@ def estimate_lipschitz(
     location = float(locs.max())
     max_slope = float(maxima.max())
     return LipschitzEstimate(max(location, max_slope) * safety_factor, location, max_slope, batches, pairs)
+
+
+# ====================================================================================== constants of a job
+@dataclass
+class ConstantRecord:
+    """A Lipschitz constant and where it came from (for the report)."""
+
+    value: float
+    source: str  # given | raised | estimated | estimated (raised by cell data) | unused
+    given: float | None = None
+    observed_max_slope: float = 0.0
+    where: str = ""
+    estimate: dict | None = None
+
+    def as_dict(self) -> dict:
+        d: dict = {"value": self.value, "source": self.source, "observed_max_slope": self.observed_max_slope}
+        if self.given is not None:
+            d["given"] = self.given
+            if self.source == "raised":  # how much the data made it grow (METHOD §3: say so in the report)
+                d["raised_by"] = self.value - self.given
+                d["raised_factor"] = self.value / self.given if self.given > 0 else None
+        if self.where:
+            d["where"] = self.where
+        if self.estimate:
+            d["estimate"] = self.estimate
+        return d
+
+
+def resolve_constant(sub: Subsystem, arg: Literal["x", "w"], rng: np.random.Generator) -> ConstantRecord:
+    """The constant ``L_arg`` a subsystem's abstraction starts with: given by the spec, or estimated
+    (Algorithm 4) when the spec says ``estimate``."""
+    lip = sub.spec.lipschitz
+    given = getattr(lip, arg)
+    if arg == "w" and sub.internal_grid is None:
+        return ConstantRecord(0.0, "unused")
+    if given == "estimate":
+        est = estimate_lipschitz(sub, arg, rng, lip.batches, lip.pairs, lip.delta, lip.safety_factor)
+        return ConstantRecord(
+            est.value,
+            "estimated",
+            observed_max_slope=est.max_slope,
+            estimate={"location": est.location, "max_slope": est.max_slope, "safety_factor": lip.safety_factor,
+                      "batches": est.batches, "pairs": est.pairs},
+        )
+    return ConstantRecord(float(given), "given", given=float(given))
+
+
+def _box(lo: np.ndarray, hi: np.ndarray) -> str:
+    return " x ".join(f"[{a:g}, {b:g}]" for a, b in zip(lo, hi))
+
+
+def describe_cell(sub: Subsystem, rec: SlopeRecord) -> str:
+    """Where a slope was observed, in the user's coordinates."""
+    x_lo, x_hi = sub.state_grid.clipped_cells(sub.state_grid.unravel(np.array([rec.x_cell])))
+    u = sub.input_grid.points(sub.input_grid.unravel(np.array([rec.u_index])))[0]
+    where = f"state cell {rec.x_cell} (x in {_box(x_lo[0], x_hi[0])}), input u={u.tolist()}"
+    if sub.internal_grid is not None:
+        w_lo, w_hi = sub.internal_grid.clipped_cells(sub.internal_grid.unravel(np.array([rec.w_cell])))
+        where += f", internal cell {rec.w_cell} (w in {_box(w_lo[0], w_hi[0])})"
+    return where
+
+
+def check_constants(
+    sub: Subsystem, names: str, constants: dict[str, ConstantRecord], slopes: dict[str, SlopeRecord]
+) -> bool:
+    """Check the constants against the largest slopes the per-cell stage observed (METHOD §3).
+
+    Records each observed slope. A slope above a constant either fails the job with a
+    :class:`~pipelines.errors.LipschitzError` naming the cell and the slope (a given constant with
+    ``lipschitz.on_violation: fail``), or raises the constant to the slope times the safety factor and says so
+    in the record.
+
+    Returns
+    -------
+    bool
+        ``True`` if every constant held; ``False`` if some were raised, so the abstraction must be computed
+        again with the new constants.
+    """
+    spec = sub.spec
+    violated = []
+    for arg, rec in slopes.items():
+        c = constants[arg]
+        c.observed_max_slope = max(c.observed_max_slope, rec.slope)
+        if c.source != "unused" and rec.slope > c.value * (1 + SLOPE_RTOL):
+            violated.append((arg, rec))
+    for arg, rec in violated:
+        c = constants[arg]
+        where = describe_cell(sub, rec)
+        if c.source == "given" and spec.lipschitz.on_violation == "fail":
+            excess = f", {rec.slope - c.value:.6g} ({rec.slope / c.value - 1:.2%}) above it" if c.value > 0 else ""
+            raise LipschitzError(
+                f"subsystem {names}: the given L_{arg} = {c.value:g} is contradicted by the data: slope "
+                f"{rec.slope:.6g} observed at {where}{excess}. An abstraction built with it would be unsound. Give "
+                f"L_{arg} >= {rec.slope:.6g}, set lipschitz.{arg}: estimate, or lipschitz.on_violation: raise."
+            )
+        c.value = rec.slope * spec.lipschitz.safety_factor
+        c.source = "raised" if c.source in ("given", "raised") else "estimated (raised by cell data)"
+        c.where = where
+    return not violated

@@ -26,8 +26,8 @@ the literal reading would stop as soon as one output is small enough.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

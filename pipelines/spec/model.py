@@ -216,7 +216,7 @@ class JobSpec(_Model):
     def _param_names(cls, v):
         import keyword
 
-        from pipelines.expressions.compiler import FUNCTIONS
+        from pipelines.expressions import FUNCTIONS
 
         reserved = {"x", "u", "w", "pi", "e"} | set(FUNCTIONS)
         for name in v:

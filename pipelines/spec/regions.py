@@ -16,7 +16,8 @@ import numpy as np
 
 from pipelines.errors import SpecError
 from pipelines.grid import UniformGrid
-from pipelines.spec.model import Region
+from pipelines.network import Network
+from pipelines.spec.model import JobSpec, Region
 
 IndexBox = tuple[np.ndarray, np.ndarray]  # (first, last), each shape (n,), inclusive
 
@@ -137,3 +138,15 @@ def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = 
             raise SpecError(f"{name}: the region meets no grid cell")
         raise SpecError(f"{name}: the region contains no whole grid cell (it is empty after inner approximation)")
     return AbstractRegion(tuple(boxes))
+
+
+def spec_regions(spec: JobSpec, network: Network) -> dict[str, AbstractRegion]:
+    """The specification's regions on the composed grid: targets and safe sets from inside, avoid sets from
+    outside (METHOD §1)."""
+    grid = network.composed_state_grid()
+    regions: dict[str, AbstractRegion] = {}
+    for name in ("target", "safe", "avoid"):
+        region = getattr(spec.specification, name)
+        if region is not None:
+            regions[name] = abstract_region(region, grid, f"specification.{name}", outer=(name == "avoid"))
+    return regions

@@ -1,0 +1,12 @@
+"""Controller synthesis on the symbolic abstraction (Section 4.3, Algorithm 5; METHOD §6).
+
+Modules, by the paper's concepts:
+
+* :mod:`.cpre` — :class:`~.cpre.ControllablePredecessor`: ``CPre(Z)`` with partitioned relations and early
+  quantification (per-subsystem or shared internal inputs), its one-state form for layered controllers, and
+  the policy for computing ``∃u.CPre`` in parts through an injected factory.
+* :mod:`.partition` — where to cut the state space for ``∃u.CPre`` in parts, and why the parts are exact.
+* :mod:`.fixed_points` — the fixed points of the specifications (safety, reachability, reach-avoid,
+  reach-and-stay as co-Büchi and as Reach(Safe)) and :class:`~.fixed_points.SynthesisResult`.
+* :mod:`.synthesize` — a job's synthesis: encode the abstraction, solve its specification, report.
+"""

@@ -9,7 +9,7 @@ synthesis bug shows up as a run that leaves the controller's domain or misses th
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -208,3 +208,90 @@ def _finish(states: np.ndarray, us: list[np.ndarray], flags: np.ndarray, violati
             violation = f"not in the target after {steps} steps"
     inputs = np.array(us) if us else np.zeros((0, m))
     return Run(states, inputs, flags, violation, settled, controlled)
+
+
+@dataclass
+class ClosedLoop:
+    """Closed-loop runs from the spec's initial states in the controller's domain and from random domain states.
+
+    Attributes
+    ----------
+    runs : list of (origin, x0, Run)
+        ``origin`` is ``"initial"`` (a spec's initial state) or ``"random"``.
+    initial_states : list of dict
+        Per initial state of the spec: ``x0``, ``in_domain`` and, for one in the domain, its run's
+        ``violation``, ``settled_at`` and ``steps``.
+    steps : int
+        The horizon of every run.
+    """
+
+    runs: list[tuple[str, np.ndarray, Run]]
+    initial_states: list[dict]
+    steps: int
+
+    @property
+    def violations(self) -> int:
+        return sum(1 for _, _, r in self.runs if r.violation)
+
+    @property
+    def first_violation(self) -> str | None:
+        for origin, x0, r in self.runs:
+            if r.violation:
+                return f"from {x0.tolist()}: {r.violation}"
+        return None
+
+    def summary(self) -> dict:
+        """The report's ``closed_loop`` entry."""
+        settled = [r.settled_at for _, _, r in self.runs if r.settled_at is not None]
+        return {
+            "runs": len(self.runs),
+            "violations": self.violations,
+            "first_violation": self.first_violation,
+            "steps": self.steps,
+            "steps_to_reach": ({"min": min(settled), "mean": float(np.mean(settled)), "max": max(settled)}
+                               if settled else None),
+            "initial_states": self.initial_states,
+        }
+
+
+def run_closed_loop(
+    network: Network,
+    controller: Any,
+    initial_states: Sequence[Sequence[float]],
+    runs: int,
+    steps: int,
+    rng: np.random.Generator,
+    kind: str,
+    target: AbstractRegion | None = None,
+    avoid: AbstractRegion | None = None,
+    policy: Policy | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> ClosedLoop:
+    """Refinement in closed loop (Theorem 4.2): the concrete network under ``controller`` from each initial state
+    in its domain and from ``runs`` random states, uniform in cells drawn uniformly from its domain.
+
+    ``controller`` is a :class:`~pipelines.controller.Controller`; ``policy`` (default: the controller itself, which
+    draws one admissible input directly) is what chooses the inputs.
+    """
+    starts: list[tuple[str, np.ndarray]] = []
+    initial = []
+    for x in initial_states:
+        x0 = np.asarray(x, dtype=float)
+        idx = controller.cell(x0)
+        inside = idx is not None and bool(controller.in_domain(idx[None, :])[0])
+        initial.append({"x0": x0.tolist(), "in_domain": inside})
+        if inside:
+            starts.append(("initial", x0))
+    cells = controller.sample_cells(runs, rng) if runs else np.zeros((0, network.state_dim), dtype=np.int64)
+    if cells.shape[0]:
+        lo, hi = controller.state_grid.clipped_cells(cells)
+        starts += [("random", x) for x in rng.uniform(lo, hi)]
+    X0 = np.array([x0 for _, x0 in starts]).reshape(len(starts), network.state_dim)
+    done = simulate_many(network, controller if policy is None else policy, X0, steps, rng, kind, target, avoid,
+                         progress=progress)
+    records = [(origin, x0, run) for (origin, x0), run in zip(starts, done)]
+    for rec in initial:
+        for origin, x0, run in records:
+            if origin == "initial" and np.allclose(x0, rec["x0"]):
+                rec.update(violation=run.violation, settled_at=run.settled_at, steps=int(run.inputs.shape[0]))
+    return ClosedLoop(records, initial, steps)

@@ -1,4 +1,5 @@
-"""Dependencies the routers share: the token check, the job manager, a job or 404.
+"""Dependencies the routers share: the token check, the job manager, a job (or 404, via
+:class:`~service.errors.JobNotFound` and the app's handler).
 
 Authentication: with ``settings.token`` set, every route but ``/health`` (and the dashboard's static assets,
 which hold no data) needs the token, as ``Authorization: Bearer <token>`` or, for what a browser cannot send
@@ -10,6 +11,7 @@ client can set one, and serve over TLS (a reverse proxy) beyond 127.0.0.1.
 from __future__ import annotations
 
 import secrets
+from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request, Security
 from fastapi.security import APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
@@ -25,13 +27,13 @@ _query = APIKeyQuery(
 )
 
 #: OpenAPI entries of the errors every protected route can answer.
-AUTH_RESPONSES = {401: {"model": ErrorDetail, "description": "missing or wrong token"}}
+AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {401: {"model": ErrorDetail, "description": "missing or wrong token"}}
 
 
 def require_token(
     request: Request,
-    bearer: HTTPAuthorizationCredentials | None = Security(_bearer),
-    query: str | None = Security(_query),
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)],
+    query: Annotated[str | None, Security(_query)],
 ) -> None:
     """401 unless the request carries the server's token (when one is set)."""
     token = request.app.state.settings.token
@@ -50,11 +52,18 @@ def require_token(
 
 
 def get_manager(request: Request) -> JobManager:
-    return request.app.state.manager
+    manager: JobManager = request.app.state.manager
+    return manager
 
 
-def job_or_404(job_id: str, manager: JobManager = Depends(get_manager)) -> JobRecord:
-    rec = manager.store.get(job_id) if len(job_id) <= 64 else None
-    if rec is None:
-        raise HTTPException(404, detail=f"no job {job_id[:64]}")
-    return rec
+#: The app's job manager, as a route parameter.
+Manager = Annotated[JobManager, Depends(get_manager)]
+
+
+def job_or_404(job_id: str, manager: Manager) -> JobRecord:
+    """The job of the path's ``job_id``; :class:`~service.errors.JobNotFound` (404) if there is none."""
+    return manager.get(job_id)
+
+
+#: The job named by the path's ``job_id``, as a route parameter (404 if there is none).
+FoundJob = Annotated[JobRecord, Depends(job_or_404)]

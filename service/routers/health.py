@@ -3,17 +3,17 @@ compose health checks) and tells nothing about jobs beyond two counts."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 
-from service.manager import JobManager
 from service.models import Health
-from service.routers.common import get_manager
+from service.routers.common import Manager
+from service.store import JobStatus
 
 router = APIRouter(tags=["health"])
 
 
 @router.get("/health", response_model=Health)
-def health(manager: JobManager = Depends(get_manager)) -> Health:
+def health(manager: Manager) -> Health:
     """``{"status": "ok", "scheduler": ..., "workers": n}``: the API is up; ``workers`` is how many Dask workers
     are connected now (0 when jobs run in the API process)."""
     workers = 0
@@ -24,5 +24,5 @@ def health(manager: JobManager = Depends(get_manager)) -> Health:
             workers = 0
     return Health(
         scheduler=manager.cluster.get("scheduler"), workers=workers, dashboard=manager.cluster.get("dashboard"),
-        jobs_running=len(manager.running_ids), jobs_queued=manager.store.count(("queued",)),
+        jobs_running=len(manager.running_ids), jobs_queued=manager.store.count((JobStatus.QUEUED,)),
     )

@@ -5,10 +5,9 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-import uuid
-import zipfile
 from collections.abc import AsyncIterable
 from pathlib import Path
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -17,13 +16,14 @@ from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from service.manager import JobManager
 from service.models import ErrorDetail, Job, JobList, ProgressEvent
-from service.store import TERMINAL, JobRecord
-from service.routers.common import AUTH_RESPONSES, get_manager, job_or_404, require_token
+from service.routers.common import AUTH_RESPONSES, FoundJob, Manager, require_token
+from service.store import TERMINAL, JobRecord, JobStatus
+from workers import jobdir
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)
 
-_NOT_FOUND = {404: {"model": ErrorDetail, "description": "no such job"}}
-_NOT_DONE = {409: {"model": ErrorDetail, "description": "the job has not succeeded"}}
+_NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorDetail, "description": "no such job"}}
+_NOT_DONE: dict[int | str, dict[str, Any]] = {409: {"model": ErrorDetail, "description": "the job has not succeeded"}}
 #: How often an idle event stream looks for new events written by this process, and, at the longest, in the DB.
 _POLL, _DB_POLL = 0.1, 2.0
 
@@ -48,7 +48,7 @@ def _job_dir(manager: JobManager, rec: JobRecord) -> Path:
 
 
 def _succeeded(rec: JobRecord) -> None:
-    if rec.status != "succeeded":
+    if rec.status != JobStatus.SUCCEEDED:
         raise HTTPException(409, detail=f"job {rec.id} is {rec.status}, not succeeded: it has no results"
                             + (f" ({rec.error})" if rec.error else ""))
 
@@ -70,8 +70,10 @@ def _file(path: Path, what: str) -> Path:
 )
 async def submit_job(
     request: Request,
-    name: str | None = Query(default=None, min_length=1, max_length=256, description="the job's name (default: the spec's)"),
-    manager: JobManager = Depends(get_manager),
+    manager: Manager,
+    name: Annotated[
+        str | None, Query(min_length=1, max_length=256, description="the job's name (default: the spec's)")
+    ] = None,
 ) -> Job:
     """Validate a spec (expressions compiled, regions resolved, caps checked) and queue it as a job."""
     await run_in_threadpool(manager.check_capacity)  # a full server answers before reading the body
@@ -82,29 +84,31 @@ async def submit_job(
 
 @router.get("", response_model=JobList)
 def list_jobs(
-    limit: int = Query(default=100, ge=1, le=1000, description="at most this many, newest first"),
-    manager: JobManager = Depends(get_manager),
+    manager: Manager,
+    limit: Annotated[int, Query(ge=1, le=1000, description="at most this many, newest first")] = 100,
 ) -> JobList:
     """Jobs, newest first."""
     return JobList(jobs=[Job.of(r) for r in manager.store.list(limit=limit)])
 
 
 @router.get("/{job_id}", response_model=Job, responses=_NOT_FOUND)
-def get_job(rec: JobRecord = Depends(job_or_404)) -> Job:
+def get_job(rec: FoundJob) -> Job:
     """A job: status, per-stage progress, summary and figures once done."""
     return Job.of(rec)
 
 
 @router.delete("/{job_id}", response_model=Job, responses=_NOT_FOUND)
-def cancel_job(rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> Job:
+def cancel_job(rec: FoundJob, manager: Manager) -> Job:
     """Cancel a job. A queued one is cancelled at once; a running one is asked to stop (its cluster tasks are
     cancelled) and shows ``cancelled`` once it has. Cancelling an ended job changes nothing."""
-    return Job.of(manager.cancel(rec.id) or rec)
+    return Job.of(manager.cancel(rec.id))
 
 
 def _stream_start(
-    rec: JobRecord = Depends(job_or_404),
-    last_event_id: str | None = Header(default=None, description="resume after this event id (EventSource sends it)"),
+    rec: FoundJob,
+    last_event_id: Annotated[
+        str | None, Header(description="resume after this event id (EventSource sends it)")
+    ] = None,
 ) -> tuple[JobRecord, int]:
     after = int(last_event_id) if last_event_id and last_event_id.strip().isdigit() else 0
     if after and rec.terminal and rec.last_seq <= after:
@@ -119,7 +123,7 @@ def _stream_start(
                      "ids count 1, 2, ... per job; the stream ends after a terminal status"}},
 )
 async def job_events(
-    start: tuple[JobRecord, int] = Depends(_stream_start), manager: JobManager = Depends(get_manager),
+    start: Annotated[tuple[JobRecord, int], Depends(_stream_start)], manager: Manager,
 ) -> AsyncIterable[ServerSentEvent]:
     """The job's events as server-sent events: all stored ones, then live ones, until it ends.
 
@@ -152,17 +156,17 @@ async def job_events(
 
 
 @router.get("/{job_id}/report", responses={**_NOT_FOUND, **_NOT_DONE, 200: {"description": "report.json"}})
-def get_report(rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> FileResponse:
+def get_report(rec: FoundJob, manager: Manager) -> FileResponse:
     """The job's ``report.json`` (counts, times, audit, synthesis, closed loop)."""
     _succeeded(rec)
-    return FileResponse(_file(_job_dir(manager, rec) / "report.json", "the report"), media_type="application/json")
+    return FileResponse(_file(jobdir.report_path(_job_dir(manager, rec)), "the report"), media_type="application/json")
 
 
 @router.get(
     "/{job_id}/figures/{name}",
     responses={**_NOT_FOUND, **_NOT_DONE, 200: {"content": {"image/png": {}}, "description": "the figure"}},
 )
-def get_figure(name: str, rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> FileResponse:
+def get_figure(name: str, rec: FoundJob, manager: Manager) -> FileResponse:
     """A figure the report lists (``Job.figures``)."""
     _succeeded(rec)
     # Only names the job's report lists, and only plain file names: no path from a request reaches the disk.
@@ -176,27 +180,15 @@ def get_figure(name: str, rec: JobRecord = Depends(job_or_404), manager: JobMana
     responses={**_NOT_FOUND, **_NOT_DONE, 200: {"content": {"application/zip": {}},
                                                 "description": "controller.json and the DDDMP files it lists"}},
 )
-def get_controller(rec: JobRecord = Depends(job_or_404), manager: JobManager = Depends(get_manager)) -> FileResponse:
+def get_controller(rec: FoundJob, manager: Manager) -> FileResponse:
     """The controller as a zip of ``controller.json`` (grids, variable order, spec) and the DDDMP files it lists
     (``controller.dddmp``; a layered controller has ``controller.1.dddmp``, ... too);
     ``pipelines.load_controller(DIR)`` loads the unzipped directory."""
     _succeeded(rec)
-    d = _job_dir(manager, rec)
-    names = ["controller.dddmp", "controller.json"]
-    head = d / "controller.json"
-    if head.is_file():  # a layered controller has one DDDMP file per root, listed in its header
-        names = [*json.loads(head.read_text()).get("roots", ["controller.dddmp"]), "controller.json"]
-    if not all((d / n).is_file() for n in names):
+    archive = jobdir.controller_archive(_job_dir(manager, rec))
+    if archive is None:
         spec = json.loads(rec.spec)
         why = "options.synthesis is false" if not spec.get("options", {}).get("synthesis", True) else \
             "its files are missing from the server's data directory"
         raise HTTPException(404, detail=f"job {rec.id} has no controller: {why}")
-    # Zipped once into the job's directory and served from the file: a controller can be gigabytes.
-    archive = d / "controller.zip"
-    if not archive.is_file():
-        tmp = d / f"controller.zip.{uuid.uuid4().hex[:8]}.partial"
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
-            for n in names:
-                z.write(d / n, n)
-        tmp.replace(archive)  # atomic: two concurrent downloads never see half an archive
     return FileResponse(archive, media_type="application/zip", filename=f"controller-{rec.id}.zip")

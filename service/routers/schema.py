@@ -9,7 +9,6 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 
 from pipelines.spec.model import json_schema
-
 from service.routers.common import AUTH_RESPONSES, require_token
 
 router = APIRouter(dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)

@@ -1,7 +1,7 @@
 """The audit in a child process, beside synthesis (``run_abstraction(audit_beside=True)``).
 
 Synthesis needs nothing the audit makes, and the audit (Theorems 4.2 and 4.7 checked on random transitions,
-:func:`~workers.job.run_audit`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
+:func:`~pipelines.verification.audit.audit_abstraction`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
 GIL: a thread would not overlap it, a process does. On the 10 tanks the 2.6 s audit then costs no wall time
 (the per-subsystem synthesis uses one core). The job still fails on a violation, after synthesis, as before: a
 violation never stopped synthesis, it sets the job's status at the end.
@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pipelines.verification.audit as audit
 from workers.processes.children import start_module
 from pipelines.errors import CompabsError
 
@@ -36,7 +37,7 @@ class BackgroundAudit:
     Parameters
     ----------
     network, relations, ia, count, rng
-        As for :func:`~workers.job.run_audit`; ``rng`` is copied (this process's generator is left alone).
+        As for :func:`~pipelines.verification.audit.audit_abstraction`; ``rng`` is copied (this process's generator is left alone).
     """
 
     def __init__(self, network: Any, relations: dict, ia: Any, count: int, rng: Any) -> None:
@@ -60,7 +61,7 @@ class BackgroundAudit:
         Returns
         -------
         report : dict
-            As :func:`~workers.job.run_audit` returns it.
+            As :func:`~pipelines.verification.audit.audit_abstraction` returns it.
         seconds : float
             The audit's own wall time in the child.
         waited : float
@@ -124,8 +125,6 @@ def main(argv: list[str]) -> int:
     ``argv`` is ``IN OUT [PARENT_PID]``; with a parent pid the child stops (and removes ``IN``'s folder) when
     that process dies.
     """
-    from workers.job import run_audit
-
     src, dst, *parent = argv
     if parent:
         _exit_when_orphaned(int(parent[0]), Path(src).parent)
@@ -133,7 +132,7 @@ def main(argv: list[str]) -> int:
         network, relations, ia, count, rng = pickle.load(fh)
     t0 = time.perf_counter()
     try:
-        outcome: tuple = ("ok", run_audit(network, relations, ia, count, rng), time.perf_counter() - t0)
+        outcome: tuple = ("ok", audit.audit_abstraction(network, relations, ia, count, rng), time.perf_counter() - t0)
     except CompabsError as exc:  # a user's error (NaN from a black box, ...): the parent raises it as it is
         outcome = ("error", exc)
     try:

@@ -1,0 +1,298 @@
+"""The fixed points of the synthesis (Algorithm 5; METHOD §6), as functions of a controllable predecessor.
+
+* :func:`safe`: safety ``□S`` as ``νZ. S ∧ ∃u.CPre(Z)``;
+* :func:`reach`, :func:`reach_avoid`: ``◇T`` as ``μZ. (T ∨ ∃u.CPre(Z)) ∧ ¬A`` with a progress controller;
+* :func:`cobuchi`: reach-and-stay ``◇□φ`` as the co-Büchi ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)``;
+* :func:`reach_safe`: ``◇□φ`` as ``Reach(Safe(φ))``; :func:`reach_and_stay` reports both (METHOD §6).
+
+Each takes a :class:`~.cpre.ControllablePredecessor` (SCOTS's ``solve_invariance_game`` style). By the feedback
+refinement relation (Theorem 4.2) and soundness of the abstraction (Theorem 4.8), the controllers refine to the
+concrete network.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Concatenate, ParamSpec, TypeVar
+
+from pipelines.symbolic.counting import count_states
+from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.synthesis.cpre import ControllablePredecessor
+
+log = logging.getLogger(__name__)
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+@dataclass
+class SynthesisResult:
+    """A winning domain and a controller, with what it cost.
+
+    Attributes
+    ----------
+    kind : str
+        ``safe``, ``reach``, ``reach_avoid``, ``reach_and_stay/cobuchi`` or ``reach_and_stay/reach_safe``.
+    domain : Function
+        Winning states (current-state bits).
+    controller : Function or None
+        Pairs ``(x̂, û)`` over current-state and input bits; ``None`` for a layered result (see ``layers``).
+    domain_states : int
+        Exact number of abstract states in ``domain``.
+    iterations : int
+        Iterations of the (outer) fixed point.
+    inner_iterations : int
+        Iterations of inner fixed points (co-Büchi ``ν``; the safety part of Reach(Safe)); 0 if none.
+    seconds : float
+        Wall time of the fixed point(s), controller included.
+    peak_nodes : int
+        CUDD's peak of live nodes in the manager (``peak_live_nodes``) when the fixed point ended: since the
+        manager was made, so it includes what came before in the same manager.
+    details : dict
+        Per-part counts and times (JSON-ready).
+    layers : tuple of Function
+        A layered controller instead of ``controller``: ``layers[0] ⊆ layers[1] ⊆ ... = domain`` over
+        current-state bits. At a state first in ``layers[k]`` (``k > 0``) the admissible inputs are
+        ``CPre(layers[k-1])``; in ``layers[0]`` they are ``CPre(layers[0])`` if ``stay`` else every valid input
+        (the target of a reachability game). This is exactly the explicit progress controller, stored as the
+        sets it is made of and evaluated at one state at a time (:meth:`~.cpre.ControllablePredecessor.cpre_at`).
+    stay : bool
+        See ``layers``.
+    """
+
+    kind: str
+    domain: Function
+    controller: Function | None
+    domain_states: int
+    iterations: int
+    inner_iterations: int
+    seconds: float
+    peak_nodes: int
+    details: dict[str, Any] = field(default_factory=dict)
+    layers: tuple[Function, ...] = ()
+    stay: bool = False
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready numbers (no BDDs)."""
+        return {
+            "kind": self.kind,
+            "domain_states": self.domain_states,
+            "iterations": self.iterations,
+            "inner_iterations": self.inner_iterations,
+            "seconds": self.seconds,
+            "peak_nodes": self.peak_nodes,
+            "controller_form": "layered" if self.layers else "explicit",
+            "controller_nodes": self.controller.dag_size if self.controller is not None else None,
+            "layer_nodes": [f.dag_size for f in self.layers],
+            "domain_nodes": self.domain.dag_size,
+            **self.details,
+        }
+
+
+def _peak_live_nodes(model: SymbolicModel) -> int:
+    with warnings.catch_warnings():  # dd warns that 'mem' is now in bytes
+        warnings.simplefilter("ignore")
+        return int(model.bdd.statistics()["peak_live_nodes"])
+
+
+class _Meter:
+    """Iteration counter, timer and peak-node reader of one fixed point.
+
+    ``len(bdd)`` (CUDD's live-node count) walks the unique table: once per iteration it was 5 % of the tanks'
+    synthesis (bench/run.py profile), so the peak is CUDD's own counter, read at the end.
+    """
+
+    def __init__(self, model: SymbolicModel, kind: str) -> None:
+        self.model = model
+        self.kind = kind
+        self.t0 = time.perf_counter()
+        self.iterations = 0
+        self.inner = 0
+        self.peak = 0
+
+    def tick(self, inner: bool = False) -> None:
+        if inner:
+            self.inner += 1
+        else:
+            self.iterations += 1
+        if log.isEnabledFor(logging.INFO):
+            log.info("%s: iteration %d (inner %d), %.2f s, %d live nodes", self.kind, self.iterations, self.inner,
+                     self.seconds, len(self.model.bdd))
+
+    @property
+    def seconds(self) -> float:
+        return time.perf_counter() - self.t0
+
+
+def _guarded(
+    fn: Callable[Concatenate[ControllablePredecessor, P], R],
+) -> Callable[Concatenate[ControllablePredecessor, P], R]:
+    """Run a fixed point inside :meth:`SymbolicModel.guard`: CUDD running out of memory becomes a clear error."""
+
+    @functools.wraps(fn)
+    def run(cpre: ControllablePredecessor, *args: P.args, **kwargs: P.kwargs) -> R:
+        with cpre.model.guard(f"computing the {fn.__name__} fixed point"):
+            return fn(cpre, *args, **kwargs)
+
+    return run
+
+
+def _result(
+    cpre: ControllablePredecessor, kind: str, domain: Function, controller: Function | None, meter: _Meter,
+    layers: Sequence[Function] = (), stay: bool = False, **details: Any,
+) -> SynthesisResult:
+    meter.peak = max(meter.peak, _peak_live_nodes(cpre.model))
+    return SynthesisResult(
+        kind=kind,
+        domain=domain,
+        controller=controller,
+        domain_states=count_states(cpre.model, domain),
+        iterations=meter.iterations,
+        inner_iterations=meter.inner,
+        seconds=meter.seconds,
+        peak_nodes=meter.peak,
+        details={"method": cpre.method, "order": cpre.model.order, **details},
+        layers=tuple(layers),
+        stay=stay,
+    )
+
+
+@_guarded
+def safe(cpre: ControllablePredecessor, S: Function, *, layered: bool = False) -> SynthesisResult:
+    """Safety ``□S``: ``νZ. S ∧ ∃u.CPre(Z)`` (the invariance game of Algorithm 5, SCOTS's
+    ``solve_invariance_game``); the controller allows every input that keeps the state in the invariant.
+
+    ``layered``: return the invariant as a one-layer controller (``stay``) instead of ``Z ∧ CPre(Z)``.
+    """
+    meter = _Meter(cpre.model, "safe")
+    S = S & cpre.model.x_domain
+    inside = cpre.within(S)  # every iterate is inside S
+    Z = S
+    while True:
+        Zn = S & cpre.predecessors(Z, within=inside)
+        meter.tick()
+        if Zn == Z:
+            break
+        Z = Zn
+    if layered:
+        return _result(cpre, "safe", Z, None, meter, layers=(Z,), stay=True)
+    return _result(cpre, "safe", Z, Z & cpre.cpre(Z, inside), meter)
+
+
+@_guarded
+def reach(
+    cpre: ControllablePredecessor, T: Function, avoid: Function | None = None, *, kind: str = "reach",
+    layered: bool = False,
+) -> SynthesisResult:
+    """Reachability ``◇T``: ``μZ. (T ∨ ∃u.CPre(Z)) ∧ ¬A`` (``A`` empty for plain reachability; Algorithm 5,
+    SCOTS's ``solve_reachability_game``) with a progress controller.
+
+    An input counts at ``x̂`` only in the iteration where ``x̂`` entered the attractor (SCOTS keeps it that way):
+    it then leads into the previous iterate, so every closed-loop run reaches ``T`` within as many steps as
+    there were iterations. Target states get every (valid) input: the specification is met on arrival.
+
+    ``layered``: keep the iterates instead of the controller (:class:`SynthesisResult` ``layers``); each
+    iteration is then one ``∃u.CPre`` without materialising ``CPre`` over states and inputs, which on the
+    consensus network is most of the time and nearly all of the memory of the explicit controller.
+    """
+    m = cpre.model
+    meter = _Meter(m, kind)
+    keep = m.x_domain if avoid is None else m.x_domain & ~avoid
+    Z = T & keep
+    if layered:
+        layers = [Z]
+        while True:
+            new = cpre.predecessors(Z, outside=~Z) & keep & ~Z
+            meter.tick()
+            if new == cpre.bdd.false:
+                break
+            Z |= new
+            layers.append(Z)
+        return _result(cpre, kind, Z, None, meter, layers=layers)
+    controller = Z & m.u_domain
+    while True:
+        C = cpre.cpre(Z)
+        new = cpre.pre(C) & keep & ~Z
+        meter.tick()
+        if new == cpre.bdd.false:
+            break
+        controller |= C & new
+        Z |= new
+    return _result(cpre, kind, Z, controller, meter)
+
+
+@_guarded
+def reach_avoid(cpre: ControllablePredecessor, T: Function, A: Function, *, layered: bool = False) -> SynthesisResult:
+    """Reach-avoid: ``μZ. (T ∨ ∃u.CPre(Z)) ∧ ¬A`` (:func:`reach` with ``A``; the states of ``A`` never enter)."""
+    return reach(cpre, T, A, kind="reach_avoid", layered=layered)
+
+
+@_guarded
+def cobuchi(cpre: ControllablePredecessor, phi: Function) -> SynthesisResult:
+    """``◇□φ`` as ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)`` (METHOD §6).
+
+    Controller: a state that enters at outer iteration ``k+1`` (``X_{k+1} \\ X_k``) gets the inputs ``û`` with
+    ``(φ(x̂) ∧ CPre(X_{k+1})(x̂, û)) ∨ CPre(X_k)(x̂, û)``. Along a closed-loop run the rank ``k`` never increases,
+    and while it stays constant only the first disjunct can hold, so from some time on every state is in ``φ``.
+    """
+    m = cpre.model
+    meter = _Meter(m, "cobuchi")
+    phi = phi & m.x_domain
+    on_phi = cpre.within(phi)  # the ν part is needed on φ only
+    X = cpre.bdd.false
+    controller = cpre.bdd.false
+    while True:
+        CX = cpre.cpre(X)
+        preX = cpre.pre(CX)
+        Y = m.x_domain
+        while True:
+            Yn = cpre.predecessors(Y, within=on_phi) | preX
+            meter.tick(inner=True)
+            if Yn == Y:
+                break
+            Y = Yn
+        meter.tick()
+        if Y != X:
+            controller |= (Y & ~X) & (cpre.cpre(Y, on_phi) | CX)
+        if Y == X:
+            break
+        X = Y
+    return _result(cpre, "reach_and_stay/cobuchi", X, controller, meter)
+
+
+@_guarded
+def reach_safe(cpre: ControllablePredecessor, phi: Function, *, layered: bool = False) -> SynthesisResult:
+    """``◇□φ`` as ``Reach(Safe(φ))``: inside the safe set the safety controller, outside the reach controller.
+
+    ``layered``: the reach iterates over the safe set, with ``stay`` (layer 0 is the invariant).
+    """
+    meter = _Meter(cpre.model, "reach_safe")
+    s = safe(cpre, phi, layered=layered)
+    r = reach(cpre, s.domain, layered=layered)
+    meter.iterations = r.iterations
+    meter.inner = s.iterations
+    meter.peak = max(s.peak_nodes, r.peak_nodes)
+    extra: dict[str, Any] = dict(safe_states=s.domain_states, safe_seconds=s.seconds, reach_seconds=r.seconds)
+    if layered:
+        return _result(cpre, "reach_and_stay/reach_safe", r.domain, None, meter, layers=r.layers, stay=True, **extra)
+    controller = (s.domain & s.controller) | (~s.domain & r.controller)
+    return _result(cpre, "reach_and_stay/reach_safe", r.domain, controller, meter, **extra)
+
+
+REACH_AND_STAY = {"cobuchi": cobuchi, "reach_safe": reach_safe}
+
+
+def reach_and_stay(
+    cpre: ControllablePredecessor, phi: Function, methods: Sequence[str] = ("cobuchi", "reach_safe"), *,
+    layered: bool = False,
+) -> dict[str, SynthesisResult]:
+    """``◇□φ`` by each of ``methods`` (METHOD §6 asks for both domains to be reported).
+
+    ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit.
+    """
+    return {name: reach_safe(cpre, phi, layered=layered) if name == "reach_safe" else REACH_AND_STAY[name](cpre, phi)
+            for name in methods}

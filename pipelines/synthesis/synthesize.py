@@ -1,0 +1,115 @@
+"""A job's synthesis: encode the abstraction, solve its specification, report (Algorithm 5; METHOD §5-6).
+
+:func:`synthesize` takes the three parts of an abstraction (the network, the subsystem relations, the
+interconnection abstraction) and the specification section of the job spec; it knows nothing of how the
+abstraction was computed or where it is stored. Helper processes for the fixed points' ``∃u.CPre`` come in
+through ``partitioned`` (:class:`~.cpre.ControllablePredecessor`), never from here.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from pipelines.spec.regions import abstract_region
+from pipelines.symbolic.model import Function
+from pipelines.symbolic.relations import region
+from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
+from pipelines.synthesis.fixed_points import SynthesisResult, reach, reach_and_stay, reach_avoid, safe
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.abstraction.relation import SubsystemRelation
+    from pipelines.interconnection import InterconnectionAbstraction
+    from pipelines.network import Network
+    from pipelines.spec.model import SpecificationSpec
+
+CONTROLLER_FORMS = ("auto", "explicit", "layered")
+
+
+def synthesize(
+    network: Network,
+    relations: Mapping[str, SubsystemRelation],
+    interconnection: InterconnectionAbstraction,
+    specification: SpecificationSpec,
+    *,
+    order: str | None = None,
+    method: str = "auto",
+    max_memory: int | None = None,
+    reach_and_stay_methods: Sequence[str] = ("cobuchi", "reach_safe"),
+    chain_order: str = "greedy",
+    controller_form: str = "auto",
+    processes: int | str = 1,
+    partitioned: PartitionedFactory | None = None,
+) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
+    """Encode an abstraction, solve its specification, and report.
+
+    Parameters
+    ----------
+    network, relations, interconnection
+        The abstraction: the network, the subsystem relations by key, the interconnection abstraction.
+    specification : SpecificationSpec
+        The job spec's ``specification`` section (kind and regions).
+    order, method, max_memory, chain_order
+        See :meth:`ControllablePredecessor.from_network`.
+    reach_and_stay_methods : sequence of str
+        Fixed points for a reach-and-stay specification (:func:`~.fixed_points.reach_and_stay`).
+    controller_form : {'auto', 'explicit', 'layered'}
+        ``explicit`` (a BDD over states and inputs), ``layered`` (:class:`SynthesisResult` ``layers``) or
+        ``auto``, which is ``layered`` for the shared-``w`` CPre: there the explicit controller is the largest BDD
+        of the job (consensus N = 8: 2.4 GB as DDDMP, most of the synthesis time).
+    processes : int or 'auto'
+        Parts of the fixed points' ``∃u.CPre`` run at once (:class:`ControllablePredecessor`); they take effect
+        only with ``partitioned``, and stop before this returns.
+    partitioned : callable, optional
+        ``partitioned(cpre, processes)``: the partitioned ``∃u.CPre`` (e.g.
+        ``workers.processes.partitioned_cpre.PartitionedPredecessors``); ``None``: one process.
+
+    Returns
+    -------
+    cpre : ControllablePredecessor
+        The model and the CPre ingredients the controllers are made of (:func:`pipelines.controller.controller_of`).
+    results : dict of str to SynthesisResult
+        One entry (``safe``, ``reach``, ``reach_avoid``) or one per reach-and-stay method.
+    report : dict
+        JSON-ready: build times and node counts, per-result summaries.
+    """
+    if controller_form not in CONTROLLER_FORMS:
+        raise ValueError(f"controller_form must be auto, explicit or layered, got {controller_form!r}")
+    t0 = time.perf_counter()
+    cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=order, method=method,
+                                                max_memory=max_memory, chain_order=chain_order, processes=processes,
+                                                partitioned=partitioned)
+    build = time.perf_counter() - t0
+    m = cpre.model
+    grid = network.composed_state_grid()
+
+    def states(name: str) -> Function:
+        return region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}"))
+
+    layered = controller_form == "layered" or (controller_form == "auto" and cpre.method == "shared")
+    try:
+        if specification.kind == "safe":
+            results = {"safe": safe(cpre, states("safe"), layered=layered)}
+        elif specification.kind == "reach":
+            results = {"reach": reach(cpre, states("target"), layered=layered)}
+        elif specification.kind == "reach_avoid":
+            results = {"reach_avoid": reach_avoid(cpre, states("target"), states("avoid"), layered=layered)}
+        else:
+            results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered)
+    finally:
+        cpre.close()
+    report = {
+        "order": m.order,
+        "method": cpre.method,
+        "chain_order": cpre.chain_order,
+        "build_seconds": build,
+        "relation_seconds": dict(m.build_seconds),
+        "cpre_setup_seconds": cpre.setup_seconds,
+        "relation_nodes": [t.dag_size for t in cpre.T],
+        "interconnection_nodes": {f"w{j}": p.dag_size for j, p in cpre.parts.items()},
+        "results": {k: r.summary() for k, r in results.items()},
+        "parallel": cpre.parallel,
+        "bdd": m.stats(),
+    }
+    return cpre, results, report

@@ -1,0 +1,143 @@
+"""``compabs audit DIR``: re-check a finished job's stored abstraction and controller against the black boxes.
+
+Always against what the job *stored* (:func:`workers.jobdir.load_job`: ``relations.zarr``,
+``interconnection.npz``, the controller files), never a recomputed abstraction:
+
+* the parts the job's own audit stage checks (:func:`pipelines.verification.audit.audit_abstraction`): every
+  distinct subsystem, the interconnection and the composition, ``N`` random concrete transitions each, a share of
+  them on cell boundaries and box edges;
+* the controller, if the job has one: closed-loop runs of the concrete system under it from random states of its
+  domain and from the spec's initial states inside it (:func:`pipelines.verification.closed_loop.run_closed_loop`).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from pipelines.controller import load_controller
+from pipelines.errors import CompabsError
+from pipelines.spec.model import parse_spec, spec_hash
+from pipelines.spec.regions import spec_regions
+from pipelines.verification.audit import audit_abstraction
+from pipelines.verification.closed_loop import run_closed_loop
+from workers import jobdir
+
+#: ``progress(part, done, total)`` for long audits.
+AuditProgress = Callable[[str, int, int], None]
+
+
+def _closed_loop(arts: jobdir.JobArtifacts, runs: int, rng: np.random.Generator) -> dict[str, Any]:
+    """Closed-loop runs of the concrete system under the job's stored controller."""
+    controller = load_controller(arts.directory, jobdir.CONTROLLER)
+    ctrl_spec = controller.meta.get("spec")
+    if ctrl_spec is not None and spec_hash(parse_spec(ctrl_spec)) != spec_hash(arts.spec):
+        raise CompabsError(f"{arts.directory}/{jobdir.CONTROLLER}.json was synthesized for another spec than "
+                           f"{jobdir.SPEC}")
+    spec, network = arts.spec, arts.network
+    regions = spec_regions(spec, network)
+    steps = (arts.report.get("closed_loop") or {}).get("steps") or spec.options.closed_loop_steps or 60
+    t0 = time.perf_counter()
+    loop = run_closed_loop(network, controller, spec.options.initial_states, runs, int(steps), rng,
+                           spec.specification.kind, regions.get("target") or regions.get("safe"),
+                           regions.get("avoid"), policy=controller.inputs)
+    random_runs = sum(1 for origin, _, _ in loop.runs if origin == "random")
+    return {
+        "runs": len(loop.runs),
+        "violations": loop.violations,
+        "first_violation": loop.first_violation,
+        "steps": int(steps),
+        "form": controller.meta.get("form", "explicit"),
+        "domain_empty": random_runs == 0 and runs > 0,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def audit_job(
+    directory: str | os.PathLike[str],
+    transitions: int | None = None,
+    seed: int | None = None,
+    runs: int = 20,
+    *,
+    allowed_modules: Sequence[str] | None = None,
+    progress: AuditProgress | None = None,
+    write: bool = True,
+) -> dict[str, Any]:
+    """Audit a finished job's stored abstraction and controller; write ``DIR/audit.json``.
+
+    Parameters
+    ----------
+    directory : path
+        The job's directory (``compabs run --out``, or the service's ``DATA/jobs/<id>``).
+    transitions : int, optional
+        Random concrete transitions per part (each distinct subsystem, the interconnection, the composition).
+        Default: the spec's ``options.audit_transitions``, or 10^6 if that is 0.
+    seed : int, optional
+        Seed of the random draws (default: fresh entropy; the seed used is in the result).
+    runs : int
+        Closed-loop runs from random domain states (0: none; the spec's initial states in the domain are always
+        run).
+    allowed_modules : sequence of str, optional
+        Modules a ``module:function`` black box may come from (``None``: any, as on the local command line).
+    progress : callable, optional
+        ``progress(part, done, total)``.
+    write : bool
+        Write ``DIR/audit.json``.
+
+    Returns
+    -------
+    dict
+        ``transitions_checked``, ``violations`` (transitions and closed-loop runs), ``parts`` (per part:
+        ``transitions_checked``, ``violations``, ``skipped_blocking``, ``first_violation``), ``closed_loop`` (or
+        ``None`` without a controller), ``seed``, ``relation_source``, ``relation_files``.
+
+    Raises
+    ------
+    CompabsError
+        A missing or damaged file (:class:`workers.jobdir.ArtifactError`), or a spec that no longer builds.
+    """
+    report = progress or (lambda *_: None)
+    arts = jobdir.load_job(directory, allowed_modules)
+    if transitions is None:
+        transitions = arts.spec.options.audit_transitions or 1_000_000
+    if transitions < 0:
+        raise CompabsError(f"--transitions must be >= 0, got {transitions}")
+    if seed is None:
+        seed = int(np.random.SeedSequence().entropy % (2**63))
+    rng = np.random.default_rng(seed)
+    groups = arts.network.unique_subsystems()
+    seconds: dict[str, float] = {}
+    audited = audit_abstraction(arts.network, arts.relations, arts.interconnection, transitions, rng,
+                                lambda done, total, part: report(part, done, total + 1), composition=transitions,
+                                seconds=seconds)
+    parts = {}
+    for key, members in groups.items():
+        parts[f"subsystem {members[0].name}"] = {**audited["parts"][members[0].name],
+                                                 "seconds": seconds[members[0].name],
+                                                 "members": [m.name for m in members],
+                                                 "stored_as": arts.relation_files.get(key)}
+    parts["interconnection"] = {**audited["parts"]["interconnection"], "mode": arts.interconnection.mode,
+                                "seconds": seconds["interconnection"]}
+    parts["composition"] = {**audited["parts"]["composition"], "seconds": seconds["composition"]}
+    closed = _closed_loop(arts, runs, rng) if arts.has_controller else None
+    report("closed loop", len(groups) + 3, len(groups) + 3)
+    result = {
+        "directory": str(arts.directory),
+        "job": arts.spec.name,
+        "seed": seed,
+        "transitions_per_part": transitions,
+        "relation_source": arts.relation_source,
+        "relation_files": arts.relation_files,
+        "transitions_checked": audited["transitions_checked"],
+        "transition_violations": audited["violations"],
+        "violations": audited["violations"] + (closed["violations"] if closed else 0),
+        "parts": parts,
+        "closed_loop": closed,
+    }
+    if write:
+        jobdir.write_audit(arts.directory, result)
+    return result
