@@ -68,9 +68,10 @@ import tempfile
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -202,9 +203,9 @@ def _jsonable(obj: Any, depth: int = 0) -> Any:
 # ====================================================================================== cases (child side)
 def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
     """A spec end to end in this process: abstraction (with audit), synthesis, closed loop, files."""
+    from pipelines.spec.model import load_spec
     from workers.control import run_synthesis
     from workers.job import run_abstraction
-    from pipelines.spec.model import load_spec
 
     spec = load_spec(p["spec"], p.get("set"))
     clock = StageClock(emit)
@@ -236,9 +237,9 @@ def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
 
 def child_scalability(p: dict, emit: Callable[[dict], None]) -> None:
     """One N of the scalability example: abstraction stages (no audit) and the composition."""
-    from workers.job import run_abstraction
     from pipelines.spec.model import load_spec
     from pipelines.synthesis.cpre import ControllablePredecessor
+    from workers.job import run_abstraction
 
     spec = load_spec(EXAMPLES / "scalability.yaml", {"N": p["N"]})
     clock = StageClock(emit)
@@ -328,12 +329,11 @@ def _constants(sub) -> tuple[float, float]:
 
 def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
     """(a) Per-cell stage against the bare evaluation of the black box on the same samples."""
-    from pipelines.network import build_network
-    from pipelines.spec.model import load_spec
+    import pipelines.abstraction.kernels as compiled
     from pipelines.abstraction.cells import abstract_cells
     from pipelines.abstraction.relation import chunk_ranges
-
-    import pipelines.abstraction.kernels as compiled
+    from pipelines.network import build_network
+    from pipelines.spec.model import load_spec
 
     compiled.warm_up()  # numba compiles (or loads its cache) at the first call: not the stage's work
     spec = load_spec(p["spec"], p.get("set"))
@@ -341,7 +341,7 @@ def child_floor(p: dict, emit: Callable[[dict], None]) -> None:
         spec = _with_samples(spec, p["samples"], p.get("input_eta"))
     network = build_network(spec, None)
     rows = []
-    for key, members in network.unique_subsystems().items():
+    for members in network.unique_subsystems().values():
         sub = members[0]
         L_x, L_w = _constants(sub)
         chunks = chunk_ranges(sub, spec.options.chunk_cells)
@@ -391,6 +391,7 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
     """(b) Batched exact SCP against one HiGHS LP per cell, on the pipeline's own samples."""
     import numpy as np
 
+    from pipelines.abstraction.cells import abstract_cells
     from pipelines.abstraction.growth_bound import (
         SCP_TIE_RTOL,
         pair_maxima_scalar,
@@ -399,10 +400,9 @@ def child_scp(p: dict, emit: Callable[[dict], None]) -> None:
         scp_rho,
         subgrid_counts,
     )
+    from pipelines.abstraction.relation import chunk_ranges
     from pipelines.network import build_network
     from pipelines.spec.model import load_spec
-    from pipelines.abstraction.cells import abstract_cells
-    from pipelines.abstraction.relation import chunk_ranges
 
     spec = load_spec(p["spec"], p.get("set"))
     network = build_network(spec, None)
@@ -508,10 +508,10 @@ def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
     """(d) Bulk Shannon-tree construction of a relation against OR-ing one cube per constraint."""
     import numpy as np
 
-    from pipelines.network import build_network
-    from pipelines.spec.model import load_spec
     from pipelines.abstraction.cells import abstract_cells
     from pipelines.abstraction.relation import assemble, chunk_ranges
+    from pipelines.network import build_network
+    from pipelines.spec.model import load_spec
     from pipelines.symbolic.model import SymbolicModel
     from pipelines.symbolic.relations import subsystem_relation
     from pipelines.symbolic.tree import range_leaves, tree

@@ -28,11 +28,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from workers.job import run_abstraction  # noqa: E402
-from pipelines.network import build_network  # noqa: E402
-from pipelines.spec.model import JobSpec, load_spec  # noqa: E402
 from pipelines.abstraction.cells import CellTask, abstract_cells  # noqa: E402
 from pipelines.abstraction.relation import chunk_ranges  # noqa: E402
+from pipelines.network import build_network  # noqa: E402
+from pipelines.spec.model import JobSpec, load_spec  # noqa: E402
+from workers.job import run_abstraction  # noqa: E402
 
 
 def stressed(spec: JobSpec, factor: int) -> JobSpec:

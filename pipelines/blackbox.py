@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import importlib
 import math
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -67,9 +67,8 @@ class BlackBox:
         self._inputs = dict(inputs)
         self._constants = dict(constants or {})
         self._allowed = None if allowed_modules is None else tuple(allowed_modules)
-        self._fn: Callable[..., np.ndarray] | None = None
         self._is_module = is_module_function(self._source)
-        self._compile()
+        self._fn: Callable[..., np.ndarray] = self._compile()
         self._out_dim = out_dim if out_dim is not None else self._infer_out_dim()
         if out_dim is not None:
             got = self._infer_out_dim()
@@ -77,7 +76,7 @@ class BlackBox:
                 raise SpecError(f"{name}: returns {got} components, expected {out_dim}")
 
     # -------------------------------------------------------------- construction
-    def _compile(self) -> None:
+    def _compile(self) -> Callable[..., np.ndarray]:
         if self._is_module:
             module_name, func = self._source.split(":")
             if self._allowed is not None and not any(
@@ -94,7 +93,7 @@ class BlackBox:
                 raise SpecError(f"{self._name}: cannot load {self._source}: {exc}") from None
             if not callable(fn):
                 raise SpecError(f"{self._name}: {self._source} is not callable")
-            self._fn = fn
+            return fn
         else:
             from pipelines.errors import ExpressionError
             from pipelines.expressions import compile_expression
@@ -112,7 +111,7 @@ class BlackBox:
                 out = np.asarray(out, dtype=float)
                 return out.transpose(_FIRST_LAST[out.ndim])
 
-            self._fn = run
+            return run
 
     def _infer_out_dim(self) -> int:
         probe = [np.ones((1, d)) for d in self._inputs.values()]
@@ -132,7 +131,7 @@ class BlackBox:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._compile()
+        self._fn = self._compile()
 
     # -------------------------------------------------------------- properties
     @property

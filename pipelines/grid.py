@@ -11,8 +11,8 @@ Indices are zero-based per dimension (``i = k - k_lo``) and flat indices are row
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -73,7 +73,7 @@ class UniformGrid:
         eta: float | Sequence[float],
         origin: float | Sequence[float] | None = None,
         name: str = "grid",
-    ) -> "UniformGrid":
+    ) -> UniformGrid:
         """Grid of every point whose cell meets ``[lb, ub]`` in a set of positive measure (state grids).
 
         The cells then cover the box, so every concrete state lies in some cell (METHOD §1). A box that is a
@@ -98,7 +98,7 @@ class UniformGrid:
         eta: float | Sequence[float],
         origin: float | Sequence[float] | None = None,
         name: str = "grid",
-    ) -> "UniformGrid":
+    ) -> UniformGrid:
         """Grid of the points that lie in ``[lb, ub]`` (external-input grids: inputs are points, not cells)."""
         lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is _make's SpecError, not a warning
@@ -123,7 +123,7 @@ class UniformGrid:
         return lb_, ub_, eta_, o_
 
     @classmethod
-    def _make(cls, o_, eta_, k_lo, k_hi, lb_, ub_, name) -> "UniformGrid":
+    def _make(cls, o_, eta_, k_lo, k_hi, lb_, ub_, name) -> UniformGrid:
         if not (np.all(np.isfinite(k_lo)) and np.all(np.isfinite(k_hi))):
             raise SpecError(
                 f"{name}: spacing {eta_.tolist()} is too fine for the box [{lb_.tolist()}, {ub_.tolist()}] "
@@ -143,7 +143,7 @@ class UniformGrid:
         )
 
     @classmethod
-    def product(cls, grids: Sequence["UniformGrid"]) -> "UniformGrid":
+    def product(cls, grids: Sequence[UniformGrid]) -> UniformGrid:
         """The product of grids as one grid (dimensions concatenated in order)."""
         return cls(
             origin=sum((g.origin for g in grids), ()),
@@ -162,7 +162,7 @@ class UniformGrid:
     @property
     def shape(self) -> tuple[int, ...]:
         """Number of points per dimension."""
-        return tuple(h - l + 1 for l, h in zip(self.k_lo, self.k_hi))
+        return tuple(high - low + 1 for low, high in zip(self.k_lo, self.k_hi))
 
     @property
     def size(self) -> int:
@@ -253,7 +253,9 @@ class UniformGrid:
         last = np.floor(b).astype(np.int64) - np.asarray(self.k_lo, dtype=np.int64)
         return first, last
 
-    def inner_range(self, lb: Sequence[float], ub: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    def inner_range(
+        self, lb: np.ndarray | Sequence[float], ub: np.ndarray | Sequence[float]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Index range of the grid cells lying wholly inside the box ``[lb, ub]`` (inner approximation).
 
         Returns ``(first, last)``, shape (d,), clipped to the grid; the range is empty where
@@ -280,7 +282,7 @@ class UniformGrid:
         }
 
     @classmethod
-    def from_description(cls, d: dict) -> "UniformGrid":
+    def from_description(cls, d: dict) -> UniformGrid:
         return cls(
             origin=tuple(d["origin"]),
             eta=tuple(d["eta"]),

@@ -10,8 +10,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 from pipelines.blackbox import BlackBox
 from pipelines.errors import SpecError
@@ -103,7 +103,7 @@ def _grid(g: GridSpec, name: str, kind: str) -> UniformGrid:
 
 
 def _replicas(s: SubsystemSpec, params: dict[str, float]) -> int:
-    r = s.replicate
+    r: int | float | str = s.replicate
     if isinstance(r, str):
         if r not in params:
             raise SpecError(f"subsystem '{s.name}': replicate names parameter '{r}', which is not defined")
@@ -131,7 +131,6 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
     """
     params = dict(spec.parameters)
     ic = spec.interconnection
-    internal_specs = ic.internal if isinstance(ic.internal, list) else None
     subsystems: list[Subsystem] = []
     offset = 0
     # Internal grids are known once the map's output dimension is; the map needs the state dimension.
@@ -141,8 +140,7 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
     n_total = sum(state_dims)
     imap = BlackBox("interconnection map", ic.map, {"x": n_total}, None, params, allowed_modules)
     p = imap.out_dim
-    if internal_specs is None:
-        internal_specs = [ic.internal] * p
+    internal_specs = ic.internal if isinstance(ic.internal, list) else [ic.internal] * p
     if len(internal_specs) != p:
         raise SpecError(f"interconnection.internal: {len(internal_specs)} grids given, the map has {p} outputs")
     internal_grids = []

@@ -12,13 +12,12 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
-
 from workers.jobdir import json_default as _json_default
 
 
@@ -64,7 +63,6 @@ def _parse_sets(items: Sequence[str]) -> dict[str, float]:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from pipelines.spec.model import load_spec
-
     from workers.job import run_job
 
     spec = load_spec(args.spec, _parse_sets(args.set))

@@ -12,19 +12,20 @@ import argparse
 import logging
 import os
 import sys
-
 from typing import TYPE_CHECKING
 
 from pipelines.errors import SpecError
 
 if TYPE_CHECKING:  # every `compabs` command builds this parser: keep pydantic out of its start-up
+    from types import FrameType
+
     from service.settings import Settings
 
 #: Seconds uvicorn waits for open connections (event streams never end by themselves) before stopping.
 GRACEFUL_SECONDS = 3
 
 
-def add_parser(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> argparse.ArgumentParser:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
     """Add the ``serve`` subcommand to ``compabs``'s parser."""
     s = sub.add_parser("serve", help="run the REST API and dashboard (one process, embedded Dask cluster)")
     s.add_argument("--host", default=None, help="address to bind (default 127.0.0.1, or COMPABS_HOST)")
@@ -77,7 +78,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     app = create_app(settings)
 
     class Server(uvicorn.Server):
-        def handle_exit(self, sig: int, frame: object) -> None:
+        def handle_exit(self, sig: int, frame: FrameType | None) -> None:
             # Tell running jobs at once, not after the graceful wait: the signal may also have reached the Dask
             # workers (a process group, `docker stop`), and a job failing for that must be re-queued, not failed.
             manager = getattr(app.state, "manager", None)

@@ -107,11 +107,15 @@ def audit_job(
     if transitions < 0:
         raise CompabsError(f"--transitions must be >= 0, got {transitions}")
     if seed is None:
-        seed = int(np.random.SeedSequence().entropy % (2**63))
+        entropy = np.random.SeedSequence().entropy
+        assert isinstance(entropy, int)  # drawn fresh (an int) when none is given
+        seed = int(entropy % (2**63))
     rng = np.random.default_rng(seed)
     groups = arts.network.unique_subsystems()
     seconds: dict[str, float] = {}
-    audited = audit_abstraction(arts.network, arts.relations, arts.interconnection, transitions, rng,
+    ia = arts.interconnection
+    assert ia is not None  # load_job reads it (or raises ArtifactError)
+    audited = audit_abstraction(arts.network, arts.relations, ia, transitions, rng,
                                 lambda done, total, part: report(part, done, total + 1), composition=transitions,
                                 seconds=seconds)
     parts = {}
@@ -120,7 +124,7 @@ def audit_job(
                                                  "seconds": seconds[members[0].name],
                                                  "members": [m.name for m in members],
                                                  "stored_as": arts.relation_files.get(key)}
-    parts["interconnection"] = {**audited["parts"]["interconnection"], "mode": arts.interconnection.mode,
+    parts["interconnection"] = {**audited["parts"]["interconnection"], "mode": ia.mode,
                                 "seconds": seconds["interconnection"]}
     parts["composition"] = {**audited["parts"]["composition"], "seconds": seconds["composition"]}
     closed = _closed_loop(arts, runs, rng) if arts.has_controller else None

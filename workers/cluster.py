@@ -80,7 +80,7 @@ class Connection(tuple):
     connection started the cluster).
     """
 
-    def __new__(cls, client: Any, info: dict[str, Any]) -> "Connection":
+    def __new__(cls, client: Any, info: dict[str, Any]) -> Connection:
         return super().__new__(cls, (client, info))
 
     @property
@@ -95,7 +95,7 @@ class Connection(tuple):
         """Close the client, and with it the embedded cluster if this connection started one."""
         self.client.close()
 
-    def __enter__(self) -> "Connection":
+    def __enter__(self) -> Connection:
         return self
 
     def __exit__(self, *exc: object) -> None:

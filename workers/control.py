@@ -101,10 +101,13 @@ def run_synthesis(
         _, x0, run = loop.runs[0]
         free = simulate(network, None, x0, run.inputs.shape[0] or steps, rng, kind, target, avoid)
         band = None
-        if kind in ("reach_and_stay", "reach", "reach_avoid") and spec.specification.target.boxes:
-            b = spec.specification.target.boxes[0]
-            lb, ub = np.atleast_1d(b.lb), np.atleast_1d(b.ub)
-            band = (float(lb.min()), float(ub.max()))
+        target_spec = spec.specification.target
+        if kind in ("reach_and_stay", "reach", "reach_avoid"):
+            assert target_spec is not None  # SpecificationSpec requires a target for these kinds
+            if target_spec.boxes:
+                b = target_spec.boxes[0]
+                lb, ub = np.atleast_1d(b.lb), np.atleast_1d(b.ub)
+                band = (float(lb.min()), float(ub.max()))
         title = f"{spec.name} from {np.round(x0, 1).tolist()}"
         figures.append(trajectory_figure(run, free, jobdir.figure(out_dir, "trajectory"), title, band).name)
         idx = controller.cell(x0)

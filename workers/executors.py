@@ -63,6 +63,10 @@ class Executor(Protocol):
         ``members`` names the subsystems the relation serves (for messages and the store)."""
         ...
 
+    def describe(self) -> dict[str, Any]:
+        """Where the chunks run, for the report's ``runner`` section (``scheduler``, ``workers``, ...)."""
+        ...
+
 
 def _chunk_size(tasks: Sequence[CellTask]) -> int:
     """The common chunk size of a subsystem's tasks, checking they tile its state cells regularly."""

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -36,14 +36,15 @@ from pipelines.errors import CompabsError, SpecError
 from pipelines.interconnection import abstract_interconnection
 from pipelines.network import Network, Subsystem, build_network
 from pipelines.spec.model import JobSpec, spec_hash
-from pipelines.spec.regions import AbstractRegion, spec_regions
+from pipelines.spec.regions import spec_regions
 from pipelines.verification.audit import audit_abstraction
 from workers import jobdir
 from workers.control import run_synthesis
 from workers.errors import StoreError
 from workers.executors import Executor, InProcess, OnDask
-from workers.stages import Abstraction, JobCancelled, Progress, Stage, STAGES, no_progress
+from workers.stages import STAGES, Abstraction, JobCancelled, Progress, Stage, no_progress
 from workers.store import RelationStore
+
 
 # ====================================================================================== abstraction stages
 def _abstract_subsystem(

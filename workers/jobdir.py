@@ -32,7 +32,7 @@ import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -42,6 +42,9 @@ from pipelines.grid import UniformGrid
 from pipelines.interconnection import InterconnectionAbstraction, NodeRelation
 from pipelines.network import Network, build_network
 from pipelines.spec.model import JobSpec, parse_spec, spec_hash
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    import zarr
 
 SPEC = "spec.json"
 REPORT = "report.json"
@@ -222,7 +225,8 @@ def save_interconnection(ia: InterconnectionAbstraction, out_dir: str | os.PathL
         "details": _json_safe(ia.details),
     }
     npz, js = out / INTERCONNECTION_ARRAYS, out / INTERCONNECTION_META
-    _atomic_write(npz, lambda fh: np.savez_compressed(fh, **arrays))
+    # (The keys are array names, never savez's own allow_pickle: the cast only tells mypy so.)
+    _atomic_write(npz, lambda fh: np.savez_compressed(fh, **cast(dict[str, Any], arrays)))
     _atomic_write(js, lambda fh: fh.write(json.dumps(meta, indent=1).encode()))
     return npz, js
 
@@ -316,6 +320,12 @@ def _check_shape(rel: SubsystemRelation, sub, where: str) -> None:
         )
 
 
+def _whole(group: zarr.Group, name: str) -> np.ndarray:
+    """All of the array ``name`` of a relation group. zarr types a member as ``Array | Group`` and a read as
+    array-like or scalar; the store (:mod:`workers.store`) writes these members as arrays, read here whole."""
+    return cast(np.ndarray, cast("zarr.Array", group[name])[:])
+
+
 def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict[str, dict[str, Any]]) -> tuple[dict[str, SubsystemRelation], dict[str, str]]:
     import zarr
 
@@ -336,11 +346,13 @@ def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict
             a = g.attrs
             if (a.get("key"), a.get("method"), a.get("objective")) != (key, p["method"], p["objective"]):
                 continue
-            if float(a.get("L_x", np.nan)) != p["L_x"] or float(a.get("L_w", np.nan)) != p["L_w"]:
+            # Numbers the store wrote (zarr types an attribute as any JSON value).
+            L_x, L_w = cast(float, a.get("L_x", np.nan)), cast(float, a.get("L_w", np.nan))
+            if float(L_x) != p["L_x"] or float(L_w) != p["L_w"]:
                 continue
             if "done" not in g:
                 continue
-            done = g["done"][:]
+            done = _whole(g, "done")
             if all(t for t in done.tolist()):
                 candidates.append(name)
         if not candidates:
@@ -350,8 +362,9 @@ def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict
             )
         if len(candidates) > 1:
             raise ArtifactError(f"{url}: several complete relation groups {candidates} fit subsystem '{p['name']}'")
-        g = root[candidates[0]]
-        rel = SubsystemRelation(p["method"], g["lo"][:], g["hi"][:], g["blocking"][:], p["L_x"], p["L_w"])
+        g = cast("zarr.Group", root[candidates[0]])  # a name from root.groups()
+        rel = SubsystemRelation(p["method"], _whole(g, "lo"), _whole(g, "hi"), _whole(g, "blocking"),
+                                p["L_x"], p["L_w"])
         _check_shape(rel, subs[key], f"{url}/{candidates[0]}")
         rels[key] = rel
         groups[key] = candidates[0]

@@ -6,9 +6,10 @@ which shows one progress bar per :class:`Stage`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Callable
+from typing import Any
 
 from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.network import Network

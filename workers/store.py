@@ -49,17 +49,18 @@ import json
 import os
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from pipelines.abstraction.relation import CellsResult, SlopeRecord
 from pipelines.network import Network, Subsystem
 from pipelines.spec.model import JobSpec, spec_hash
-from pipelines.abstraction.relation import CellsResult, SlopeRecord
-
 from workers.errors import StoreError, StoreMismatchError
 from workers.jobdir import relations_url
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from zarr.core.common import JSON
 
 #: Version of the layout above; a store of another layout is treated as stale.
 LAYOUT_VERSION = 1
@@ -108,7 +109,7 @@ def _wipe(url: str) -> None:
         fs.rm(path, recursive=True)
 
 
-def _open_root(url: str, mode: str):
+def _open_root(url: str, mode: Literal["r", "r+", "a", "w", "w-"]):
     import zarr
 
     return zarr.open_group(store=url, mode=mode, use_consolidated=False)
@@ -227,7 +228,7 @@ class RelationStore:
 
     # ---------------------------------------------------------------- opening
     @classmethod
-    def open(cls, out_dir: str | os.PathLike[str], spec: JobSpec, network: Network, *, overwrite: bool = False) -> "RelationStore":
+    def open(cls, out_dir: str | os.PathLike[str], spec: JobSpec, network: Network, *, overwrite: bool = False) -> RelationStore:
         """Open (or create) the store of ``out_dir`` for a job.
 
         Parameters
@@ -246,7 +247,7 @@ class RelationStore:
         import zarr
 
         url = relations_url(out_dir)
-        want = {"layout": LAYOUT_VERSION, "spec_hash": spec_hash(spec), "code_version": code_version()}
+        want: dict[str, JSON] = {"layout": LAYOUT_VERSION, "spec_hash": spec_hash(spec), "code_version": code_version()}
         try:
             try:
                 root = _open_root(url, "r+")

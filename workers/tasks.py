@@ -20,7 +20,6 @@ from typing import Any
 
 from pipelines.abstraction.cells import CellTask
 from pipelines.abstraction.relation import CellsResult
-
 from workers.errors import TaskTimeoutError
 from workers.store import write_chunk
 
@@ -88,6 +87,7 @@ def _watched(task: CellTask, timeout: float) -> CellsResult:
         if "error" in box:
             raise box["error"]
         return box["result"]
+    assert thread.ident is not None  # set by start()
     ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread.ident), ctypes.py_object(TaskTimeoutError))
     thread.join(STOP_GRACE)
     if not thread.is_alive() and "result" in box:  # it finished after all

@@ -17,14 +17,12 @@ eight (:data:`STATISTICS_SAMPLE`), so its mean is an estimate and its ``non_bloc
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 import pipelines.abstraction.kernels as compiled
-from pipelines.errors import BlackBoxError
-from pipelines.grid import SNAP_RTOL, UniformGrid
 from pipelines.abstraction.growth_bound import (
     FP_RTOL,
     SCP_TIE_RTOL,
@@ -37,8 +35,9 @@ from pipelines.abstraction.growth_bound import (
     subgrid_counts,
     widen,
 )
-from pipelines.network import Subsystem
 from pipelines.abstraction.relation import CellsResult, SlopeRecord
+from pipelines.grid import SNAP_RTOL, UniformGrid
+from pipelines.network import Subsystem
 
 #: Relative margin by which the SCP's lower bound ``max_{k <= S_x/2} E_k + rho`` must exceed the Lipschitz
 #: radius before a triple's LP is skipped (the radius is then the Lipschitz radius to the bit): far above the
@@ -207,11 +206,11 @@ def _chunk_invariants(
 
 
 @functools.lru_cache(maxsize=64)
-def _grid_arrays(g: UniformGrid) -> tuple[np.ndarray, ...]:
+def _grid_arrays(g: UniformGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``origin, eta, k_lo, shape, lb, ub`` of a grid as the arrays :func:`compiled.scalar_block` takes."""
     f, i = np.float64, np.int64
-    return tuple(np.asarray(v, dtype=t) for v, t in
-                 ((g.origin, f), (g.eta, f), (g.k_lo, i), (g.shape, i), (g.lb, f), (g.ub, f)))
+    return (np.asarray(g.origin, dtype=f), np.asarray(g.eta, dtype=f), np.asarray(g.k_lo, dtype=i),
+            np.asarray(g.shape, dtype=i), np.asarray(g.lb, dtype=f), np.asarray(g.ub, dtype=f))
 
 
 #: Whether :func:`_abstract_block` hands the triples of a scalar subsystem (one state dimension, at most one
@@ -223,13 +222,9 @@ _NO_W = np.zeros(0)  # the internal-input cells of a subsystem without internal 
 
 #: Black-box evaluations (samples x triples) per block of :func:`abstract_cells`: a chunk's triples are
 #: processed in blocks of about this many evaluations, so the temporaries (a few float64 arrays of this length)
-#: stay near the caches and a task's memory is bounded whatever its chunk. Measured with the compiled pass on
-#: examples/stress.yaml (``bench/run.py --cases workers``, block sizes alternated, 2026-11-24): 2^19 one worker
-#: 57.2 / 56.8 s, two workers 32.9 / 33.9 s; 2^18 61.0 / 59.4 s and 34.1 / 34.7 s; 2^20 (that evening) 64.7 s
-#: and 41.2 s, with 12 % more CPU for two workers than for one: two processes' 8 MB temporaries crowd the shared
-#: L3. Smaller blocks pay the per-block overhead (two black-box calls and the compiled pass, ~0.05 ms) more
-#: often: scalability's per-cell stage is 2.9x its floor with 2^19, 3.2x with 2^18. Before the compiled pass (numpy
-#: only, one process): 11.0 ns per evaluation with blocks of 1e6, 11.5 with 4e6, 13-14 with 1.6e7.
+#: stay near the caches and a task's memory is bounded whatever its chunk. Larger blocks crowd the shared L3 when
+#: two workers run side by side; smaller ones pay the per-block overhead (two black-box calls and the compiled
+#: pass, ~0.05 ms) more often (``bench/run.py --cases workers,floor`` measures both).
 BLOCK_POINTS = 1 << 19
 
 
@@ -422,7 +417,9 @@ def _abstract_block(
             float(cx[0]), float(cw[0]) if p else 1.0, L_x, L_w, compiled.SCALAR_METHODS.index(chosen),
             *_grid_arrays(xg), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL, SCP_SKIP_RTOL,
         )
-        successors = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)}
+        successors: dict[str, tuple[int, int]] = {
+            name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)
+        }
         return _Block(lo[:, None], hi[:, None], blocking, successors, record(sx), record(sw))
 
     # The generic path: numpy, the reference of compiled.scalar_block.
@@ -506,8 +503,8 @@ def _abstract_block(
     first = np.clip(first, 0, top)
     last = np.clip(last, 0, top)
     count = np.prod(last - first + 1, axis=1)
-    successors: dict[str, tuple[int, int]] = {}
-    lo = hi = blocking = None
+    successors = {}
+    chosen_part: slice | None = None
     at = 0
     for name, size in zip(names, sizes):
         part = slice(at, at + size)
@@ -515,9 +512,12 @@ def _abstract_block(
         live = ~block[part]
         successors[name] = (int(count[part][live].sum()), int(live.sum()))
         if name == chosen:
-            blocking = block[part]
-            lo = np.where(blocking[:, None], 0, first[part]).astype(np.int32)
-            hi = np.where(blocking[:, None], -1, last[part]).astype(np.int32)
+            chosen_part = part
+    if chosen_part is None:
+        raise ValueError(f"unknown growth bound {chosen!r}: expected one of {names}")
+    blocking = block[chosen_part]
+    lo = np.where(blocking[:, None], 0, first[chosen_part]).astype(np.int32)
+    hi = np.where(blocking[:, None], -1, last[chosen_part]).astype(np.int32)
 
     # Slopes for Lipschitz validation (METHOD §3): neighbours along x axes (w fixed) and w axes (x fixed).
     if scalar:

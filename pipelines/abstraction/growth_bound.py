@@ -254,8 +254,7 @@ def _bridge_slopes(r: np.ndarray, d: np.ndarray, left: np.ndarray) -> np.ndarray
         num = np.empty((m - j0, C))
         den = np.empty((m - j0, C))
         best = np.empty(C)
-        for i in lefts:
-            i = int(i)
+        for i in map(int, lefts):
             j = max(i + 1, j0)
             if j >= m:
                 break

@@ -14,8 +14,7 @@ cache directory). :func:`warm_up` compiles them ahead of a timing. Tolerances co
 globals of another module: numba freezes a global into the compiled code, and its disk cache only notices
 changes to this file.
 
-Measured on examples/scalability.yaml's per-cell stage (1.25e6 evaluations, bench/run.py floor case): see the
-README's Benchmark section.
+``bench/run.py --cases floor`` measures them against the numpy path (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -61,10 +60,10 @@ def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
             hi[b] = first[b]
             lo[b] = first[b]
             dx[b] = max(dx[b], abs(first[b] - up[b]))
-        for l in range(1, Sw):
-            row = V[k, l]
-            prev = V[k, l - 1]
-            up = V[k - 1, l] if k else row
+        for j in range(1, Sw):
+            row = V[k, j]
+            prev = V[k, j - 1]
+            up = V[k - 1, j] if k else row
             for b in range(B):
                 v = row[b]
                 hi[b] = max(hi[b], v)
@@ -104,9 +103,9 @@ def hull_and_bound(vmax: np.ndarray, vmin: np.ndarray, half: int) -> tuple[np.nd
             hull_hi[b] = max(hull_hi[b], vmax[k, b])
             bound[b] = max(bound[b], vmax[k, b] - vmin[k, b])
     if half:
-        for l in range(m - half):
+        for i in range(m - half):
             for b in range(B):
-                bound[b] = max(bound[b], vmax[l + half, b] - vmin[l, b], vmax[l, b] - vmin[l + half, b])
+                bound[b] = max(bound[b], vmax[i + half, b] - vmin[i, b], vmax[i, b] - vmin[i + half, b])
     return hull_lo, hull_hi, bound
 
 
@@ -129,13 +128,13 @@ def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
         o = out[k]
         for b in range(B):
             o[b] = vmax[k, b] - vmin[0, b]
-        for l in range(m - k):
-            up = vmax[l + k]
-            down_hi = vmax[l]
-            lo_l = vmin[l]
-            lo_k = vmin[l + k]
+        for i in range(m - k):
+            up = vmax[i + k]
+            down_hi = vmax[i]
+            lo_i = vmin[i]
+            lo_k = vmin[i + k]
             for b in range(B):
-                o[b] = max(o[b], up[b] - lo_l[b], down_hi[b] - lo_k[b])
+                o[b] = max(o[b], up[b] - lo_i[b], down_hi[b] - lo_k[b])
     return out
 
 
@@ -222,7 +221,8 @@ def _cell_range(
     top = size - 1
     first = min(max(np.int64(np.ceil(a)) - k_lo, 0), top)
     last = min(max(np.int64(np.floor(b)) - k_lo, 0), top)
-    return first, last, leaves
+    # Compiled, first and last are int64; typeshed's min/max cannot join a numpy integer with an int.
+    return first, last, leaves  # type: ignore[return-value]
 
 
 @_jit

@@ -32,7 +32,7 @@ class SlopeRecord:
     u_index: int = -1
     w_cell: int = -1
 
-    def merge(self, other: "SlopeRecord") -> "SlopeRecord":
+    def merge(self, other: SlopeRecord) -> SlopeRecord:
         return other if other.slope > self.slope else self
 
 

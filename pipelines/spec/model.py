@@ -14,14 +14,14 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipelines.errors import SpecError
 
-Vector = Union[float, list[float]]
+Vector = float | list[float]
 MODULE_FUNCTION = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -155,6 +155,10 @@ class SpecificationSpec(_Model):
         return self
 
 
+def _both_fixed_points() -> list[Literal["cobuchi", "reach_safe"]]:
+    return ["cobuchi", "reach_safe"]
+
+
 class OptionsSpec(_Model):
     seed: int = Field(default=0, ge=0)
     audit_transitions: int = Field(default=1_000_000, ge=0, le=100_000_000)
@@ -165,7 +169,7 @@ class OptionsSpec(_Model):
         default="cobuchi", description="reach_and_stay: which fixed point's controller is saved as 'controller'"
     )
     fixed_points: list[Literal["cobuchi", "reach_safe"]] = Field(
-        default_factory=lambda: ["cobuchi", "reach_safe"], min_length=1,
+        default_factory=_both_fixed_points, min_length=1,
         description="reach_and_stay: which fixed points to compute (co-Büchi can cost 20x Reach(Safe))",
     )
     initial_states: list[list[float]] = Field(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class AbstractRegion:
 
 def _volume(box: IndexBox) -> int:
     lo, hi = box
-    return math.prod(int(h - l + 1) for l, h in zip(lo, hi)) if np.all(hi >= lo) else 0
+    return math.prod(int(high - low + 1) for low, high in zip(lo, hi)) if np.all(hi >= lo) else 0
 
 
 def union_count(boxes: list[IndexBox]) -> int:
@@ -65,7 +65,7 @@ def union_count(boxes: list[IndexBox]) -> int:
     his = np.array([b[1] for b in boxes], dtype=np.int64)
     n = los.shape[1]
 
-    @lru_cache(maxsize=None)
+    @cache
     def count(d: int, active: frozenset[int]) -> int:
         if d == n:
             return 1

@@ -11,14 +11,15 @@ errors live.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
+from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.grid import UniformGrid
 from pipelines.network import Network, Subsystem
-from pipelines.abstraction.relation import SubsystemRelation
 
 #: Points per batch of black-box evaluations.
 BATCH = 250_000
@@ -64,7 +65,7 @@ def _either_cell(grid: UniformGrid, x: np.ndarray, rng: np.random.Generator) -> 
     """
     up, inside = grid.cell_of(x, "upper")
     low, inside_low = grid.cell_of(x, "lower")
-    pick = rng.random(x.shape[0]) < 0.5
+    pick = rng.random(len(x)) < 0.5
     idx = np.where(pick[:, None], up, low)
     ok = np.where(pick, inside, inside_low)
     # On the box edge the outer cell may be off the grid: use the other one, which holds the point.
@@ -221,6 +222,7 @@ def audit_composition(
             ui = rng.integers(0, s.input_grid.size, b)
             u = s.input_grid.points(s.input_grid.unravel(ui))
             if s.reads:
+                assert s.internal_grid is not None  # build_network gives a subsystem that reads w its grid
                 ws = w[:, list(s.reads)]
                 wi = s.internal_grid.ravel(w_idx[:, list(s.reads)])
             else:

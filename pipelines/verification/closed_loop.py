@@ -8,8 +8,9 @@ synthesis bug shows up as a run that leaves the controller's domain or misses th
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -20,6 +21,12 @@ from pipelines.spec.regions import AbstractRegion
 #: policy(x) -> admissible concrete inputs at x, shape (k, m_total); k = 0 outside the controller's domain.
 #: A :class:`~pipelines.controller.Controller` may be passed instead: its ``choose`` draws one input directly.
 Policy = Callable[[np.ndarray], np.ndarray]
+
+
+class InputChooser(Protocol):
+    """What :func:`simulate_many` uses of a :class:`~pipelines.controller.Controller` passed as the policy."""
+
+    def choose_many(self, X: np.ndarray, rng: np.random.Generator, how: str = ...) -> list[np.ndarray | None]: ...
 
 
 def input_dim(network: Network) -> int:
@@ -85,7 +92,7 @@ def _cells_in(grid: UniformGrid, region: AbstractRegion | None, x: np.ndarray) -
 
 def simulate(
     network: Network,
-    policy: Policy | None,
+    policy: Policy | InputChooser | None,
     x0: np.ndarray,
     steps: int,
     rng: np.random.Generator,
@@ -107,7 +114,7 @@ def simulate(
 
 def simulate_many(
     network: Network,
-    policy: Policy | None,
+    policy: Policy | InputChooser | None,
     x0: np.ndarray,
     steps: int,
     rng: np.random.Generator,
@@ -235,7 +242,7 @@ class ClosedLoop:
 
     @property
     def first_violation(self) -> str | None:
-        for origin, x0, r in self.runs:
+        for _, x0, r in self.runs:
             if r.violation:
                 return f"from {x0.tolist()}: {r.violation}"
         return None

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import pipelines.verification.audit as audit
-from workers.processes.children import start_module
 from pipelines.errors import CompabsError
+from workers.processes.children import start_module
 
 
 class BackgroundAudit:
