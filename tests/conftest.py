@@ -67,6 +67,12 @@ _hypothesis_without_clocks()
 RECOVER_TIMEOUT = 180.0
 #: Seconds the ``client`` fixture waits before a test for a cluster left unsettled (an interrupted teardown).
 SETTLE_TIMEOUT = 60.0
+#: distributed's LocalCluster gives the nanny of a worker that died ``distributed.deploy.lost-worker-timeout``
+#: (15 s by default) to have a new worker process registered under the same name, and otherwise closes that
+#: nanny for good: the cluster stays one worker short. On a loaded machine, or when a worker is killed again
+#: while the previous kill's timer runs (test_worker_killed_in_every_runner_stage), the restart misses it; that
+#: was "the killed worker was not replaced within 240 s". The shared cluster waits for its nannies' restarts.
+LOST_WORKER_TIMEOUT = "1h"
 
 
 def _scheduler_tasks(dask_scheduler) -> int:
@@ -104,8 +110,16 @@ class SharedCluster:
     """
 
     def __init__(self, workers: int = 2) -> None:
+        import dask
+
         self.workers = workers
-        self._conn = self._connect()
+        # Read by the LocalCluster (in this process) whenever a worker is removed: set for the cluster's lifetime.
+        self._config = dask.config.set({"distributed.deploy.lost-worker-timeout": LOST_WORKER_TIMEOUT})
+        try:
+            self._conn = self._connect()
+        except BaseException:
+            self._config.__exit__(None, None, None)
+            raise
 
     def _connect(self):
         from workers.cluster import connect
@@ -169,7 +183,10 @@ class SharedCluster:
         self._conn = self._connect()
 
     def close(self) -> None:
-        self._conn.close()
+        try:
+            self._conn.close()
+        finally:
+            self._config.__exit__(None, None, None)
 
 
 @pytest.fixture(scope="module")

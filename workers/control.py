@@ -74,7 +74,6 @@ def run_synthesis(
     controller = controller_of(cpre, main, meta)
     files: list[str] = []
     if out_dir is not None:
-        jobdir.save_interconnection(abstraction.interconnection, out_dir, spec)  # what the controller came from
         files = [p.name for p in controller.save(out_dir, jobdir.CONTROLLER)]
         for key, r in results.items():
             if key != main_key:
