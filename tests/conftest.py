@@ -111,15 +111,23 @@ class SharedCluster:
 
     def __init__(self, workers: int = 2) -> None:
         import dask
+        import distributed  # noqa: F401 - its defaults are in dask's config from here on
 
         self.workers = workers
-        # Read by the LocalCluster (in this process) whenever a worker is removed: set for the cluster's lifetime.
-        self._config = dask.config.set({"distributed.deploy.lost-worker-timeout": LOST_WORKER_TIMEOUT})
+        # Read by the LocalCluster (in this process) whenever a worker is removed: set for the cluster's lifetime,
+        # put back by close().
+        self._lost_worker_timeout = dask.config.get("distributed.deploy.lost-worker-timeout")
+        dask.config.set({"distributed.deploy.lost-worker-timeout": LOST_WORKER_TIMEOUT})
         try:
             self._conn = self._connect()
         except BaseException:
-            self._config.__exit__(None, None, None)
+            self._restore_config()
             raise
+
+    def _restore_config(self) -> None:
+        import dask
+
+        dask.config.set({"distributed.deploy.lost-worker-timeout": self._lost_worker_timeout})
 
     def _connect(self):
         from workers.cluster import connect
@@ -186,7 +194,7 @@ class SharedCluster:
         try:
             self._conn.close()
         finally:
-            self._config.__exit__(None, None, None)
+            self._restore_config()
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,8 @@ import pytest
 import yaml
 import zarr
 
-from workers.jobdir import INTERCONNECTION_ARRAYS, load_interconnection, load_job
 from service.cli import main
+from workers.jobdir import INTERCONNECTION_ARRAYS, load_interconnection, load_job
 
 from .conftest import EXAMPLES
 from .trust_log import record
@@ -104,7 +104,10 @@ def test_a_finished_job_passes_its_audit(job, capsys):
 def test_same_seed_same_audit(job, capsys):
     first = audit(job, capsys)[3]
     second = audit(job, capsys)[3]
-    strip = lambda r: {k: {kk: vv for kk, vv in v.items() if kk != "seconds"} for k, v in r["parts"].items()}
+
+    def strip(r):
+        return {k: {kk: vv for kk, vv in v.items() if kk != "seconds"} for k, v in r["parts"].items()}
+
     assert strip(first) == strip(second)
 
 

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 
 import workers.processes.audit_beside as audit_beside
-from workers.processes.audit_beside import BackgroundAudit
 from pipelines.errors import BlackBoxError, CompabsError
-from workers.job import run_abstraction
 from pipelines.spec.model import load_spec
+from workers.job import run_abstraction
+from workers.processes.audit_beside import BackgroundAudit
 
 from .conftest import EXAMPLES
 

@@ -8,12 +8,12 @@ import pytest
 import yaml
 
 from pipelines import controller as ctl
-from pipelines.verification.closed_loop import simulate, simulate_many
-from workers.control import run_synthesis
-from workers.job import run_abstraction
 from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
+from pipelines.verification.closed_loop import simulate, simulate_many
 from service.cli import main
+from workers.control import run_synthesis
+from workers.job import run_abstraction
 
 from .conftest import EXAMPLES
 

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-import pipelines.abstraction.kernels as compiled
-import pipelines.abstraction.growth_bound as gb
 import pipelines.abstraction.cells as subsystem
+import pipelines.abstraction.growth_bound as gb
+import pipelines.abstraction.kernels as compiled
+from pipelines.abstraction.cells import abstract_cells
+from pipelines.abstraction.relation import chunk_ranges
 from pipelines.errors import BlackBoxError
 from pipelines.network import build_network
 from pipelines.spec.model import load_spec, parse_spec
-from pipelines.abstraction.cells import abstract_cells
-from pipelines.abstraction.relation import chunk_ranges
 
 from .conftest import EXAMPLES
 

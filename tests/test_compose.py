@@ -224,7 +224,7 @@ def test_compose_services_run_a_job_on_the_two_workers(stack):
         assert len(client.nthreads()) == 2
         assert set(client.nthreads().values()) == {1}
     for name in ("worker1", "worker2"):
-        wait_until(lambda: lc.healthy(name), 60, f"{name} healthcheck", [scheduler, *workers])
+        wait_until(lambda name=name: lc.healthy(name), 60, f"{name} healthcheck", [scheduler, *workers])
 
     api = lc.start("api")
     all_procs = [scheduler, *workers, api]

@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from workers.job import run_abstraction
 from pipelines.spec.model import load_spec
 from service.cli import main
+from workers.job import run_abstraction
 
 from .conftest import EXAMPLES
 

@@ -7,8 +7,8 @@ from hypothesis import strategies as st
 
 from pipelines.errors import SpecError
 from pipelines.grid import UniformGrid
-from pipelines.spec.regions import abstract_region, union_count
 from pipelines.spec.model import Region
+from pipelines.spec.regions import abstract_region, union_count
 
 
 def test_paper_state_counts():

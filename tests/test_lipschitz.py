@@ -4,13 +4,12 @@ import numpy as np
 import pytest
 import yaml
 
+from pipelines.abstraction.lipschitz import estimate_lipschitz, resolve_constant
 from pipelines.errors import BlackBoxError, LipschitzError
-from pipelines.abstraction.lipschitz import resolve_constant
-from workers.executors import InProcess
-from workers.job import _abstract_subsystem
-from pipelines.abstraction.lipschitz import estimate_lipschitz
 from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
+from workers.executors import InProcess
+from workers.job import _abstract_subsystem
 
 from .conftest import EXAMPLES
 

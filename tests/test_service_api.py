@@ -13,7 +13,8 @@ import json
 import sqlite3
 import time
 import zipfile
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import pytest
 import yaml

@@ -10,13 +10,13 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipelines.verification.audit import audit_interconnection, audit_subsystem
+from pipelines.abstraction.cells import abstract_cells
 from pipelines.abstraction.growth_bound import pair_maxima_scalar, scp_parameters_scalar, scp_reference, scp_rho
+from pipelines.abstraction.relation import assemble, chunk_ranges
 from pipelines.interconnection import abstract_interconnection
 from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
-from pipelines.abstraction.cells import abstract_cells
-from pipelines.abstraction.relation import assemble, chunk_ranges
+from pipelines.verification.audit import audit_interconnection, audit_subsystem
 
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 coef = st.floats(-1.5, 1.5, allow_nan=False).map(lambda v: round(v, 3))

@@ -117,8 +117,8 @@ def test_consensus_centres_that_overflow_are_a_spec_error(centers):
     """Found by hypothesis through POST /jobs: a tiny step made the centre count inf (a 500 before)."""
     import yaml
 
-    from pipelines.spec.regions import spec_regions
     from pipelines.network import build_network
+    from pipelines.spec.regions import spec_regions
 
     data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
     data["specification"]["target"]["consensus"]["centers"] = centers

@@ -6,12 +6,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipelines.verification.audit import audit_subsystem
+from pipelines.abstraction.cells import STATISTICS_SAMPLE, abstract_cells, statistics_sample
 from pipelines.abstraction.growth_bound import subgrid_counts
+from pipelines.abstraction.relation import SubsystemRelation, assemble, chunk_ranges
 from pipelines.network import build_network
 from pipelines.spec.model import load_spec
-from pipelines.abstraction.cells import STATISTICS_SAMPLE, abstract_cells, statistics_sample
-from pipelines.abstraction.relation import SubsystemRelation, assemble, chunk_ranges
+from pipelines.verification.audit import audit_subsystem
 
 from .conftest import EXAMPLES
 

@@ -24,21 +24,20 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
 import yaml
 
 from pipelines.errors import BlackBoxError, LipschitzError
-from workers.job import run_abstraction
 from pipelines.spec.model import parse_spec
 from service.cli import main
-from workers.job import run_job
 from workers.errors import StoreError, TaskTimeoutError
-from workers.job import abstract_job
+from workers.job import abstract_job, run_abstraction, run_job
 
 from .conftest import EXAMPLES, ROOT, wait_idle
 from .test_workers import assert_same_relations, marker_counts, store_of
@@ -189,9 +188,9 @@ def test_worker_killed_in_every_runner_stage(tmp_path, client, reference, capsys
     # The audit of the stored (Zarr) abstraction passes; with one interval shrunk it fails, naming the cell.
     assert main(["audit", str(out), "--transitions", "50000", "--seed", "3", "--runs", "3"]) == 0
     capsys.readouterr()
-    from .test_audit import shrink_one_interval
-
     import zarr
+
+    from .test_audit import shrink_one_interval
 
     (group,) = arts.relation_files.values()
     g = zarr.open_group(str(out / "relations.zarr"), path=group, mode="r+", use_consolidated=False)
@@ -250,7 +249,8 @@ def test_runner_killed_between_chunk_data_and_marker(tmp_path, client, reference
 
     The chunk's task is held between its two writes while the runner is SIGKILLed, then abandoned without its
     marker (as its worker's death would leave it). The task is not stopped by killing its worker: that made the
-    test wait on the nanny's restart, which on a loaded machine did not come within 240 s."""
+    test wait for a worker restart, which on a loaded machine once never came (see ``LOST_WORKER_TIMEOUT`` in
+    ``tests/conftest.py``); worker kills are this module's and test_workers.py's other tests."""
     spec = spec_of()
     spec_file = tmp_path / "spec.json"
     spec_file.write_text(spec.model_dump_json())

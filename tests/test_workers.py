@@ -19,18 +19,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+import zarr
 
 from pipelines.errors import BlackBoxError
-from workers.job import run_abstraction
 from pipelines.spec.model import load_spec, parse_spec, spec_hash
-
-from .conftest import EXAMPLES, ROOT, wait_idle
-
-import zarr
 from workers.cluster import connect
 from workers.errors import ClusterError, StoreError, StoreMismatchError
-from workers.job import abstract_job
+from workers.job import abstract_job, run_abstraction
 from workers.store import code_version, marker, result_from, write_chunk
+
+from .conftest import EXAMPLES, ROOT, wait_idle
 
 #: Seconds slow_agent sleeps per call inside a worker (two calls per chunk: samples and cell centres).
 SLEEP = 0.1
@@ -118,8 +116,8 @@ def small_reference():
 
 # ----------------------------------------------------------------------------------------------- store units
 def test_marker_round_trip_is_exact():
-    from pipelines.network import build_network
     from pipelines.abstraction.cells import abstract_cells
+    from pipelines.network import build_network
 
     spec = small_spec(dynamics=None)
     sub = build_network(spec, None).subsystems[0]
@@ -453,8 +451,8 @@ def test_task_that_kills_its_workers_is_a_clear_error(tmp_path, client):
 
 
 def test_store_write_outside_a_chunk_is_refused(tmp_path, client):
-    from pipelines.network import build_network
     from pipelines.abstraction.cells import abstract_cells
+    from pipelines.network import build_network
     from workers.store import RelationStore, group_name
 
     spec = small_spec(chunk_cells=4, dynamics=None)

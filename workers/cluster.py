@@ -211,6 +211,9 @@ def connect(scheduler: str | None = None, workers: int = 2) -> Connection:
                 "__main__: run from a file or with `python -m`, not from a script piped on stdin."
             ) from None
         _tolerate_unknown_removals(client.cluster)
+        # Read by the LocalCluster at each worker removal, after the `with` above ended (workers/dask.yaml).
+        key = "distributed.deploy.lost-worker-timeout"
+        dask.config.set({key: EMBEDDED_CONFIG[key]})
         embedded = True
     else:
         try:
