@@ -71,8 +71,8 @@ def _check(case, label: str) -> None:
     response = case.call(headers=AUTH, timeout=30)
     try:
         case.validate_response(response, excluded_checks=excluded, headers=AUTH)
-    except Exception as exc:  # schemathesis FailureGroup: keep the first failure of each kind, report all
-        if not hasattr(exc, "exceptions"):
+    except BaseException as exc:  # schemathesis's FailureGroup is a BaseExceptionGroup: keep the first failure of
+        if not hasattr(exc, "exceptions"):  # each kind, report all (anything else is raised as it is)
             raise
         for failure in getattr(exc, "exceptions", [exc]):
             key = (label, type(failure).__name__, getattr(failure, "title", str(failure))[:80])
