@@ -24,10 +24,12 @@ RUN pip install . && rm -rf build
 # so no worker compiles them at its first task; numba would otherwise cache under that user's ~/.cache).
 RUN python -c "import pipelines.abstraction.kernels as compiled; compiled.warm_up()"
 
-# Not root. /data is the shared volume (Zarr relation stores, the SQLite job store, reports, figures); a named
-# volume takes this directory's owner when it is first created.
+# Not root. /data is the shared volume (Zarr relation stores, the SQLite job store, reports, figures); /tls the
+# volume of the Dask cluster's TLS credentials, which `compabs credentials /tls` writes at deployment (the
+# compose file's `credentials` service): the image holds no key, so no two deployments share one. A named volume
+# takes its directory's owner and mode when it is first created.
 RUN useradd --create-home --uid 10001 --user-group compabs \
- && mkdir /data && chown compabs:compabs /data
+ && mkdir /data /tls && chown compabs:compabs /data /tls && chmod 0700 /tls
 USER compabs
 WORKDIR /home/compabs
 VOLUME ["/data"]

@@ -111,9 +111,9 @@ class ProgressEvent(BaseModel):
 
 
 class Health(BaseModel):
+    """Liveness, for anyone (no token): nothing that locates the cluster (no scheduler address, no dashboard URL)."""
+
     status: Literal["ok"] = "ok"
-    scheduler: str | None = Field(description="the Dask scheduler's address; null when jobs run in the API process")
     workers: int = Field(description="Dask workers connected now (0 in-process)")
-    dashboard: str | None = Field(default=None, description="the Dask dashboard")
     jobs_running: int = 0
     jobs_queued: int = 0

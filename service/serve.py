@@ -4,6 +4,10 @@ One process only (never ``uvicorn --workers N``): each process would start its o
 job threads over the same job store. Jobs run on the embedded two-worker ``LocalCluster`` unless
 ``--scheduler`` (or ``COMPABS_SCHEDULER``) names one. The token is read from an environment variable
 (``COMPABS_TOKEN``, or the one ``--token-env`` names), never from the command line, where ``ps`` shows it.
+
+``compabs credentials DIR`` (:func:`add_credentials_parser`) writes a cluster's TLS credentials for a deployment: the
+compose file's init service, or an operator before starting ``dask scheduler`` and ``dask worker`` with them
+(docs/security.md).
 """
 
 from __future__ import annotations
@@ -32,7 +36,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     s.add_argument("--port", type=int, default=None, help="port (default 8000, or COMPABS_PORT)")
     s.add_argument("--data", default=None, help="data directory: jobs.sqlite and jobs/<id>/ (or COMPABS_DATA_DIR)")
     s.add_argument("--db-url", default=None, help="SQLAlchemy URL of the job store (default sqlite:///DATA/jobs.sqlite)")
-    s.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER)")
+    s.add_argument("--scheduler", default=None,
+                   help="tls://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER); its credentials from "
+                        "COMPABS_TLS_CA, COMPABS_TLS_CERT, COMPABS_TLS_KEY")
     s.add_argument("--workers", type=int, default=None, help="worker processes of the embedded cluster (default 2)")
     s.add_argument("--in-process", action="store_true", default=None, help="no Dask: run jobs in the API process")
     s.add_argument("--token-env", default="COMPABS_TOKEN", metavar="VAR",
@@ -40,6 +46,35 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argp
     s.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     s.set_defaults(func=cmd_serve)
     return s
+
+
+def add_credentials_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> argparse.ArgumentParser:
+    """Add the ``credentials`` subcommand (the TLS credentials of a deployment's Dask cluster)."""
+    c = sub.add_parser("credentials", help="write new TLS credentials for a Dask cluster (ca.pem, cert.pem, key.pem)",
+                       description="Write new TLS credentials for a Dask cluster into DIR (0700; key.pem 0600): the "
+                                   "scheduler, the workers and the API all use the same three files. Existing "
+                                   "credentials are kept unless --replace. See docs/security.md.")
+    c.add_argument("dir", help="directory to write ca.pem, cert.pem and key.pem into")
+    c.add_argument("--replace", action="store_true",
+                   help="replace existing credentials (restart every process of the cluster afterwards)")
+    c.add_argument("--days", type=int, default=3650, help="validity of the certificates in days (default 3650)")
+    c.set_defaults(func=cmd_credentials)
+    return c
+
+
+def cmd_credentials(args: argparse.Namespace) -> int:
+    from workers.cluster import Credentials, write_credentials
+
+    if args.days < 1:
+        raise SpecError(f"--days must be >= 1, got {args.days}")
+    existing = Credentials.in_directory(args.dir)
+    if not args.replace and all(p.exists() for p in existing.files().values()):
+        print(f"{args.dir}: cluster credentials exist; kept (--replace writes new ones)")
+        return 0
+    creds = write_credentials(args.dir, overwrite=True, valid_days=args.days)
+    print(f"{args.dir}: new cluster credentials: {creds.ca.name}, {creds.cert.name}, {creds.key.name} "
+          "(key.pem lets its holder run code on the cluster: keep it private)")
+    return 0
 
 
 def settings_from_args(args: argparse.Namespace, environ: dict[str, str] | None = None) -> Settings:

@@ -18,7 +18,8 @@ from pathlib import Path
 import httpx
 
 #: The environment variables compabs reads; tests set them explicitly and never inherit them.
-COMPABS_ENV = ("COMPABS_TOKEN", "COMPABS_DATA_DIR", "COMPABS_DB_URL", "COMPABS_SCHEDULER")
+COMPABS_ENV = ("COMPABS_TOKEN", "COMPABS_DATA_DIR", "COMPABS_DB_URL", "COMPABS_SCHEDULER", "COMPABS_TLS_CA",
+               "COMPABS_TLS_CERT", "COMPABS_TLS_KEY", "COMPABS_INSECURE_SCHEDULER")
 
 
 def free_port() -> int:

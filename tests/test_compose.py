@@ -4,8 +4,10 @@ the API runs on the two compose workers.
 No Docker engine exists here, so the test reads docker-compose.yml and starts what it says: the same argv, the
 environment it sets (``${VAR:-default}`` / ``${VAR:?message}`` interpolated as compose does), with the
 container world mapped onto this machine: every service is 127.0.0.1, every listening port a free port
-(``--port``, ``--dashboard-address``), a published host port the mapped port of its service, the volume mount
-``/data`` one temporary directory. Each service's healthcheck command is run with the same mapping.
+(``--port``, ``--dashboard-address``), a published host port the mapped port of its service, each named volume
+a temporary directory (``data``: ``data_dir``). Each service's healthcheck command is run with the same mapping.
+The one-shot ``credentials`` service runs first and must exit 0 (compose's ``service_completed_successfully``):
+the cluster it sets up is TLS only, and a client without its credentials is refused.
 """
 
 from __future__ import annotations
@@ -28,7 +30,9 @@ COMPOSE = ROOT / "docker-compose.yml"
 TOKEN = "compose-test-" + secrets.token_hex(8)
 #: The small example takes ~15 s alone on this 2-core machine; allow for a loaded one.
 JOB_TIMEOUT = 300.0
-START_ORDER = ("scheduler", "worker1", "worker2", "api")
+START_ORDER = ("credentials", "scheduler", "worker1", "worker2", "api")
+#: The compose file's TLS credential files (in the volume ``tls``) and the dask CLI flags that name them.
+TLS_FLAGS = {"--tls-ca-file": "/tls/ca.pem", "--tls-cert": "/tls/cert.pem", "--tls-key": "/tls/key.pem"}
 
 
 # ------------------------------------------------------------------------------------------------ compose model
@@ -90,17 +94,27 @@ class LocalCompose:
             for entry in svc.get("ports", []):
                 parts = interpolate(str(entry), variables).split(":")
                 self.published[int(parts[-2])] = (name, int(parts[-1].split("/")[0]))
-        #: volume mount targets -> the local directory
-        self.mounts = {str(v).split(":")[1] for svc in self.services.values() for v in svc.get("volumes", [])}
+        #: volume mount targets -> the local directory (one per named volume; ``data`` is ``data_dir``)
+        self.mounts: dict[str, Path] = {}
+        for svc in self.services.values():
+            for v in svc.get("volumes", []):
+                volume, target = str(v).split(":")[:2]
+                self.mounts[target] = data_dir if volume == "data" else data_dir.parent / f"volume-{volume}"
+        for local in self.mounts.values():
+            local.mkdir(exist_ok=True)  # docker creates a named volume before its first container starts
 
     def local(self, service: str, port: int) -> int:
         return self.ports[(service, port)]
 
     def _map_paths(self, s: str) -> str:
-        for target in self.mounts:
+        for target, local in self.mounts.items():
             if s == target or s.startswith(target + "/"):
-                return str(self.data_dir) + s[len(target):]
+                return str(local) + s[len(target):]
         return s
+
+    def volume(self, target: str) -> Path:
+        """The local directory of the volume mounted at ``target``."""
+        return self.mounts[target]
 
     def _map_text(self, service: str, s: str, host_view: bool) -> str:
         """Hostnames and ports in ``s``: ``<service>:<port>`` of any service; ``127.0.0.1|localhost|0.0.0.0:<port>``
@@ -154,8 +168,14 @@ class LocalCompose:
 
 
 # ------------------------------------------------------------------------------------------------ the file itself
+def _flag(argv: list[str], flag: str) -> str:
+    return argv[argv.index(flag) + 1]
+
+
 def test_compose_file_shape():
-    """One image for all, the shared /data volume, healthchecks, the scheduler CLI that distributed installs."""
+    """One image for all, the shared /data volume, healthchecks, the scheduler CLI that distributed installs, and a
+    closed cluster: TLS credentials written at deployment by a one-shot service, every Dask process and the API on
+    them."""
     compose = yaml.safe_load(COMPOSE.read_text())
     services = compose["services"]
     assert set(START_ORDER) <= set(services)
@@ -163,22 +183,43 @@ def test_compose_file_shape():
     assert len(images) == 1, images
     for name, svc in services.items():
         assert svc.get("build") in (".", {"context": "."}), name
+        if name == "credentials":
+            continue
         assert any(str(v).split(":")[1] == "/data" for v in svc.get("volumes", [])), f"{name} lacks /data"
         assert svc.get("healthcheck", {}).get("test"), f"{name} lacks a healthcheck"
-    assert as_argv(services["scheduler"]["command"])[:2] == ["dask", "scheduler"]
+        # Every long-running service reads the credentials, read-only, and runs only after they were written.
+        assert "tls:/tls:ro" in svc.get("volumes", []), f"{name} lacks the credentials volume"
+        assert svc["environment"]["DASK_DISTRIBUTED__COMM__REQUIRE_ENCRYPTION"] == "True", name
+    # The credentials: a one-shot service writes them into the volume, at deployment, never into the image.
+    creds = services["credentials"]
+    assert as_argv(creds["command"]) == ["compabs", "credentials", "/tls"]
+    assert creds["restart"] == "no" and creds["volumes"] == ["tls:/tls"]
+    assert "tls" in compose["volumes"]
+    assert services["scheduler"]["depends_on"]["credentials"] == {"condition": "service_completed_successfully"}
+    sched = as_argv(services["scheduler"]["command"])
+    assert sched[:2] == ["dask", "scheduler"] and _flag(sched, "--protocol") == "tls"
+    assert all(_flag(sched, f) == v for f, v in TLS_FLAGS.items()), sched
+    assert not any(str(p).endswith(":8786") for p in services["scheduler"].get("ports", [])), "8786 published"
     for w in ("worker1", "worker2"):
         argv = as_argv(services[w]["command"])
-        assert argv[:3] == ["dask", "worker", "tcp://scheduler:8786"], argv
-        assert argv[argv.index("--nworkers") + 1] == "1" and argv[argv.index("--nthreads") + 1] == "1"
+        assert argv[:3] == ["dask", "worker", "tls://scheduler:8786"], argv
+        assert _flag(argv, "--nworkers") == "1" and _flag(argv, "--nthreads") == "1"
+        assert all(_flag(argv, f) == v for f, v in TLS_FLAGS.items()), argv
     api = as_argv(services["api"]["command"])
-    assert api[:2] == ["compabs", "serve"] and api[api.index("--scheduler") + 1] == "tcp://scheduler:8786"
-    assert api[api.index("--data") + 1] == "/data"
+    assert api[:2] == ["compabs", "serve"] and _flag(api, "--scheduler") == "tls://scheduler:8786"
+    assert _flag(api, "--data") == "/data"
+    api_env = services["api"]["environment"]
+    assert [api_env[k] for k in ("COMPABS_TLS_CA", "COMPABS_TLS_CERT", "COMPABS_TLS_KEY")] == list(TLS_FLAGS.values())
     # The API is not exposed unauthenticated: the file refuses to start without a token.
     with pytest.raises(AssertionError, match="COMPABS_TOKEN"):
         interpolate(services["api"]["environment"]["COMPABS_TOKEN"], {})
     dockerfile = (ROOT / "Dockerfile").read_text()
     assert dockerfile.startswith("#") and "FROM python:3.11-slim" in dockerfile
     assert re.search(r"^USER (?!root)\S+", dockerfile, re.M), "the image must not run as root"
+    # No key in the image: nothing copied or generated at build time.
+    instructions = [line for line in dockerfile.splitlines() if not line.lstrip().startswith("#")]
+    assert not any(".pem" in line or "credentials" in line or "openssl" in line for line in instructions), \
+        "the image must not hold TLS credentials"
 
 
 # ------------------------------------------------------------------------------------------------ running it
@@ -208,21 +249,44 @@ def stack(tmp_path):
             procs[name].stop()
 
 
+def _security(directory: Path):
+    from workers.cluster import Credentials
+
+    return Credentials.in_directory(directory).security()
+
+
 @pytest.mark.slow
 def test_compose_services_run_a_job_on_the_two_workers(stack):
     lc = stack
     t0 = time.monotonic()
+    creds = lc.start("credentials")
+    assert creds.popen.wait(60) == 0, creds.tail()
+    tls_dir = lc.volume("/tls")
+    assert sorted(p.name for p in tls_dir.iterdir()) == ["ca.pem", "cert.pem", "key.pem"]
+    assert (tls_dir / "key.pem").stat().st_mode & 0o077 == 0, "the key must be private"
+    key = (tls_dir / "key.pem").read_bytes()
+    again = lc.start("credentials")  # a later `up` keeps the credentials the running cluster has
+    assert again.popen.wait(60) == 0 and (tls_dir / "key.pem").read_bytes() == key, again.tail()
+
     scheduler = lc.start("scheduler")
     wait_until(lambda: lc.healthy("scheduler"), 60, "scheduler healthcheck", [scheduler])
     workers = [lc.start("worker1"), lc.start("worker2")]
-    scheduler_address = f"tcp://127.0.0.1:{lc.local('scheduler', 8786)}"
+    scheduler_address = f"tls://127.0.0.1:{lc.local('scheduler', 8786)}"
 
     from distributed import Client
 
-    with Client(scheduler_address, timeout=30) as client:
+    with Client(scheduler_address, timeout=30, security=_security(tls_dir)) as client:
         client.wait_for_workers(2, timeout=120)
         assert len(client.nthreads()) == 2
         assert set(client.nthreads().values()) == {1}
+        assert all(a.startswith("tls://") for a in client.nthreads()), client.nthreads()  # workers listen on TLS
+    # Without the credentials the scheduler refuses: plain TCP, and TLS with a certificate of its own making.
+    from distributed.security import Security
+
+    with pytest.raises(OSError):
+        Client(scheduler_address.replace("tls://", "tcp://"), timeout=5)
+    with pytest.raises(OSError):
+        Client(scheduler_address, timeout=5, security=Security.temporary())
     for name in ("worker1", "worker2"):
         wait_until(lambda name=name: lc.healthy(name), 60, f"{name} healthcheck", [scheduler, *workers])
 
@@ -232,6 +296,8 @@ def test_compose_services_run_a_job_on_the_two_workers(stack):
     wait_http_ok(f"{url}/health", 120, all_procs)
     wait_until(lambda: lc.healthy("api"), 30, "api healthcheck", all_procs)
     print(f"compose services up: {time.monotonic() - t0:.1f} s")
+    health = httpx.get(f"{url}/health", timeout=10).json()
+    assert health["workers"] == 2 and "scheduler" not in health and "8786" not in str(health), health
 
     spec = (EXAMPLES / "small.yaml").read_text()
     yaml_type = {"Content-Type": "application/yaml"}

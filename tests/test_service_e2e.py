@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import zipfile
 from collections.abc import Iterator
@@ -38,7 +39,9 @@ class Server:
         self.url = f"http://127.0.0.1:{self.port}"
         argv = ["compabs", "serve", "--host", "127.0.0.1", "--port", str(self.port), "--data", str(data),
                 "--workers", "2"]
-        self.proc = Proc("compabs serve", argv, clean_env(), data.parent, log)
+        # The embedded cluster runs on TLS credentials this test holds too (COMPABS_TLS_*), so that it can join it.
+        self.credentials = _credentials(data.parent / "tls")
+        self.proc = Proc("compabs serve", argv, clean_env(**self.credentials.env()), data.parent, log)
         self.http = httpx.Client(base_url=self.url, timeout=30)
         try:
             wait_http_ok(f"{self.url}/health", START_TIMEOUT, [self.proc])
@@ -65,9 +68,21 @@ class Server:
                 pass
         return head + self.proc.tail(60)
 
+    def scheduler(self) -> str:
+        """The embedded cluster's scheduler address, from the server's log (``/health`` does not tell it)."""
+        found = re.findall(r"Dask scheduler (tls://\S+),", self.proc.log.read_text(errors="replace"))
+        assert found, self.proc.tail(60)
+        return found[-1]
+
     def close(self) -> None:
         self.http.close()
         self.proc.stop()
+
+
+def _credentials(directory: Path):
+    from workers.cluster import Credentials, write_credentials
+
+    return Credentials.in_directory(directory) if (directory / "key.pem").exists() else write_credentials(directory)
 
 
 def sse(http: httpx.Client, path: str, timeout: float) -> Iterator[dict[str, Any]]:
@@ -115,7 +130,7 @@ def server(tmp_path_factory) -> Iterator[Server]:
 
 def test_small_example_over_http(server):
     health = server.http.get("/health").json()
-    assert health["status"] == "ok" and health["workers"] == 2 and health["scheduler"].startswith("tcp://")
+    assert health["status"] == "ok" and health["workers"] == 2 and "scheduler" not in health
     r = server.http.post("/jobs", content=(EXAMPLES / "small.yaml").read_bytes(),
                          headers={"content-type": "application/yaml"})
     assert r.status_code == 201, r.text
@@ -169,9 +184,9 @@ def test_delete_running_job_cancels_its_cluster_tasks(server):
     assert r.status_code == 201, r.text
     job_id = r.json()["id"]
     assert r.json()["name"] == "to-cancel"
-    scheduler = server.http.get("/health").json()["scheduler"]
+    scheduler = server.scheduler()
     try:
-        with Client(scheduler, timeout=30) as c:
+        with Client(scheduler, timeout=30, security=server.credentials.security()) as c:
             wait_until(lambda: chunks_done(server.job(job_id)) >= 2, 120, "two chunks done", [server.proc])
             assert chunk_tasks(c) > 5  # the job's chunks are on the cluster
             r = server.http.delete(f"/jobs/{job_id}")

@@ -36,6 +36,7 @@ import yaml
 from pipelines.errors import BlackBoxError, LipschitzError
 from pipelines.spec.model import parse_spec
 from service.cli import main
+from workers.cluster import credentials_env
 from workers.errors import StoreError, TaskTimeoutError
 from workers.job import abstract_job, run_abstraction, run_job
 
@@ -121,7 +122,8 @@ def test_hung_black_box_times_out_while_another_job_completes(tmp_path, client, 
     assert "did not finish state cells 0..32 within options.task_timeout = 3 s" in message, message
     assert "error" not in other, other.get("error")
     assert same_as_reference(other["result"], reference)
-    assert marker_counts(tmp_path / "hung") == (0, 1)
+    # Nothing was stored, so the failed run leaves no directory behind (jobdir.discard_unused).
+    assert not (tmp_path / "hung").exists()
     client.wait_for_workers(2, timeout=240)
     after = set(client.run(os.getpid).values())
     if box == "spins":
@@ -263,7 +265,8 @@ def test_runner_killed_between_chunk_data_and_marker(tmp_path, client, reference
     try:
         with open(log, "wb") as log_file:
             proc = subprocess.Popen([sys.executable, "-c", code, str(spec_file), str(out), client.scheduler.address],
-                                    cwd=ROOT, stdout=log_file, stderr=subprocess.STDOUT)
+                                    cwd=ROOT, stdout=log_file, stderr=subprocess.STDOUT,
+                                    env={**os.environ, **credentials_env(client)})  # the cluster's TLS credentials
         deadline = time.monotonic() + 120
         while not (flag.exists() and flag.read_text()):
             if proc.poll() is not None:
@@ -372,9 +375,11 @@ def test_store_full_or_read_only_fails_cleanly_and_resumes(tmp_path, client, ref
                 subprocess.run(["mount", "-o", "remount,rw", str(mnt)], check=True)
         message = str(err.value)
         print(message)
-        assert str(out / "relations.zarr") in message, message
+        # A full disk is found by the store's next write; a read-only one already when the job claims its
+        # directory, before any stage runs. Either way the message names the place and what to do.
+        assert str(out) in message, message
         expected = "No space left on device" if fault == "full" else "Read-only file system"
-        assert expected in message and "run the job again" in message, message
+        assert expected in message and ("run the job again" in message or "fix its permissions" in message), message
         after = _snapshot(out)
         # Intact: every file that was there is unchanged; chunks finished meanwhile are whole (marker last).
         assert {k: v for k, v in after.items() if k in before} == before

@@ -23,9 +23,10 @@ import zarr
 
 from pipelines.errors import BlackBoxError
 from pipelines.spec.model import load_spec, parse_spec, spec_hash
-from workers.cluster import connect
+from workers.cluster import connect, credentials_env
 from workers.errors import ClusterError, StoreError, StoreMismatchError
 from workers.job import abstract_job, run_abstraction
+from workers.jobdir import relations_url
 from workers.store import code_version, marker, result_from, write_chunk
 
 from .conftest import EXAMPLES, ROOT, wait_idle
@@ -136,25 +137,29 @@ def test_group_left_half_created_is_made_again(tmp_path):
     spec = small_spec(chunk_cells=4, dynamics=None)
     net = build_network(spec, None)
     sub = net.subsystems[0]
-    store = RelationStore.open(tmp_path, spec, net)
+    store = RelationStore.open(relations_url(tmp_path), spec, net)
     group = group_name(sub, 1.76, 0.16, "scp", "paper", 4)
     store.prepare(group, sub, [sub.name], 4, {})
     shutil.rmtree(tmp_path / "relations.zarr" / group / "done")  # the runner died before creating it
     store.prepare(group, sub, [sub.name], 4, {})
     assert store.markers(group) == {} and store.groups() == [group]
-    assert RelationStore.open(tmp_path, spec, net).attrs()["grids"]["agent[0]"]["groups"] == [group]
+    assert RelationStore.open(relations_url(tmp_path), spec, net).attrs()["grids"]["agent[0]"]["groups"] == [group]
 
 
-def test_connect_to_nowhere_fails_clearly(monkeypatch):
+def test_connect_to_nowhere_fails_clearly(monkeypatch, cluster):
     from workers import cluster as cluster_mod
 
     monkeypatch.setattr(cluster_mod, "CONNECT_TIMEOUT", 1.0)
-    with pytest.raises(ClusterError, match="cannot reach the Dask scheduler at tcp://127.0.0.1:9"):
-        connect("tcp://127.0.0.1:9")
+    for var, value in credentials_env(cluster.client).items():
+        monkeypatch.setenv(var, value)
+    with pytest.raises(ClusterError, match="cannot reach the Dask scheduler at tls://127.0.0.1:9"):
+        connect("tls://127.0.0.1:9")
 
 
 def test_connect_from_environment(monkeypatch, cluster):
     monkeypatch.setenv("COMPABS_SCHEDULER", cluster.info["scheduler"])
+    for var, value in credentials_env(cluster.client).items():  # the cluster's TLS credentials
+        monkeypatch.setenv(var, value)
     with connect() as (client, info):
         assert info["scheduler"] == cluster.info["scheduler"] and not info["embedded"]
         assert info["workers"] == 2
@@ -285,7 +290,7 @@ def test_tanks_distributed_equals_in_process(tmp_path, client):
     assert_same_relations(reference, result)
     assert without_timings(result.report) == without_timings(reference.report)
     assert info["chunks_total"] == info["chunks_computed"] == 2 and info["chunks_reused"] == 0
-    assert info["workers"] == 2 and info["scheduler"].startswith("tcp://")
+    assert info["workers"] == 2 and info["scheduler"].startswith("tls://")
     sub_events = [e for e in events if e[0] == "subsystems"]
     assert [e[1] for e in sub_events] == [1, 2] and all(e[2] == 2 for e in sub_events)
 
@@ -347,7 +352,7 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
     out = tmp_path / "out"
     proc = subprocess.Popen(
         [sys.executable, "-c", code, str(spec_file), str(out), client.scheduler.address],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, **credentials_env(client)},
     )
     try:
         deadline = time.monotonic() + 60
@@ -458,7 +463,7 @@ def test_store_write_outside_a_chunk_is_refused(tmp_path, client):
     spec = small_spec(chunk_cells=4, dynamics=None)
     net = build_network(spec, None)
     sub = net.subsystems[0]
-    store = RelationStore.open(tmp_path, spec, net)
+    store = RelationStore.open(relations_url(tmp_path), spec, net)
     group = group_name(sub, 1.76, 0.16, "scp", "paper", 4)
     store.prepare(group, sub, [sub.name], 4, {})
     with pytest.raises(StoreError, match="not one chunk"):

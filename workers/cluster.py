@@ -3,11 +3,21 @@
 ``connect()`` starts ``LocalCluster(n_workers=workers, threads_per_worker=1, processes=True)`` with the
 dashboard bound to 127.0.0.1 on a free port. One thread per worker process because the per-cell work is numpy
 plus Python that holds the GIL (ENGINEERING "Dask distributed"); parallelism comes from processes.
-``connect("tcp://HOST:PORT")`` (or ``COMPABS_SCHEDULER=tcp://HOST:PORT``) joins a running scheduler instead.
+``connect("tls://HOST:PORT")`` (or ``COMPABS_SCHEDULER=tls://HOST:PORT``) joins a running scheduler instead.
+
+The cluster is closed to anyone without its credentials (docs/security.md): whoever can talk to a Dask scheduler
+can run any code on its workers (``Client(address).run(...)``), so every comm is TLS with client certificates
+(Dask's ``Security``, ``require_encryption=True``). The embedded cluster runs on credentials generated for it
+(:func:`write_credentials` into a private 0700 directory, removed when the connection closes), or on those that
+``COMPABS_TLS_CA``/``COMPABS_TLS_CERT``/``COMPABS_TLS_KEY`` name; ``Connection.credentials.env()`` hands them
+to child processes. An external scheduler must be ``tls://`` with credentials from those variables (or Dask's
+``distributed.comm.tls.*`` config); a plain ``tcp://`` one is refused unless ``COMPABS_INSECURE_SCHEDULER=1``.
 
 The embedded cluster is owned by the client (``Client(n_workers=...)``), so closing the client closes the
-cluster: ``client, info = connect(); ...; client.close()`` leaks nothing, and ``with connect() as (client,
-info):`` closes it for you. A client of an external scheduler closes only its own connection.
+cluster: ``client, info = connect(); ...; client.close()`` leaks no process, and ``with connect() as (client,
+info):`` (or ``conn.close()``) closes it for you and deletes its generated credentials at once (otherwise they go
+when the client is collected or the process exits). A client of an external scheduler closes only its own
+connection.
 
 Process workers are started with ``spawn``, so the calling program's ``__main__`` must be importable (a file or
 ``python -m``, not a script piped on stdin); the error message says so.
@@ -15,8 +25,14 @@ Process workers are started with ``spawn``, so the calling program's ``__main__`
 
 from __future__ import annotations
 
+import datetime
 import logging
 import os
+import shutil
+import tempfile
+import weakref
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +40,17 @@ from workers.errors import ClusterError
 
 logger = logging.getLogger(__name__)
 
-#: Environment variable naming an external scheduler (``tcp://HOST:PORT``).
+#: Environment variable naming an external scheduler (``tls://HOST:PORT``).
 SCHEDULER_ENV = "COMPABS_SCHEDULER"
+#: Environment variables naming the cluster's TLS credentials (PEM files, as :func:`write_credentials` writes):
+#: the CA certificate, and the certificate and private key every scheduler, worker and client presents.
+TLS_ENV = {"ca": "COMPABS_TLS_CA", "cert": "COMPABS_TLS_CERT", "key": "COMPABS_TLS_KEY"}
+#: Set to 1 to accept a plain ``tcp://`` scheduler (no encryption, no authentication: unsafe, docs/security.md).
+INSECURE_ENV = "COMPABS_INSECURE_SCHEDULER"
+#: The files :func:`write_credentials` writes into its directory.
+CREDENTIAL_FILES = {"ca": "ca.pem", "cert": "cert.pem", "key": "key.pem"}
+#: Protocols of a Dask address that are TLS with client certificates.
+SECURE_PROTOCOLS = ("tls", "wss")
 #: Seconds to wait for an external scheduler to answer and to have at least one worker.
 CONNECT_TIMEOUT = 30.0
 #: Dask configuration of compabs's workers (``workers/dask.yaml``; the image copies it to ``/etc/dask``): the
@@ -72,16 +97,248 @@ def worker_config() -> dict[str, Any]:
 EMBEDDED_CONFIG = worker_config()
 
 
+# ------------------------------------------------------------------------------------------------ TLS credentials
+@dataclass(frozen=True)
+class Credentials:
+    """The TLS credentials of a cluster: PEM files of the CA certificate, and of the certificate and private key
+    that the scheduler, the workers and the clients all present (each side requires the other's, signed by the
+    CA). Whoever holds ``key`` can run code on the cluster: it is a password."""
+
+    ca: Path
+    cert: Path
+    key: Path
+
+    @classmethod
+    def in_directory(cls, directory: str | os.PathLike[str]) -> Credentials:
+        """The files :func:`write_credentials` wrote into ``directory``."""
+        d = Path(directory)
+        return cls(**{role: d / name for role, name in CREDENTIAL_FILES.items()})
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> Credentials | None:
+        """The credentials ``COMPABS_TLS_CA``, ``COMPABS_TLS_CERT`` and ``COMPABS_TLS_KEY`` name, or ``None`` when
+        none of them is set.
+
+        Raises
+        ------
+        ClusterError
+            Some but not all are set, or a file they name is not readable.
+        """
+        environ = os.environ if environ is None else environ
+        values = {role: environ.get(var) or "" for role, var in TLS_ENV.items()}
+        if not any(values.values()):
+            return None
+        missing = [TLS_ENV[role] for role, v in values.items() if not v]
+        if missing:
+            raise ClusterError(f"{', '.join(missing)} not set: the cluster's TLS credentials need all of "
+                               f"{', '.join(TLS_ENV.values())} (the files `compabs credentials DIR` writes)")
+        creds = cls(**{role: Path(v) for role, v in values.items()})
+        creds.check()
+        return creds
+
+    def check(self) -> None:
+        """Raise :class:`ClusterError` unless every file is readable."""
+        for role, path in self.files().items():
+            try:
+                with open(path, "rb"):
+                    pass
+            except OSError as exc:
+                raise ClusterError(f"cannot read the cluster's TLS {role} file {path} ({TLS_ENV[role]}): "
+                                   f"{exc.strerror}") from None
+
+    def files(self) -> dict[str, Path]:
+        return {"ca": self.ca, "cert": self.cert, "key": self.key}
+
+    def env(self) -> dict[str, str]:
+        """The environment variables that hand these credentials to another process (``connect()`` there reads
+        them): ``subprocess.Popen(..., env={**os.environ, **conn.credentials.env()})``."""
+        return {TLS_ENV[role]: str(path) for role, path in self.files().items()}
+
+    def security(self) -> Any:
+        """Dask's ``Security`` for every role (scheduler, worker, client), TLS required."""
+        from distributed.security import Security
+
+        ca, cert, key = str(self.ca), str(self.cert), str(self.key)
+        return Security(require_encryption=True, tls_ca_file=ca, tls_client_cert=cert, tls_client_key=key,
+                        tls_scheduler_cert=cert, tls_scheduler_key=key, tls_worker_cert=cert, tls_worker_key=key)
+
+    def dask_config(self) -> dict[str, Any]:
+        """The same as Dask configuration (dotted keys): what a ``Security()`` made without arguments reads."""
+        ca, cert, key = str(self.ca), str(self.cert), str(self.key)
+        out: dict[str, Any] = {"distributed.comm.require-encryption": True, "distributed.comm.tls.ca-file": ca}
+        for role in ("client", "scheduler", "worker"):
+            out[f"distributed.comm.tls.{role}.cert"] = cert
+            out[f"distributed.comm.tls.{role}.key"] = key
+        return out
+
+
+def write_credentials(directory: str | os.PathLike[str], *, overwrite: bool = False,
+                      valid_days: int = 3650) -> Credentials:
+    """Generate a cluster's TLS credentials into ``directory`` (created 0700): ``ca.pem``, ``cert.pem``,
+    ``key.pem`` (0600).
+
+    A fresh CA (ECDSA P-256) signs one certificate for every member of the cluster, for both TLS server and
+    client use; the CA's private key is never written, so no other certificate can be issued: a new cluster gets
+    new credentials, and anyone with ``key.pem`` is a member. Needs ``cryptography``.
+
+    Raises
+    ------
+    ClusterError
+        The directory already holds credentials (unless ``overwrite``) or cannot be written.
+    """
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    creds = Credentials.in_directory(directory)
+    d = Path(directory)
+    try:
+        d.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ClusterError(f"cannot create the credentials directory {d}: {exc.strerror}") from None
+    existing = [str(p) for p in creds.files().values() if p.exists()]
+    if existing and not overwrite:
+        raise ClusterError(f"{d} already holds cluster credentials ({', '.join(existing)}): keep them, or "
+                           "replace them (then restart every scheduler, worker and API that uses them)")
+
+    now = datetime.datetime.now(datetime.timezone.utc)
+    start, end = now - datetime.timedelta(days=1), now + datetime.timedelta(days=valid_days)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"compabs cluster CA {os.urandom(6).hex()}")])
+    ca_cert = (
+        x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.KeyUsage(digital_signature=False, content_commitment=False, key_encipherment=False,
+                                     data_encipherment=False, key_agreement=False, key_cert_sign=True,
+                                     crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "compabs-cluster")])
+    cert = (
+        x509.CertificateBuilder().subject_name(name).issuer_name(ca_name).public_key(key.public_key())
+        .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
+                                     data_encipherment=False, key_agreement=True, key_cert_sign=False,
+                                     crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
+        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+                       critical=False)
+        .add_extension(x509.SubjectAlternativeName([x509.DNSName("compabs-cluster")]), critical=False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
+    pem = serialization.Encoding.PEM
+    contents = {
+        "ca": (ca_cert.public_bytes(pem), 0o644),
+        "cert": (cert.public_bytes(pem), 0o644),
+        "key": (key.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()), 0o600),
+    }
+    try:
+        for role, (data, mode) in contents.items():
+            target = creds.files()[role]
+            partial = target.with_name(target.name + ".partial")
+            partial.unlink(missing_ok=True)
+            fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)  # the key is never world-readable
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(partial, target)
+    except OSError as exc:
+        raise ClusterError(f"cannot write the cluster credentials into {d}: {exc.strerror}") from None
+    return creds
+
+
+def _temporary_credentials() -> tuple[Credentials, Path]:
+    """Fresh credentials in a new private directory (``mkdtemp``: 0700, this user's only)."""
+    directory = Path(tempfile.mkdtemp(prefix="compabs-tls-"))
+    try:
+        return write_credentials(directory), directory
+    except BaseException:
+        shutil.rmtree(directory, ignore_errors=True)
+        raise
+
+
+def _insecure_allowed(environ: Mapping[str, str]) -> bool:
+    return environ.get(INSECURE_ENV, "").strip().lower() in ("1", "true", "yes")
+
+
+def _external_security(scheduler: str, environ: Mapping[str, str]) -> tuple[Any, Credentials | None]:
+    """Dask's ``Security`` for joining ``scheduler``, and the credentials it came from (``None``: Dask's config).
+
+    Raises
+    ------
+    ClusterError
+        ``scheduler`` is not TLS and ``COMPABS_INSECURE_SCHEDULER`` is not set, or it is TLS and no credentials
+        are configured.
+    """
+    from distributed.security import Security
+
+    protocol = scheduler.split("://", 1)[0].lower() if "://" in scheduler else "tcp"
+    if protocol not in SECURE_PROTOCOLS:
+        if _insecure_allowed(environ):
+            logger.warning("joining the Dask scheduler at %s without TLS (%s is set): anyone who can reach it can "
+                           "run code on its workers", scheduler, INSECURE_ENV)
+            return Security(require_encryption=False), None  # over workers/dask.yaml in /etc/dask
+        raise ClusterError(
+            f"refusing the Dask scheduler at {scheduler}: {protocol}:// has no encryption and no authentication, "
+            "and anyone who can reach such a scheduler can run code on its workers. Run it with TLS (`dask "
+            "scheduler --protocol tls --tls-ca-file ca.pem --tls-cert cert.pem --tls-key key.pem`, see "
+            f"docs/security.md) and connect to tls://HOST:PORT with {', '.join(TLS_ENV.values())} set, or set "
+            f"{INSECURE_ENV}=1 to accept it anyway (unsafe)."
+        )
+    creds = Credentials.from_env(environ)
+    if creds is not None:
+        return creds.security(), creds
+    security: Any = Security(require_encryption=True)  # Dask's own distributed.comm.tls.* settings, if any
+    if security.tls_ca_file and security.tls_client_cert:
+        return security, None
+    raise ClusterError(
+        f"the Dask scheduler at {scheduler} needs TLS credentials: set {', '.join(TLS_ENV.values())} to the "
+        "files `compabs credentials DIR` wrote for the cluster (or Dask's distributed.comm.tls.* config)."
+    )
+
+
+def credentials_env(client: Any) -> dict[str, str]:
+    """The environment variables that let a child process join ``client``'s cluster (``connect(address)``
+    there), read from the client's ``Security``.
+
+    Raises
+    ------
+    ClusterError
+        The client has no TLS credentials in files.
+    """
+    security = client.security
+    files = {role: getattr(security, f"tls_{attr}", None)
+             for role, attr in (("ca", "ca_file"), ("cert", "client_cert"), ("key", "client_key"))}
+    env = {TLS_ENV[role]: v for role, v in files.items() if isinstance(v, str) and v and "\n" not in v}
+    if len(env) != len(files):
+        raise ClusterError("this Dask client has no TLS credential files to hand to another process")
+    return env
+
+
 class Connection(tuple):
     """``(client, info)``, closable and usable as a context manager.
 
     ``info`` is a dict: ``scheduler`` (address), ``workers`` (count at connection time), ``dashboard`` (URL, or
     ``None`` when bokeh is not installed and there is no dashboard page to show), ``embedded`` (whether this
-    connection started the cluster).
+    connection started the cluster). ``credentials`` are the cluster's TLS credentials (``None`` for an
+    external scheduler joined through Dask's own config, or without TLS): ``credentials.env()`` lets a child
+    process join the cluster. Credentials generated for an embedded cluster are deleted when it closes.
     """
 
-    def __new__(cls, client: Any, info: dict[str, Any]) -> Connection:
-        return super().__new__(cls, (client, info))
+    credentials: Credentials | None
+    _cleanup: Any
+
+    def __new__(cls, client: Any, info: dict[str, Any], credentials: Credentials | None = None,
+                cleanup: Any = None) -> Connection:
+        conn = super().__new__(cls, (client, info))
+        conn.credentials = credentials
+        conn._cleanup = cleanup
+        return conn
 
     @property
     def client(self) -> Any:
@@ -92,8 +349,13 @@ class Connection(tuple):
         return self[1]
 
     def close(self) -> None:
-        """Close the client, and with it the embedded cluster if this connection started one."""
-        self.client.close()
+        """Close the client, and with it the embedded cluster (and its generated credentials) if this connection
+        started one."""
+        try:
+            self.client.close()
+        finally:
+            if self._cleanup is not None:
+                self._cleanup()
 
     def __enter__(self) -> Connection:
         return self
@@ -174,54 +436,45 @@ def connect(scheduler: str | None = None, workers: int = 2) -> Connection:
     Parameters
     ----------
     scheduler : str, optional
-        ``tcp://HOST:PORT`` of a running scheduler. ``None`` reads ``COMPABS_SCHEDULER``; if that is unset too,
-        an embedded ``LocalCluster`` with ``workers`` single-threaded worker processes is started.
+        ``tls://HOST:PORT`` of a running scheduler (its credentials from ``COMPABS_TLS_CA``, ``COMPABS_TLS_CERT``,
+        ``COMPABS_TLS_KEY``, or Dask's ``distributed.comm.tls.*`` config); ``tcp://`` only with
+        ``COMPABS_INSECURE_SCHEDULER=1``. ``None`` reads ``COMPABS_SCHEDULER``; if that is unset too, an embedded
+        ``LocalCluster`` with ``workers`` single-threaded worker processes is started, on TLS with the
+        credentials ``COMPABS_TLS_*`` name or, when unset, fresh ones.
     workers : int
         Worker processes of the embedded cluster (ignored for an external scheduler).
 
     Returns
     -------
     Connection
-        ``(client, info)``; see :class:`Connection`.
+        ``(client, info)`` and ``credentials``; see :class:`Connection`.
 
     Raises
     ------
     ClusterError
-        The scheduler cannot be reached, has no worker within ``CONNECT_TIMEOUT`` seconds, cannot import the
-        task module, or the embedded cluster cannot start.
+        The scheduler is not TLS (and not explicitly accepted), has no credentials configured, cannot be reached
+        (or refused the credentials), has no worker within ``CONNECT_TIMEOUT`` seconds, cannot import the task
+        module, or the embedded cluster cannot start.
     """
-    import dask
     from distributed import Client
 
     scheduler = scheduler or os.environ.get(SCHEDULER_ENV) or None
+    credentials: Credentials | None
+    cleanup = None
     if scheduler is None:
         if workers < 1:
             raise ClusterError(f"workers must be >= 1, got {workers}")
-        try:
-            with dask.config.set(EMBEDDED_CONFIG):
-                client = Client(
-                    n_workers=workers,
-                    threads_per_worker=1,
-                    processes=True,
-                    dashboard_address="127.0.0.1:0",
-                )
-        except RuntimeError as exc:
-            raise ClusterError(
-                f"cannot start a local Dask cluster: {exc}. Worker processes are spawned and import the caller's "
-                "__main__: run from a file or with `python -m`, not from a script piped on stdin."
-            ) from None
-        _tolerate_unknown_removals(client.cluster)
-        # Read by the LocalCluster at each worker removal, after the `with` above ended (workers/dask.yaml).
-        key = "distributed.deploy.lost-worker-timeout"
-        dask.config.set({key: EMBEDDED_CONFIG[key]})
+        client, credentials, cleanup = _start_embedded(workers)
         embedded = True
     else:
+        security, credentials = _external_security(scheduler, os.environ)
         try:
-            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT, security=security)
         except (OSError, TimeoutError) as exc:
             raise ClusterError(
                 f"cannot reach the Dask scheduler at {scheduler}: {exc}. Start one (`dask scheduler`), fix the "
-                f"address, or leave --scheduler / {SCHEDULER_ENV} unset to run an embedded cluster."
+                "address or the credentials (a TLS scheduler refuses credentials that are not its cluster's), or "
+                f"leave --scheduler / {SCHEDULER_ENV} unset to run an embedded cluster."
             ) from None
         try:
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT)
@@ -229,21 +482,72 @@ def connect(scheduler: str | None = None, workers: int = 2) -> Connection:
             client.close()
             raise ClusterError(
                 f"the Dask scheduler at {scheduler} has no worker after {CONNECT_TIMEOUT:g} s: start some "
-                f"(`dask worker {scheduler}`)."
+                f"(`dask worker {scheduler}` with the cluster's --tls-* files, docs/security.md)."
             ) from None
         embedded = False
+    conn = Connection(client, {}, credentials, cleanup)
     try:
         _check_imports(client, scheduler=not embedded)
     except ClusterError:
-        client.close()
+        conn.close()
         raise
-    info = {
+    conn.info.update({
         "scheduler": client.scheduler.address,
         "workers": len(client.nthreads()),
         "dashboard": _dashboard(client),
         "embedded": embedded,
-    }
-    return Connection(client, info)
+    })
+    return conn
+
+
+def _start_embedded(workers: int) -> tuple[Any, Credentials, weakref.finalize | None]:
+    """The embedded cluster's client (which owns the cluster) on TLS, its credentials, and what deletes them
+    (``None``: they are the operator's, from ``COMPABS_TLS_*``)."""
+    import dask
+    from distributed import Client
+
+    credentials = Credentials.from_env()
+    directory = None
+    if credentials is None:
+        credentials, directory = _temporary_credentials()
+    try:
+        # The client, the LocalCluster, its scheduler and its nannies each make their Security() from this
+        # config while they start (Client(n_workers=...) does not hand a security argument on to the cluster); the
+        # nannies pass theirs to their worker processes.
+        with dask.config.set({**EMBEDDED_CONFIG, **credentials.dask_config()}):
+            client = Client(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                protocol="tls://",
+                dashboard_address="127.0.0.1:0",
+            )
+    except RuntimeError as exc:
+        if directory is not None:
+            shutil.rmtree(directory, ignore_errors=True)
+        raise ClusterError(
+            f"cannot start a local Dask cluster: {exc}. Worker processes are spawned and import the caller's "
+            "__main__: run from a file or with `python -m`, not from a script piped on stdin."
+        ) from None
+    except BaseException:
+        if directory is not None:
+            shutil.rmtree(directory, ignore_errors=True)
+        raise
+    # Generated credentials are deleted by Connection.close(), or when the client is collected or the process ends.
+    cleanup = None if directory is None else weakref.finalize(client, shutil.rmtree, str(directory), True)
+    cluster_security = client.cluster.security
+    if not (client.security.require_encryption and cluster_security.require_encryption
+            and cluster_security.tls_ca_file == str(credentials.ca)
+            and client.scheduler.address.startswith("tls://")):
+        client.close()
+        if cleanup is not None:
+            cleanup()
+        raise ClusterError("the embedded Dask cluster did not start with TLS; refusing to run an open cluster")
+    _tolerate_unknown_removals(client.cluster)
+    # Read by the LocalCluster at each worker removal, after the `with` above ended (workers/dask.yaml).
+    key = "distributed.deploy.lost-worker-timeout"
+    dask.config.set({key: EMBEDDED_CONFIG[key]})
+    return client, credentials, cleanup
 
 
 def client_info(client: Any) -> dict[str, Any]:
