@@ -6,6 +6,8 @@ Always against what the job *stored* (:func:`workers.jobdir.load_job`: ``relatio
 * the parts the job's own audit stage checks (:func:`pipelines.verification.audit.audit_abstraction`): every
   distinct subsystem, the interconnection and the composition, ``N`` random concrete transitions each, a share of
   them on cell boundaries and box edges;
+* the integrity of the stored relations: every chunk against the checksum in its done-marker (a damaged
+  chunk, missing, unreadable or not matching, is one violation, named by group and chunk);
 * the controller, if the job has one: closed-loop runs of the concrete system under it from random states of its
   domain and from the spec's initial states inside it (:func:`pipelines.verification.closed_loop.run_closed_loop`).
 """
@@ -57,6 +59,17 @@ def _closed_loop(arts: jobdir.JobArtifacts, runs: int, rng: np.random.Generator)
     }
 
 
+def _relation_store(arts: jobdir.JobArtifacts) -> dict[str, Any]:
+    """The integrity of the stored relations: every chunk checked against its checksum (``load_job`` did)."""
+    damaged = arts.damaged_chunks
+    first = None
+    if damaged:
+        more = f" ({len(damaged) - 1} more damaged chunks in {jobdir.AUDIT})" if len(damaged) > 1 else ""
+        first = (f"damaged relation chunk: {damaged[0]['message']}{more}. Run the job again into {arts.directory} "
+                 "(same spec) to recompute the damaged chunks")
+    return {"chunks_checked": arts.chunks_checked, "damaged": damaged, "first_damaged": first}
+
+
 def audit_job(
     directory: str | os.PathLike[str],
     transitions: int | None = None,
@@ -91,9 +104,12 @@ def audit_job(
     Returns
     -------
     dict
-        ``transitions_checked``, ``violations`` (transitions and closed-loop runs), ``parts`` (per part:
-        ``transitions_checked``, ``violations``, ``skipped_blocking``, ``first_violation``), ``closed_loop`` (or
-        ``None`` without a controller), ``seed``, ``relation_source``, ``relation_files``.
+        ``transitions_checked``, ``violations`` (transitions, damaged relation chunks and closed-loop runs),
+        ``parts`` (per part: ``transitions_checked``, ``violations``, ``skipped_blocking``, ``first_violation``;
+        a part ``relation store`` only when chunks are damaged, one violation each, naming group and chunk),
+        ``relation_store`` (``chunks_checked``, ``damaged``: the chunks missing, unreadable or not matching their
+        checksums, ``first_damaged``), ``closed_loop`` (or ``None`` without a controller), ``seed``,
+        ``relation_source``, ``relation_files``.
 
     Raises
     ------
@@ -127,6 +143,13 @@ def audit_job(
     parts["interconnection"] = {**audited["parts"]["interconnection"], "mode": ia.mode,
                                 "seconds": seconds["interconnection"]}
     parts["composition"] = {**audited["parts"]["composition"], "seconds": seconds["composition"]}
+    store = _relation_store(arts)
+    if store["damaged"]:
+        parts["relation store"] = {
+            "transitions_checked": 0, "violations": len(store["damaged"]), "skipped_blocking": 0,
+            "first_violation": store["first_damaged"], "chunks_checked": store["chunks_checked"],
+            "damaged_chunks": store["damaged"], "seconds": 0.0,
+        }
     closed = _closed_loop(arts, runs, rng) if arts.has_controller else None
     report("closed loop", len(groups) + 3, len(groups) + 3)
     result = {
@@ -138,7 +161,8 @@ def audit_job(
         "relation_files": arts.relation_files,
         "transitions_checked": audited["transitions_checked"],
         "transition_violations": audited["violations"],
-        "violations": audited["violations"] + (closed["violations"] if closed else 0),
+        "violations": audited["violations"] + len(store["damaged"]) + (closed["violations"] if closed else 0),
+        "relation_store": store,
         "parts": parts,
         "closed_loop": closed,
     }

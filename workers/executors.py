@@ -9,13 +9,16 @@ as they complete, in any order. Two kinds:
   relation store (:mod:`workers.store`) and returning its small done-marker.
 
 Both go through the job's relation store when they have one: a chunk whose done-marker is there is read back
-(*reused*) instead of computed, so a job that is run again resumes. Without a store (``InProcess()``) nothing is
-written. The chunk size is the executor's (:attr:`Executor.chunk_points`): a cluster task must be large enough
+(*reused*) instead of computed, so a job that is run again resumes. A reused chunk is verified against the
+checksum in its marker (:func:`workers.store.check_chunks`, on one bulk read of the group); a damaged one
+(missing, unreadable, or not matching) is logged as a warning naming its group and chunk, its marker cleared,
+and it is recomputed like a chunk never done. Without a store (``InProcess()``) nothing is written. The chunk size is the executor's (:attr:`Executor.chunk_points`): a cluster task must be large enough
 for its overhead (about 10 ms) not to count.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -26,7 +29,9 @@ from pipelines.abstraction.cells import CellTask
 from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS, CellsResult
 from pipelines.errors import CompabsError
 from workers.errors import ClusterError, StoreError, TaskTimeoutError
-from workers.store import RelationStore, group_name
+from workers.store import ChunkCheck, RelationStore, chunk_place, group_name
+
+log = logging.getLogger(__name__)
 
 #: Black-box evaluations per Dask task: a ~0.5 s task on the compiled per-cell pass, so the ~10 ms per task that
 #: Dask, the store write and the read back cost stay a few per cent (``bench/runner.py`` measures it).
@@ -83,8 +88,9 @@ def _chunk_size(tasks: Sequence[CellTask]) -> int:
 
 
 def _plan(store: RelationStore, tasks: Sequence[CellTask], members: Sequence[str]
-          ) -> tuple[str, int, list[dict[str, Any]], list[CellTask]]:
-    """The store group of a batch, its chunk size, the markers of chunks already done and the tasks still to run."""
+          ) -> tuple[str, int, dict[int, dict[str, Any]], list[CellTask]]:
+    """The store group of a batch, its chunk size, the markers of chunks marked done (chunk -> marker; their
+    data not verified yet, see :func:`_verify`) and the tasks still to run."""
     first = tasks[0]
     if any(t.subsystem.key != first.subsystem.key or t.constants != first.constants for t in tasks):
         raise RuntimeError("a batch of cell tasks must be one subsystem with one set of constants")
@@ -93,24 +99,43 @@ def _plan(store: RelationStore, tasks: Sequence[CellTask], members: Sequence[str
     store.prepare(group, first.subsystem, list(members), chunk_cells,
                   {"L_x": float(first.L_x), "L_w": float(first.L_w), "method": first.method,
                    "objective": first.objective})
-    markers = store.markers(group)
-    reuse, todo = [], []
-    for t in tasks:
-        m = markers.get(t.start // chunk_cells)
-        if m is not None and (m.get("start"), m.get("stop")) == (t.start, t.stop):
-            reuse.append(m)
+    markers, bad = store.marker_state(group)
+    reuse: dict[int, dict[str, Any]] = {}
+    todo = []
+    for i, t in enumerate(tasks):  # regular chunks: task i is chunk i
+        if i in markers:
+            reuse[i] = markers[i]
         else:
+            if i in bad:
+                _damaged(store, group, t, chunk_cells, bad[i])
             todo.append(t)
     return group, chunk_cells, reuse, todo
 
 
-def _reused(store: RelationStore, group: str, reuse: list[dict[str, Any]], stats: ExecutorStats
+def _damaged(store: RelationStore, group: str, t: CellTask, chunk_cells: int, reason: str) -> None:
+    """A chunk marked done that cannot be reused: say so, and clear its marker before it is recomputed."""
+    place = chunk_place(group, t.start // chunk_cells, chunk_cells, t.subsystem.state_grid.size)
+    log.warning("relation store %s: %s is damaged: %s; it is recomputed, not reused", store.url, place, reason)
+    store.clear_marker(group, t.start // chunk_cells)
+
+
+def _verify(store: RelationStore, group: str, chunk_cells: int, reuse: dict[int, dict[str, Any]],
+            tasks: Sequence[CellTask]) -> tuple[ChunkCheck, list[dict[str, Any]], list[CellTask]]:
+    """Read the chunks marked done (one bulk read when there are several) and check each against its marker's
+    checksum: what was read, the markers of the chunks to reuse, and the tasks of the damaged ones."""
+    check = store.check(group, reuse)
+    redo = []
+    for i, reason in sorted(check.damaged.items()):
+        _damaged(store, group, tasks[i], chunk_cells, reason)
+        redo.append(tasks[i])
+    return check, [m for i, m in sorted(reuse.items()) if i not in check.damaged], redo
+
+
+def _reused(store: RelationStore, group: str, check: ChunkCheck, good: list[dict[str, Any]], stats: ExecutorStats
             ) -> Iterator[CellsResult]:
-    # One read of the whole arrays beats one read per chunk when many chunks are reused.
-    arrays = store.read_all(group) if len(reuse) > 1 else None
-    for m in reuse:
+    for m in good:
         stats.chunks_reused += 1
-        yield store.read(group, m, arrays)
+        yield store.read(group, m, check)
 
 
 class InProcess:
@@ -129,8 +154,10 @@ class InProcess:
             todo: Sequence[CellTask] = tasks
             group = ""
         else:
-            group, _, reuse, todo = _plan(self.store, tasks, members)
-            yield from _reused(self.store, group, reuse, self.stats)
+            group, chunk_cells, reuse, todo = _plan(self.store, tasks, members)
+            check, good, redo = _verify(self.store, group, chunk_cells, reuse, tasks)
+            todo = sorted([*todo, *redo], key=lambda t: t.start)
+            yield from _reused(self.store, group, check, good, self.stats)
         for t in todo:
             t0 = time.perf_counter()
             result = t.run()
@@ -182,14 +209,22 @@ class OnDask:
         # Unique keys: a task must run again when resubmitted, never resolve to a finished task of an earlier
         # run that the scheduler has not forgotten yet (its marker may have been deleted since).
         run = uuid.uuid4().hex[:8]
-        futures = {
-            self.client.submit(abstract_chunk, self.store.url, group, t, self.task_timeout,
-                               key=f"abstract_chunk-{group}-{t.start // chunk_cells}-{run}", pure=False): t
-            for t in todo
-        }
-        submitted = list(futures)
+
+        def submit(batch: list[CellTask]) -> None:
+            for t in batch:
+                fut = self.client.submit(abstract_chunk, self.store.url, group, t, self.task_timeout,
+                                         key=f"abstract_chunk-{group}-{t.start // chunk_cells}-{run}", pure=False)
+                futures[fut] = t
+                submitted.append(fut)
+
+        futures: dict[Any, CellTask] = {}
+        submitted: list[Any] = []
         try:
-            yield from _reused(self.store, group, reuse, self.stats)
+            submit(todo)
+            # Verified while the cluster computes; a damaged chunk is one more task.
+            check, good, redo = _verify(self.store, group, chunk_cells, reuse, tasks)
+            submit(redo)
+            yield from _reused(self.store, group, check, good, self.stats)
             for fut in as_completed(futures):
                 t = futures.pop(fut)
                 meta = self._outcome(fut, t, members, chunk_cells)

@@ -17,7 +17,8 @@ Layout under ``DIR/relations.zarr`` (``DIR`` a local path or any fsspec URL)::
         hi        int32 (n_x, n_u, n_w, n)   ... empty (0, -1) where blocking
         blocking  bool  (n_x, n_u, n_w)      input not admissible at that state under that internal cell
         done      string (n_chunks,)         per chunk, its done-marker: the JSON of the chunk's metadata
-                                             (start, stop, successors, slope_x, slope_w, seconds); "" = not done
+                                             (start, stop, successors, slope_x, slope_w, seconds) and its
+                                             checksum sha256 (Integrity, below); "" = not done
 
 ``lo``, ``hi`` and ``blocking`` are chunked along the state cells with ``chunk_cells`` cells per chunk (all
 inputs and internal cells in the chunk), which is exactly one task's range: each task owns whole chunks
@@ -25,11 +26,23 @@ inputs and internal cells in the chunk), which is exactly one task's range: each
 
 ``done`` has one element per chunk and chunks of one element, so a task owns its marker's chunk too. The task
 writes its marker *after* its data: a marker says the data are complete. A chunk's data without a marker (a
-task killed between the two writes, or a marker deleted) is recomputed; data chunks that are missing while
-their marker exists are all-fill chunks Zarr did not write (``write_empty_chunks=False``), which read back as
-the fill value, i.e. correctly. Keeping markers in a Zarr array (not loose files) keeps the hierarchy valid for
-Zarr readers and consolidation; local writes are atomic (temp file + rename), and the ``*.partial`` temporaries
-a killed writer leaves are never read, because Zarr reads exact keys and never lists chunk directories.
+task killed between the two writes, or a marker deleted) is recomputed. Keeping markers in a Zarr array (not
+loose files) keeps the hierarchy valid for Zarr readers and consolidation; local writes are atomic (temp file +
+rename), and the ``*.partial`` temporaries a killed writer leaves are never read, because Zarr reads exact keys
+and never lists chunk directories.
+
+Integrity
+---------
+Every marker carries ``sha256`` (:func:`chunk_checksum`): SHA-256 over the chunk's position (group, ``start``,
+``stop``), the rest of its marker but ``seconds``, and each of ``lo``, ``hi``, ``blocking`` (name, dtype, shape,
+bytes); the task writes it with the marker, after the data. A chunk is reused only if it reads back and matches
+(:func:`check_chunks`, on the runner's one bulk read); otherwise it is *damaged*, logged and recomputed: a data
+chunk missing under its marker reads as the fill value, which matches only if the data were all fill (chunks
+Zarr does not write; the marker's ``all_fill`` names them); a chunk that cannot be read (garbage: any codec or
+store error) is caught, chunk by chunk; another chunk's valid data (swapped, copied) do not match, the position
+being in the checksum. A marker that cannot be read, is not JSON, names other cells or has no checksum counts as
+not done. ``compabs audit`` (:func:`workers.jobdir.load_job`) checks every chunk it reads and reports the damaged
+ones. Layout 1 stores (no checksums) are refused like a store of another spec.
 
 Consolidated metadata is written once at the end of a job (:meth:`RelationStore.consolidate`). The runner
 itself always opens the store without it, so groups added after a consolidation are seen.
@@ -46,7 +59,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -57,14 +69,17 @@ from pipelines.abstraction.relation import CellsResult, SlopeRecord
 from pipelines.network import Network, Subsystem
 from pipelines.spec.model import JobSpec, spec_hash
 from workers.errors import StoreError, StoreMismatchError
-from workers.jobdir import relations_url
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from zarr.core.common import JSON
 
-#: Version of the layout above; a store of another layout is treated as stale.
-LAYOUT_VERSION = 1
+#: Version of the layout above; a store of another layout is treated as stale. 2: markers carry ``sha256``.
+LAYOUT_VERSION = 2
 RELATION_ARRAYS = ("lo", "hi", "blocking")
+#: The stored dtype of each relation array: what a chunk's checksum is computed over.
+RELATION_DTYPES = {"lo": np.dtype("<i4"), "hi": np.dtype("<i4"), "blocking": np.dtype("|b1")}
+#: Marker fields the checksum does not cover (the time a chunk took; the checksum itself).
+_UNCHECKED = ("seconds", "sha256")
 
 
 def code_version() -> str:
@@ -149,6 +164,146 @@ def result_from(meta: dict[str, Any], lo: np.ndarray, hi: np.ndarray, blocking: 
     )
 
 
+# ------------------------------------------------------------------ integrity: checksums and checks
+def chunk_checksum(group: str, meta: dict[str, Any], lo: np.ndarray, hi: np.ndarray, blocking: np.ndarray) -> str:
+    """The checksum of one chunk (module docstring, "Integrity"), as its marker carries it.
+
+    ``meta`` is the chunk's marker (its ``start`` and ``stop`` are the position; ``seconds`` and ``sha256`` are
+    left out); the arrays are the chunk's, in the stored dtypes.
+    """
+    h = hashlib.sha256()
+    core = {k: v for k, v in meta.items() if k not in _UNCHECKED}
+    h.update(json.dumps({"group": group, "marker": core}, sort_keys=True).encode())
+    for name, a in (("lo", lo), ("hi", hi), ("blocking", blocking)):
+        a = np.ascontiguousarray(a, dtype=RELATION_DTYPES[name])  # no copy for what Zarr reads back
+        h.update(f"|{name}|{a.dtype.str}|{list(a.shape)}|".encode())
+        h.update(a.reshape(-1).view(np.uint8).data)
+    return h.hexdigest()
+
+
+def chunk_place(group: str, chunk: int, chunk_cells: int, n_x: int) -> str:
+    """How messages name a chunk: ``group G, chunk i (state cells a..b)``."""
+    start = chunk * chunk_cells
+    return f"group {group}, chunk {chunk} (state cells {start}..{min(start + chunk_cells, n_x) - 1})"
+
+
+def _marker_problem(meta: Any, chunk: int, chunk_cells: int, n_x: int) -> str | None:
+    """Why a parsed marker cannot stand for chunk ``chunk`` (``None``: it can, if its data match)."""
+    if not isinstance(meta, dict) or not {"start", "stop", "successors", "slope_x", "slope_w"} <= set(meta):
+        return "its done-marker is not a compabs marker (not JSON, or fields missing)"
+    start = chunk * chunk_cells
+    if (meta["start"], meta["stop"]) != (start, min(start + chunk_cells, n_x)):
+        return f"its done-marker names state cells [{meta['start']}, {meta['stop']}) (another chunk's)"
+    if not isinstance(meta.get("sha256"), str):
+        return "its done-marker has no checksum (written by an older compabs)"
+    return None
+
+
+def group_markers(g: Any) -> tuple[dict[int, dict[str, Any]], dict[int, str]]:
+    """The done-markers of an open relation group: (chunk -> marker of each usable one, chunk -> why a marker
+    that is there cannot be used). Chunks in neither are not done. Nothing raises for a damaged marker."""
+    done, lo = g["done"], g["lo"]
+    chunk_cells, n_x = int(lo.chunks[0]), int(lo.shape[0])
+    try:
+        texts: list[Any] = done[:].tolist()
+    except Exception:  # a marker's chunk is damaged: read them one by one
+        texts = []
+        for i in range(int(done.shape[0])):
+            try:
+                texts.append(done[i:i + 1].tolist()[0])
+            except Exception as exc:  # any codec or store error: that marker only
+                texts.append(exc)
+    good: dict[int, dict[str, Any]] = {}
+    bad: dict[int, str] = {}
+    for i, text in enumerate(texts):
+        if isinstance(text, Exception):
+            bad[i] = f"its done-marker cannot be read ({type(text).__name__}: {text})"
+        elif text:
+            try:
+                meta = json.loads(text)
+            except ValueError:
+                meta = None
+            problem = _marker_problem(meta, i, chunk_cells, n_x)
+            if problem is None:
+                good[i] = meta
+            else:
+                bad[i] = problem
+    return good, bad
+
+
+@dataclass
+class ChunkCheck:
+    """What :func:`check_chunks` read (``arrays``: state cells from ``offset`` on, zeros where a chunk could not
+    be read: the chunks ``unreadable``) and found (``damaged``: chunk -> why it cannot be reused)."""
+
+    offset: int
+    arrays: dict[str, np.ndarray]
+    damaged: dict[int, str]
+    unreadable: frozenset[int] = frozenset()
+
+
+def check_chunks(g: Any, group: str, metas: dict[int, dict[str, Any]], whole: bool = False) -> ChunkCheck:
+    """Read the chunks ``metas`` names (chunk -> marker) of a relation group and verify their checksums.
+
+    One read per array (of all cells for several chunks or ``whole``, else of the one chunk); if that fails, chunk
+    by chunk, so only the damaged ones are lost. ``whole``: unreadable chunks are reported even without a marker.
+    """
+    lo_a = g["lo"]
+    chunk_cells, n_x = int(lo_a.chunks[0]), int(lo_a.shape[0])
+    if not metas and not whole:
+        return ChunkCheck(0, {}, {})
+    if len(metas) == 1 and not whole:
+        (i,) = metas
+        a, b = i * chunk_cells, min((i + 1) * chunk_cells, n_x)
+    else:
+        a, b = 0, n_x
+    wanted = range(-(-n_x // chunk_cells)) if whole else sorted(metas)
+    arrays, damaged = _read_cells(g, a, b, wanted, chunk_cells)
+    unreadable = frozenset(damaged)
+    for i, meta in metas.items():
+        if i in damaged:
+            continue
+        s = slice(int(meta["start"]) - a, int(meta["stop"]) - a)
+        if meta["sha256"] != chunk_checksum(group, meta, *(arrays[k][s] for k in RELATION_ARRAYS)):
+            damaged[i] = _mismatch(g, i, meta)
+    return ChunkCheck(a, arrays, damaged, unreadable)
+
+
+def _read_cells(g: Any, a: int, b: int, chunks: Any, chunk_cells: int) -> tuple[dict[str, np.ndarray], dict[int, str]]:
+    """State cells ``[a, b)`` of the relation arrays, in one read each, or chunk by chunk if that fails."""
+    try:
+        return {k: np.asarray(g[k][a:b]) for k in RELATION_ARRAYS}, {}
+    except Exception:  # a chunk cannot be read (decompression error, truncated file, ...): find which
+        pass
+    arrays = {k: np.zeros((b - a, *g[k].shape[1:]), dtype=RELATION_DTYPES[k]) for k in RELATION_ARRAYS}
+    damaged: dict[int, str] = {}
+    for i in chunks:
+        s, e = i * chunk_cells, min((i + 1) * chunk_cells, b)
+        for k in RELATION_ARRAYS:
+            try:
+                arrays[k][s - a:e - a] = g[k][s:e]
+            except Exception as exc:  # any codec or store error: this chunk is recomputed
+                damaged[i] = f"its {k} data chunk cannot be read ({type(exc).__name__}: {exc})"
+                break
+    return arrays, damaged
+
+
+def _mismatch(g: Any, chunk: int, meta: dict[str, Any]) -> str:
+    """Why a readable chunk does not match: which data chunks are missing, if any (best effort)."""
+    try:
+        from zarr.core.sync import sync
+
+        keys = {k: f"{g[k].store_path.path}/{g[k].metadata.encode_chunk_key((chunk,) + (0,) * (g[k].ndim - 1))}"
+                for k in RELATION_ARRAYS if k not in meta.get("all_fill", ())}  # all fill: not written, rightly
+        missing = [k for k, key in keys.items() if not sync(g[k].store_path.store.exists(key))]
+    except Exception:  # only for the message
+        missing = []
+    if missing:
+        return (f"its {' and '.join(missing)} data chunk {'is' if len(missing) == 1 else 'are'} missing (read as "
+                "the fill value) and the chunk does not match the checksum in its done-marker")
+    return "its data do not match the checksum in its done-marker (altered, or another chunk's data)"
+
+
 # ------------------------------------------------------------------ the task side
 @dataclass
 class _ChunkWriter:
@@ -189,7 +344,7 @@ def _writer(url: str, group: str) -> _ChunkWriter:
 
 
 def write_chunk(url: str, group: str, result: CellsResult, seconds: float) -> dict[str, Any]:
-    """Write one chunk's arrays, then its done-marker; return the marker.
+    """Write one chunk's arrays, then its done-marker with the chunk's checksum; return the marker.
 
     The range ``[result.start, result.stop)`` must be exactly one chunk of the group's arrays: a task owns
     whole chunks (the last chunk may be shorter, ending at ``n_x``).
@@ -206,10 +361,15 @@ def write_chunk(url: str, group: str, result: CellsResult, seconds: float) -> di
     if start % c or stop != min(start + c, n_x):
         raise StoreError(f"relation store {url}: cells [{start}, {stop}) are not one chunk of {c} cells in {group}")
     # Data first, marker last: a marker means the data are complete.
-    w.lo[start:stop] = result.lo
-    w.hi[start:stop] = result.hi
-    w.blocking[start:stop] = result.blocking
-    meta = marker(result, seconds)
+    arrays = {k: np.ascontiguousarray(getattr(result, k), dtype=RELATION_DTYPES[k]) for k in RELATION_ARRAYS}
+    w.lo[start:stop] = arrays["lo"]
+    w.hi[start:stop] = arrays["hi"]
+    w.blocking[start:stop] = arrays["blocking"]
+    # The checksum over the marker as it reads back (JSON round trip), and the arrays as stored.
+    meta = json.loads(json.dumps(marker(result, seconds)))
+    # Arrays whose chunk is all fill value, which Zarr does not write: for the message when a chunk goes missing.
+    meta["all_fill"] = [k for k in RELATION_ARRAYS if not arrays[k].any()]
+    meta["sha256"] = chunk_checksum(group, meta, arrays["lo"], arrays["hi"], arrays["blocking"])
     w.done[start // c] = json.dumps(meta, sort_keys=True)
     return meta
 
@@ -225,11 +385,20 @@ class RelationStore:
     def __init__(self, url: str, root: Any) -> None:
         self.url = url
         self._root = root
+        self._open: dict[str, dict[str, Any]] = {}  # group -> its open arrays (metadata read once)
+
+    def _arrays(self, group: str) -> dict[str, Any]:
+        a = self._open.get(group)
+        if a is None:
+            g = self._root[group]
+            a = self._open[group] = {k: g[k] for k in (*RELATION_ARRAYS, "done")}
+        return a
 
     # ---------------------------------------------------------------- opening
     @classmethod
-    def open(cls, out_dir: str | os.PathLike[str], spec: JobSpec, network: Network, *, overwrite: bool = False) -> RelationStore:
-        """Open (or create) the store of ``out_dir`` for a job.
+    def open(cls, url: str, spec: JobSpec, network: Network, *, overwrite: bool = False) -> RelationStore:
+        """Open (or create) the store at ``url`` (a path or fsspec URL: :func:`workers.jobdir.relations_url` of the
+        job's directory) for a job.
 
         Parameters
         ----------
@@ -246,7 +415,6 @@ class RelationStore:
         """
         import zarr
 
-        url = relations_url(out_dir)
         want: dict[str, JSON] = {"layout": LAYOUT_VERSION, "spec_hash": spec_hash(spec), "code_version": code_version()}
         try:
             try:
@@ -277,6 +445,14 @@ class RelationStore:
     @staticmethod
     def _mismatch_message(url: str, have: dict, want: dict, name: str | None) -> str:
         diffs = ", ".join(f"{k} {have[k]!r} (this job: {want[k]!r})" for k in want if have[k] != want[k])
+        if have["spec_hash"] == want["spec_hash"]:
+            # The same spec, stored by another compabs: layout 1 stores have no chunk checksums, say so.
+            why = " (layout 1 stores no chunk checksums)" if have["layout"] == 1 else ""
+            return (
+                f"{url} holds this job's relations ('{name}') written by another compabs version or store layout: "
+                f"{diffs}{why}. Its chunks are not reused. Pass --overwrite (overwrite=True) to delete the store "
+                "and recompute, or use another output directory."
+            )
         return (
             f"{url} holds the relations of another job ('{name}'): {diffs}. Its chunks cannot be reused for this "
             "spec. Use another output directory, or pass --overwrite (overwrite=True) to delete the store and "
@@ -301,6 +477,7 @@ class RelationStore:
             "hi": ((n_x, n_u, n_w, n), (chunk_cells, n_u, n_w, n), "int32", 0),
             "blocking": ((n_x, n_u, n_w), (chunk_cells, n_u, n_w), "bool", False),
         }
+        self._open.pop(group, None)
         if group in self._root and "done" not in self._root[group]:
             # A runner died while creating this group (`done` is created last): nothing was computed in it.
             del self._root[group]
@@ -331,39 +508,50 @@ class RelationStore:
         return write_chunk(self.url, group, result, seconds)
 
     def markers(self, group: str) -> dict[int, dict[str, Any]]:
-        """Done-markers of a group: chunk index -> metadata. Unreadable markers count as not done."""
-        done = self._root[group]["done"][:]
-        out: dict[int, dict[str, Any]] = {}
-        for i, text in enumerate(done.tolist()):
-            if not text:
-                continue
-            try:
-                out[i] = json.loads(text)
-            except ValueError:  # a damaged marker: recompute that chunk
-                continue
-        return out
+        """Done-markers of a group: chunk index -> metadata. Damaged markers count as not done."""
+        return group_markers(self._arrays(group))[0]
 
-    def read(self, group: str, meta: dict[str, Any], arrays: dict[str, np.ndarray] | None = None) -> CellsResult:
-        """Rebuild the CellsResult of a done chunk.
+    def marker_state(self, group: str) -> tuple[dict[int, dict[str, Any]], dict[int, str]]:
+        """:func:`group_markers` of a group: its usable markers, and why the other markers there are not."""
+        return group_markers(self._arrays(group))
+
+    def check(self, group: str, metas: dict[int, dict[str, Any]]) -> ChunkCheck:
+        """Read and verify the chunks ``metas`` names (:func:`check_chunks`): one bulk read for many chunks."""
+        return check_chunks(self._arrays(group), group, metas)
+
+    def clear_marker(self, group: str, chunk: int) -> None:
+        """Mark a chunk not done (a damaged chunk, before it is recomputed)."""
+        try:
+            self._arrays(group)["done"][chunk] = ""
+        except OSError as exc:
+            raise StoreError(f"relation store {self.url}: cannot clear the done-marker of {group} chunk {chunk}: "
+                             f"{exc}. Check the store's permissions and free space, then run the job again.") from None
+
+    def read(self, group: str, meta: dict[str, Any], check: ChunkCheck | None = None) -> CellsResult:
+        """Rebuild the CellsResult of a done chunk, verified.
 
         Parameters
         ----------
-        arrays : dict, optional
-            The group's whole ``lo``, ``hi``, ``blocking`` already read (see :meth:`read_all`), to slice instead
-            of reading chunk by chunk.
-        """
-        s = slice(int(meta["start"]), int(meta["stop"]))
-        if arrays is None:
-            g = self._root[group]
-            lo, hi, bl = g["lo"][s], g["hi"][s], g["blocking"][s]
-        else:
-            lo, hi, bl = (np.array(arrays[k][s]) for k in RELATION_ARRAYS)
-        return result_from(meta, lo, hi, bl)
+        check : ChunkCheck, optional
+            What :meth:`check` read and verified, to slice instead of reading (and verifying) this chunk alone.
 
-    def read_all(self, group: str) -> dict[str, np.ndarray]:
-        """The whole ``lo``, ``hi``, ``blocking`` arrays of a group (one concurrent read each)."""
-        g = self._root[group]
-        return {k: g[k][:] for k in RELATION_ARRAYS}
+        Raises
+        ------
+        StoreError
+            Without ``check``: the chunk does not read back as its marker says (a chunk just written by a task
+            and damaged since: another process writes this store, or the storage fails).
+        """
+        if check is None:
+            c = int(self._arrays(group)["lo"].chunks[0])
+            i = int(meta["start"]) // c
+            check = self.check(group, {i: meta})
+            if i in check.damaged:
+                raise StoreError(f"relation store {self.url}: {group} chunk {i} does not read back as written: "
+                                 f"{check.damaged[i]}. Another process may be writing this store, or the storage "
+                                 "is failing; run the job again (the chunk is then recomputed).")
+        s = slice(int(meta["start"]) - check.offset, int(meta["stop"]) - check.offset)
+        lo, hi, bl = (np.array(check.arrays[k][s]) for k in RELATION_ARRAYS)
+        return result_from(meta, lo, hi, bl)
 
     def consolidate(self) -> None:
         """Write consolidated metadata (once, at the end of a job)."""

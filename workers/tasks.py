@@ -45,7 +45,8 @@ def abstract_chunk(store_url: str, group: str, task: CellTask, timeout: float | 
     Returns
     -------
     dict
-        The chunk's done-marker (start, stop, successors, slope_x, slope_w, seconds of compute).
+        The chunk's done-marker (start, stop, successors, slope_x, slope_w, seconds of compute, all_fill, and
+        sha256: the chunk's checksum, :func:`workers.store.chunk_checksum`).
 
     Raises
     ------
