@@ -9,18 +9,41 @@ Caps (each refusal names the cap and its value, so a user knows what to change o
 
 ``max_body_bytes`` (1 MiB)
     Request bodies larger than this are refused before anything is parsed. The largest paper case spec is ~3 kB.
-``max_cells`` (10,000,000)
-    ``(x, u, w)`` cell triples per subsystem: state cells x input points x internal cells, the size of one
-    subsystem's relation (``Subsystem.triples``). The per-cell stage evaluates the black box ``samples`` times per
-    triple, so 10^7 triples at 100 samples is 10^9 evaluations, minutes on two workers, and a relation of
-    ~100 MB; the paper's cases need at most ~6,000 triples per subsystem. ``CapExceeded`` when exceeded.
-``max_subsystems`` (256)
-    Subsystems after ``replicate`` is expanded (checked before anything is built, so ``replicate: 1e9`` costs
-    nothing). ``CapExceeded``.
-``max_expression_length`` (2,000 characters)
-    Each ``dynamics`` and the interconnection ``map``. ``CapExceeded``.
 ``max_concurrent_jobs`` (16)
     Queued plus running jobs; a submission beyond it is refused with ``QueueFull``.
+
+The cost model's caps (:class:`pipelines.spec.costs.Caps`; what each counts: that module and docs/spec.md "Costs
+and caps"), checked by :func:`service.manager.validate_spec` before a job is queued, each refusal a
+``CapExceeded`` (422) naming the knob (the spec's field), its value and the cap:
+
+``max_cells`` (10,000,000)
+    ``(x, u, w)`` cell triples per subsystem: state cells x input points x internal cells, the size of one
+    subsystem's relation (``Subsystem.triples``); the paper's cases need at most ~6,000.
+``max_subsystems`` (256)
+    Subsystems after ``replicate`` is expanded (checked before anything is built, so ``replicate: 1e9`` costs
+    nothing).
+``max_expression_length`` (2,000 characters)
+    Each ``dynamics`` and the interconnection ``map``.
+``max_evaluations`` (10^11)
+    Black-box evaluations of the per-cell stage (triples x ``samples`` over the distinct subsystems): a few
+    minutes on two workers for a cheap expression (``examples/stress.yaml``: 1.6e10, ~40 s).
+``max_tasks`` (10,000)
+    Tasks of the per-cell stage (``options.chunk_cells``, or the default chunk), all submitted to the cluster at
+    once (50,001 tasks took the API process from 0.3 to 1.25 GB).
+``max_lipschitz_pairs`` (2,000,000)
+    Pairs of one estimated Lipschitz constant (``batches x pairs x input points``), drawn at once in this
+    process (~90 bytes a pair for a scalar system: ~180 MB).
+``max_sample_values`` (20,000,000) and ``max_interconnection_values`` (10^9)
+    The interconnection stage's largest array of sampled states (160 MB) and its total work, in state values.
+``max_audit_evaluations`` (10^8)
+    Black-box evaluations of the audit (``options.audit_transitions`` per part, plus the composed ones): a minute
+    or two.
+``max_closed_loop_steps`` (10,000,000)
+    Subsystem steps of the closed loop (``(closed_loop_runs + initial_states) x closed_loop_steps x
+    subsystems``): ~3 minutes, and the trajectories' ~200 MB.
+
+``compabs run`` and ``compabs validate`` check the same model with ``Caps.local()`` (larger: hours of work at
+most); :func:`local_caps` is that with each ``COMPABS_MAX_*`` variable that is set taking precedence.
 """
 
 from __future__ import annotations
@@ -32,8 +55,13 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from pipelines.errors import SpecError
+from pipelines.spec.costs import CAP_NAMES, Caps
+
 #: Prefix of the environment variables.
 ENV_PREFIX = "COMPABS_"
+#: The cost model's default caps (the service's).
+_CAPS = Caps()
 
 
 class Settings(BaseModel):
@@ -48,16 +76,41 @@ class Settings(BaseModel):
     )
     data_dir: Path = Field(default=Path("compabs-data"), description="jobs' directories are DATA/jobs/<id>/")
     db_url: str | None = Field(default=None, description="SQLAlchemy URL of the job store (default sqlite:///DATA/jobs.sqlite)")
-    scheduler: str | None = Field(default=None, description="tcp://HOST:PORT of a Dask scheduler; None: an embedded LocalCluster")
+    scheduler: str | None = Field(default=None, description="tls://HOST:PORT of a Dask scheduler (credentials from COMPABS_TLS_*); None: an embedded LocalCluster")
     workers: int = Field(default=2, ge=1, le=256, description="worker processes of the embedded cluster")
     in_process: bool = Field(default=False, description="no Dask: run the per-cell stage in the API process (tests, tiny jobs)")
     allowed_modules: list[str] = Field(
         default_factory=list, description="modules a module:function black box may come from (default: none)"
     )
     max_body_bytes: int = Field(default=1 << 20, ge=1, description="largest request body, bytes")
-    max_cells: int = Field(default=10_000_000, ge=1, description="largest (x, u, w) cell triples per subsystem")
-    max_subsystems: int = Field(default=256, ge=1, description="largest number of subsystems after replicate")
-    max_expression_length: int = Field(default=2000, ge=1, description="longest dynamics or map expression, characters")
+    max_cells: int = Field(default=_CAPS.max_cells, ge=1, description="largest (x, u, w) cell triples per subsystem")
+    max_subsystems: int = Field(default=_CAPS.max_subsystems, ge=1, description="largest number of subsystems after replicate")
+    max_expression_length: int = Field(
+        default=_CAPS.max_expression_length, ge=1, description="longest dynamics or map expression, characters"
+    )
+    max_evaluations: int = Field(
+        default=_CAPS.max_evaluations, ge=1, description="largest black-box evaluations of a job's per-cell stage"
+    )
+    max_tasks: int = Field(default=_CAPS.max_tasks, ge=1, description="largest number of per-cell tasks of a job")
+    max_lipschitz_pairs: int = Field(
+        default=_CAPS.max_lipschitz_pairs, ge=1,
+        description="largest batches x pairs x input points of one estimated Lipschitz constant",
+    )
+    max_sample_values: int = Field(
+        default=_CAPS.max_sample_values, ge=1,
+        description="largest interconnection.samples (or holdout) x composed state dimension",
+    )
+    max_interconnection_values: int = Field(
+        default=_CAPS.max_interconnection_values, ge=1,
+        description="largest state values the interconnection stage evaluates or fits",
+    )
+    max_audit_evaluations: int = Field(
+        default=_CAPS.max_audit_evaluations, ge=1, description="largest black-box evaluations of a job's audit"
+    )
+    max_closed_loop_steps: int = Field(
+        default=_CAPS.max_closed_loop_steps, ge=1,
+        description="largest (closed_loop_runs + initial states) x closed_loop_steps x subsystems",
+    )
     max_concurrent_jobs: int = Field(default=16, ge=1, description="queued + running jobs beyond which POST /jobs is refused")
     max_running: int = Field(
         default=1, ge=1, le=64,
@@ -94,6 +147,10 @@ class Settings(BaseModel):
     def jobs_dir(self) -> Path:
         return self.data_dir / "jobs"
 
+    def caps(self) -> Caps:
+        """The cost model's caps of this server."""
+        return Caps(**{name: getattr(self, name) for name in CAP_NAMES})
+
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: Any) -> Settings:
         """Settings from ``COMPABS_*`` variables, then ``overrides`` (those that are not ``None``).
@@ -120,3 +177,28 @@ class Settings(BaseModel):
                 shown = "" if name == "token" else f" (got {e.get('input')!r})"  # never echo a secret
                 problems.append(f"{source}: {e['msg']}{shown}")
             raise ValueError("invalid service settings: " + "; ".join(problems)) from None
+
+
+def local_caps(environ: Mapping[str, str] | None = None) -> Caps:
+    """The command line's caps: :meth:`Caps.local`, each overridden by its ``COMPABS_MAX_*`` variable if set.
+
+    Raises
+    ------
+    SpecError
+        Naming the variable whose value is not a positive integer.
+    """
+    environ = os.environ if environ is None else environ
+    values: dict[str, int] = {}
+    for name in CAP_NAMES:
+        key = ENV_PREFIX + name.upper()
+        text = environ.get(key, "").strip()
+        if not text:
+            continue
+        try:
+            value = int(text) if len(text) <= 30 else 0
+        except ValueError:
+            value = 0
+        if value < 1:
+            raise SpecError(f"{key}: must be a positive integer, got {text[:40]!r}")
+        values[name] = value
+    return Caps.local(env_hint=True, **values)
