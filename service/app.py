@@ -3,7 +3,8 @@
 Routes (``service/routers/``): ``POST /jobs``, ``GET /jobs``, ``GET /jobs/{id}``, ``DELETE /jobs/{id}``,
 ``GET /jobs/{id}/events`` (server-sent events), ``GET /jobs/{id}/report``, ``GET /jobs/{id}/figures/{name}``,
 ``GET /jobs/{id}/controller``, ``GET /schema``, ``GET /health``, ``GET /`` (dashboard), ``/static/...``,
-``GET /docs`` and ``GET /openapi.json``.
+``GET /openapi.json``, and the pages ``GET /docs`` (Swagger UI) and ``GET /redoc`` (ReDoc) with their assets
+under ``/docs-assets`` (this server's copies: no CDN).
 
 The lifespan opens the job store, connects the Dask cluster (an embedded ``LocalCluster`` of
 ``settings.workers`` processes, or ``settings.scheduler``; none with ``settings.in_process``), re-queues the
@@ -13,15 +14,20 @@ running jobs to stop where they can resume, then closes the cluster. Run it in o
 
 Errors are JSON ``{"detail": "..."}`` everywhere: a spec error (any :class:`~pipelines.errors.CompabsError`)
 is 422 with its message, a cap 413/422/429 naming the cap and its value, a bug 500 without a traceback. The
-queue and the job store raise :mod:`service.errors`; :data:`ERROR_STATUS` is their HTTP status.
+queue and the job store raise :mod:`service.errors`; :data:`ERROR_STATUS` is their HTTP status. Headers are
+read strictly (``Content-Length``: decimal digits; ``Last-Event-ID``: see ``routers/jobs.py``); a client that
+goes away before its body is in is logged as a disconnect (one INFO line), not as an error.
 """
 
 from __future__ import annotations
 
 import logging
+import re
+from collections import Counter
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
+from urllib.parse import parse_qsl
 
 import anyio
 from fastapi import FastAPI, Request
@@ -29,6 +35,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from pipelines.errors import CompabsError
@@ -44,10 +51,14 @@ log = logging.getLogger("compabs.service")
 
 DESCRIPTION = """Submit compabs job specs, follow their progress, download reports, figures and controllers.
 
-With a token set on the server (`COMPABS_TOKEN`), every route but `/health` (and the dashboard page and its
-static files, which hold no data) needs `Authorization: Bearer <token>`; clients that cannot send headers
-(a browser's `EventSource`, `<img src>`) may pass `?token=<token>` instead.
+With a token set on the server (`COMPABS_TOKEN`), every route but `/health` (and the dashboard page, the `/docs`
+and `/redoc` pages and their static files, which hold no data) needs `Authorization: Bearer <token>`; clients
+that cannot send headers (a browser's `EventSource`, `<img src>`) may pass `?token=<token>` instead. The docs
+pages ask for the token (or use the dashboard's) and send it as the header.
 """
+
+
+_DIGITS = re.compile(rb"[0-9]{1,64}")
 
 
 class BodyTooLarge(Exception):
@@ -66,7 +77,9 @@ def _too_large(limit: int) -> JSONResponse:
 
 class BodyLimitMiddleware:
     """413 for bodies over ``limit`` bytes, before any of it is parsed: at once from ``Content-Length``, else
-    while it streams in (chunked uploads), by failing the receive that crosses the limit."""
+    while it streams in (chunked uploads), by failing the receive that crosses the limit. Also 422 for a query
+    parameter given more than once: every parameter of the API is one value, and Starlette would silently keep
+    the last of several (``?limit=1&limit=360``)."""
 
     def __init__(self, app: ASGIApp, limit: int) -> None:
         self.app = app
@@ -76,13 +89,21 @@ class BodyLimitMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        counts = Counter(name for name, _ in parse_qsl(scope.get("query_string", b"").decode("latin-1"),
+                                                       keep_blank_values=True))
+        repeated = sorted(n for n, c in counts.items() if c > 1)
+        if repeated:
+            await JSONResponse({"detail": f"query parameter {repeated[0][:40]!r} is given {counts[repeated[0]]} "
+                                "times; give each parameter once"}, status_code=422)(scope, receive, send)
+            return
         for key, value in scope.get("headers", ()):
             if key == b"content-length":
-                try:
-                    length = int(value)
-                except ValueError:
-                    await JSONResponse({"detail": "Content-Length is not a number"}, status_code=400)(scope, receive, send)
+                # Strictly ASCII digits: int() would also take "+5", " 5", "1_000" and a 5000-digit ValueError.
+                if not _DIGITS.fullmatch(value):
+                    await JSONResponse({"detail": "Content-Length must be a byte count in decimal digits, got "
+                                        f"{value[:40].decode('latin-1')!r}"}, status_code=400)(scope, receive, send)
                     return
+                length = int(value) if len(value) <= 20 else self.limit + 1
                 if length > self.limit:
                     await _too_large(self.limit)(scope, receive, send)
                     return
@@ -145,6 +166,14 @@ def _install_handlers(app: FastAPI) -> None:
     async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
         return JSONResponse({"detail": _validation_message(exc)}, status_code=422)
 
+    @app.exception_handler(ClientDisconnect)
+    async def client_disconnect(request: Request, exc: ClientDisconnect) -> Response:
+        # Not a server error: the client went away before it had sent its whole body. One line, no traceback.
+        client = f"{request.client.host}:{request.client.port}" if request.client else "a client"
+        log.info("%s disconnected during %s %s before sending its whole body", client, request.method,
+                 request.url.path)
+        return Response(status_code=400)  # nobody reads it
+
     @app.exception_handler(_StreamEnded)
     async def stream_ended(request: Request, exc: _StreamEnded) -> Response:
         return Response(status_code=204)
@@ -169,6 +198,9 @@ def _errors_as_published(doc: dict[str, Any]) -> None:
     schemas.setdefault("ErrorDetail", ErrorDetail.model_json_schema())
     for operations in doc.get("paths", {}).values():
         for op in operations.values():
+            # Any route: a query parameter given twice (BodyLimitMiddleware) or a malformed header.
+            op.setdefault("responses", {}).setdefault(
+                "422", {"description": "a query parameter given more than once, or a malformed header"})
             for code, response in op.get("responses", {}).items():
                 if str(code).startswith("4"):
                     response["content"] = {"application/json": {"schema": ref}}
@@ -241,10 +273,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     _install_handlers(app)
     app.include_router(jobs.router)
     app.include_router(schema.router)
+    app.include_router(schema.pages)
     app.include_router(health.router)
     app.include_router(dashboard.router)
     dashboard.STATIC_DIR.mkdir(parents=True, exist_ok=True)
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
+    if schema.DOCS_ASSETS is not None:  # Swagger UI and ReDoc, served from here (no CDN)
+        app.mount("/docs-assets", StaticFiles(directory=schema.DOCS_ASSETS), name="docs-assets")
     _install_openapi(app)
     return app
 

@@ -31,6 +31,7 @@ from typing import Any
 import yaml
 
 from pipelines.errors import CompabsError, SpecError
+from pipelines.spec.loader import load_json, load_yaml
 from pipelines.spec.model import JobSpec, parse_spec
 from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, UnsupportedMediaType
 from service.models import job_json, summarize
@@ -47,36 +48,34 @@ YAML_TYPES = frozenset({"application/yaml", "application/x-yaml", "text/yaml", "
 
 
 # ============================================================================================ submission
-class _NoAliasLoader(yaml.SafeLoader):
-    """Safe YAML without anchors and aliases: a few kB of nested aliases expand to billions of values."""
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            ev = self.peek_event()
-            raise SpecError(
-                f"YAML alias *{ev.anchor} at line {ev.start_mark.line + 1}: anchors and aliases are not accepted by "
-                "the service; write the values out"
-            )
-        return super().compose_node(parent, index)
-
-
-def _reject_constant(name: str) -> Any:
-    raise SpecError(f"the JSON body contains {name}, which is not a number a spec can use")
+def _media_type(content_type: str | None) -> str:
+    """The media type of a ``Content-Type`` header, lower-case; a ``charset`` other than UTF-8 is refused."""
+    media, _, params = (content_type or "").partition(";")
+    media = media.strip().lower()
+    if media and media != "application/json" and media not in YAML_TYPES and not media.endswith("+json"):
+        raise UnsupportedMediaType(media)
+    for param in params.split(";"):
+        key, _, value = param.partition("=")
+        charset = value.strip().strip('"').lower()
+        if key.strip().lower() == "charset" and charset not in ("utf-8", "utf8", "us-ascii"):
+            raise UnsupportedMediaType(f"{media}; charset={charset[:40]} (the body must be UTF-8)")
+    return media
 
 
 def parse_body(body: bytes, content_type: str | None) -> dict[str, Any]:
     """The spec mapping of a request body: JSON for ``application/json``, else YAML (which also reads JSON).
 
+    The bounds of :mod:`pipelines.spec.loader` hold: YAML anchors and aliases are accepted up to an expanded size
+    of ``MAX_YAML_NODES`` values, integers have at most ``MAX_INT_DIGITS`` digits.
+
     Raises
     ------
     UnsupportedMediaType
-        For a content type that is neither JSON nor YAML.
+        For a content type that is neither JSON nor YAML, or a charset other than UTF-8.
     SpecError
-        For a body that does not parse, naming the line or position.
+        For a body that does not parse or exceeds a bound, naming the line, position or path.
     """
-    media = (content_type or "").split(";")[0].strip().lower()
-    if media and media != "application/json" and media not in YAML_TYPES and not media.endswith("+json"):
-        raise UnsupportedMediaType(media)
+    media = _media_type(content_type)
     try:
         text = body.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -84,12 +83,12 @@ def parse_body(body: bytes, content_type: str | None) -> dict[str, Any]:
     try:
         if media == "application/json" or media.endswith("+json"):
             try:
-                data = json.loads(text, parse_constant=_reject_constant)
+                data = load_json(text)
             except json.JSONDecodeError as exc:
                 raise SpecError(f"the body is not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
         else:
             try:
-                data = yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader subclass
+                data = load_yaml(text)
             except yaml.YAMLError as exc:
                 raise SpecError(f"the body is not valid YAML (or JSON): {exc}") from None
     except RecursionError:
@@ -99,54 +98,32 @@ def parse_body(body: bytes, content_type: str | None) -> dict[str, Any]:
     return data
 
 
-def _replicas(spec: JobSpec) -> float:
-    total = 0.0
-    for s in spec.subsystems:
-        r = s.replicate
-        # an undefined name is build_network's error, with its message
-        count = float(spec.parameters.get(r, 1)) if isinstance(r, str) else float(r)
-        total += max(count, 0.0)
-    return total
-
-
 def validate_spec(spec: JobSpec, settings: Settings) -> None:
-    """Check the caps, compile every expression and resolve the regions, as the job will.
+    """Check the caps (the cost model, :mod:`pipelines.spec.costs`, with this server's settings), compile every
+    expression and resolve the regions, as the job will. Nothing is evaluated but each expression's one-point
+    probe, so a spec whose knobs ask for hours or gigabytes is refused before it is queued.
 
     Raises
     ------
     CapExceeded
-        Naming the cap exceeded and its value.
+        Naming the knob (the spec's field), its value and the cap exceeded (``cap``, ``limit``).
     CompabsError
         A SpecError / ExpressionError naming the field or the offending token.
     """
+    from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS
     from pipelines.network import build_network
+    from pipelines.spec.costs import CostError, check_costs, check_spec
     from pipelines.spec.regions import spec_regions
+    from workers.executors import TASK_POINTS
 
-    n = _replicas(spec)
-    if n > settings.max_subsystems:
-        raise CapExceeded(
-            "max_subsystems", settings.max_subsystems,
-            f"the spec has {n:g} subsystems after replicate; this server's cap max_subsystems is "
-            f"{settings.max_subsystems}",
-        )
-    fields = [(f"subsystems[{i}].dynamics", s.dynamics) for i, s in enumerate(spec.subsystems)]
-    fields.append(("interconnection.map", spec.interconnection.map))
-    for where, text in fields:
-        if len(text) > settings.max_expression_length:
-            raise CapExceeded(
-                "max_expression_length", settings.max_expression_length,
-                f"{where} is {len(text)} characters; this server's cap max_expression_length is "
-                f"{settings.max_expression_length}",
-            )
-    network = build_network(spec, tuple(settings.allowed_modules))
-    for sub in network.subsystems:
-        if sub.triples > settings.max_cells:
-            raise CapExceeded(
-                "max_cells", settings.max_cells,
-                f"subsystem '{sub.name}' has {sub.triples} (x, u, w) cell triples ({sub.state_grid.size} states x "
-                f"{sub.input_grid.size} inputs x {sub.n_w_cells} internal cells); this server's cap max_cells is "
-                f"{settings.max_cells}: coarsen its grids (larger eta, smaller boxes)",
-            )
+    caps = settings.caps()
+    try:
+        check_spec(spec, caps)  # before building: replicate: 1e9 costs nothing
+        network = build_network(spec, tuple(settings.allowed_modules))
+        # tasks as the executor will size them: a cluster task holds TASK_POINTS evaluations
+        check_costs(spec, network, caps, task_points=DEFAULT_CHUNK_POINTS if settings.in_process else TASK_POINTS)
+    except CostError as exc:
+        raise CapExceeded(exc.cap_name, exc.cap, exc.message) from None
     spec_regions(spec, network)
 
 
@@ -354,6 +331,7 @@ class JobManager:
             report = run_job(
                 spec, out, client=self.client, in_process=self.settings.in_process or self.client is None,
                 progress=self._progress(job_id, flag), allowed_modules=tuple(self.settings.allowed_modules),
+                caps=self.settings.caps(),
             )
         except Exception as exc:
             if flag.interrupt or self._stopping:

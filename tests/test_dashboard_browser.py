@@ -3,8 +3,9 @@
 One server serves the module: ``compabs serve`` as a subprocess on a free port with a temporary ``--data``, its
 embedded two-worker Dask cluster and ``COMPABS_TOKEN`` set. Without the token the page says 401; with it, the
 small example submitted through the form runs to the end while the page shows every stage's progress reach
-100 % and then the trajectory figure. Chromium is Debian's (``.ci/run`` installs it); ``playwright install``
-is never run.
+100 % and then the trajectory figure. A second server (``--in-process``, over a job store seeded with a job whose
+counts exceed 2^53) serves the exact-integer test and ``/docs`` and ``/redoc`` on a closed network (every request
+but the server's aborted). Chromium is Debian's (``.ci/run`` installs it); ``playwright install`` is never run.
 """
 
 from __future__ import annotations
@@ -228,3 +229,138 @@ def test_dashboard_runs_small_example(open_page, server):
     print(f"small example through the dashboard: {time.monotonic() - t0:.1f} s")
     # Progress came from the job's event stream, which carries the token in its URL.
     assert any(f"/jobs/{job_id}/events" in u and f"token={TOKEN}" in u for u in streams), streams
+
+
+# ============================================================================ exact integers, /docs and /redoc offline
+#: The tanks' abstract states (examples/tanks.yaml: 41^10), beyond JavaScript's exact integers (2^53).
+TANKS_STATES = 41**10
+#: 2^53 + 1: the first integer a double cannot hold.
+FIRST_INEXACT = 2**53 + 1
+XSS = "x';alert(document.domain)//"
+
+
+@pytest.fixture(scope="module")
+def seeded_server(tmp_path_factory):
+    """``compabs serve --in-process`` over a job store holding one succeeded job whose counts exceed 2^53."""
+    if not CHROMIUM.exists():
+        pytest.skip(f"{CHROMIUM} is missing: install Debian's chromium (.ci/run does)")
+    from service.manager import new_store
+    from service.settings import Settings
+    from service.store import JobStatus
+
+    tmp = tmp_path_factory.mktemp("seeded")
+    store = new_store(Settings(data_dir=tmp / "data"))
+    try:
+        store.create("tanks0000000001", "tanks", "{}")
+        store.set_status("tanks0000000001", JobStatus.RUNNING, started=True)
+        store.add_progress("tanks0000000001", "subsystems", TANKS_STATES, TANKS_STATES, "")
+        store.set_status("tanks0000000001", JobStatus.SUCCEEDED, figures=[], summary={
+            "abstract_states": TANKS_STATES, "region_states": 17**10, "domain_states": FIRST_INEXACT,
+            "audit_transitions": 1_000_000, "audit_violations": 0})
+    finally:
+        store.close()
+    port = free_port()
+    argv = ["compabs", "serve", "--host", "127.0.0.1", "--port", str(port), "--data", str(tmp / "data"), "--in-process"]
+    proc = Proc("compabs serve", argv, clean_env(COMPABS_TOKEN=TOKEN), tmp, tmp / "serve.log")
+    try:
+        url = f"http://127.0.0.1:{port}"
+        wait_http_ok(f"{url}/health", 120, [proc])
+        yield Server(url, proc)
+    finally:
+        proc.stop()
+
+
+@pytest.fixture
+def closed_network(browser, seeded_server):
+    """``closed_network(token=None)``: a fresh context in which only the server answers; every other request is
+    aborted and recorded. After the test: no request left the server, no JavaScript error, no dialog."""
+    contexts, errors, outside, dialogs = [], [], [], []
+
+    def route(r):
+        if r.request.url.startswith(seeded_server.url + "/"):
+            r.continue_()
+        else:
+            outside.append(r.request.url)
+            r.abort()
+
+    def _open(token: str | None = None):
+        context = browser.new_context()
+        contexts.append(context)
+        context.route("**/*", route)
+        if token is not None:
+            context.add_init_script(f"window.localStorage.setItem('compabs.token', {json.dumps(token)});")
+        page = context.new_page()
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
+        return page
+
+    yield _open
+    for context in contexts:
+        context.close()
+    assert not outside, f"requests beyond the server: {outside}"
+    assert not errors, f"JavaScript errors on the page: {errors}"
+    assert not dialogs, f"dialogs opened: {dialogs}"
+
+
+@needs_chromium
+def test_dashboard_shows_exact_integers(closed_network, seeded_server):
+    """13,422,659,310,152,401 abstract states, not JavaScript's 13,422,659,310,152,400 (beyond 2^53)."""
+    from playwright.sync_api import expect
+
+    api = httpx.get(f"{seeded_server.url}/jobs/tanks0000000001", headers={"Authorization": f"Bearer {TOKEN}"})
+    assert f'"abstract_states":{TANKS_STATES}' in api.text.replace(" ", "")
+    page = closed_network(TOKEN)
+    page.goto(f"{seeded_server.url}/")
+    job = page.locator('[data-job-id="tanks0000000001"]')
+    try:
+        expect(job).to_have_attribute("data-status", "succeeded", timeout=30_000)
+        expect(job.locator('dd[data-key="abstract_states"]')).to_have_text("13,422,659,310,152,401")
+        expect(job.locator('dd[data-key="domain_states"]')).to_have_text("9,007,199,254,740,993")
+        expect(job.locator('dd[data-key="region_states"]')).to_have_text("2,015,993,900,449")
+        expect(job.locator('dd[data-key="audit_transitions"]')).to_have_text("1,000,000")
+        expect(job.locator('[data-stage="subsystems"] .stage-message')).to_have_text(
+            "13,422,659,310,152,401 / 13,422,659,310,152,401")
+        expect(job.locator('[data-stage="subsystems"] .pct')).to_have_text("100%")
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}\n{_shown(job)}\n{seeded_server.explain()}") from None
+
+
+@needs_chromium
+def test_swagger_ui_renders_offline_with_the_users_token(closed_network, seeded_server):
+    """/docs on a closed network: Swagger UI from this server, the token typed into the page's form (nothing
+    from the URL in the page: the ``?token=`` script injection does nothing), operations listed, "Try it out"
+    authorised."""
+    from playwright.sync_api import expect
+
+    page = closed_network()
+    page.goto(f"{seeded_server.url}/docs?token={XSS}")
+    expect(page.locator("#docs-notice")).to_contain_text("401", timeout=30_000)
+    page.fill("#token", TOKEN)
+    page.press("#token", "Enter")
+    expect(page.locator("#docs-notice")).to_be_hidden(timeout=30_000)
+    ops = page.locator(".opblock")
+    expect(ops.first).to_be_visible(timeout=30_000)
+    paths = {t.strip() for t in page.locator(".opblock-summary-path").all_inner_texts()}
+    assert {"/jobs", "/jobs/{job_id}", "/jobs/{job_id}/events", "/schema", "/health"} <= {
+        p.replace("\u200b", "") for p in paths}, paths
+    # "Try it out" on GET /jobs sends the token the user gave as the header
+    get_jobs = page.locator(".opblock-get", has=page.locator('.opblock-summary-path[data-path="/jobs"]'))
+    get_jobs.locator(".opblock-summary").click()
+    get_jobs.locator("button.try-out__btn").click()
+    get_jobs.locator("button.execute").click()
+    expect(get_jobs.locator(".live-responses-table tbody .response-col_status").first).to_have_text(
+        "200", timeout=30_000)
+    expect(get_jobs.locator(".live-responses-table")).to_contain_text("tanks0000000001")
+
+
+@needs_chromium
+def test_redoc_renders_offline(closed_network, seeded_server):
+    """/redoc on a closed network, with the dashboard's token: ReDoc from this server lists the operations."""
+    from playwright.sync_api import expect
+
+    page = closed_network(TOKEN)
+    page.goto(f"{seeded_server.url}/redoc?token={XSS}")
+    expect(page.get_by_role("heading", name="Submit Job")).to_be_visible(timeout=30_000)
+    for op in ("List Jobs", "Cancel Job", "Job Events", "Spec Schema"):
+        expect(page.get_by_role("heading", name=op)).to_be_attached()
+    expect(page.locator("#docs-notice")).to_be_hidden()

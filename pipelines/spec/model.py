@@ -12,7 +12,9 @@ expressions and as ``replicate`` counts, and overridden from the command line (`
 from __future__ import annotations
 
 import json
+import math
 import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -20,13 +22,14 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipelines.errors import SpecError
+from pipelines.spec.loader import load_yaml
 
 Vector = float | list[float]
 MODULE_FUNCTION = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$")
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class GridSpec(_Model):
@@ -163,7 +166,11 @@ class OptionsSpec(_Model):
     seed: int = Field(default=0, ge=0)
     audit_transitions: int = Field(default=1_000_000, ge=0, le=100_000_000)
     chunk_cells: int | None = Field(default=None, ge=1, description="cells per task (default: chosen from the work)")
-    max_cells: int = Field(default=50_000_000, ge=1, description="cap on (x, u, w) triples per subsystem")
+    max_cells: int = Field(
+        default=50_000_000, ge=1,
+        description="the job's own cap on (x, u, w) triples per subsystem; a server's (or the command line's) "
+        "max_cells applies too, and the smaller is named (pipelines.spec.costs)",
+    )
     synthesis: bool = Field(default=True, description="synthesize a controller after the abstraction")
     controller: Literal["cobuchi", "reach_safe"] = Field(
         default="cobuchi", description="reach_and_stay: which fixed point's controller is saved as 'controller'"
@@ -237,12 +244,25 @@ def json_schema() -> dict[str, Any]:
     return JobSpec.model_json_schema()
 
 
+#: The names pydantic gives the members of a union in an error's location (``lb.float``, ``lb.list[float]``,
+#: ``internal.function-after[_lengths(), GridSpec]``): not fields, left out of the field's name.
+_UNION_TAG = re.compile(r"^(float|int|str|bool|none|[a-z-]+\[.*\]|[A-Z][A-Za-z]*(Spec|Region))$")
+
+
+def _field_name(loc: tuple[int | str, ...]) -> str:
+    parts = [str(p) for i, p in enumerate(loc)
+             if not (isinstance(p, str) and _UNION_TAG.match(p) and (i == 0 or loc[i - 1] != "parameters"))]
+    return ".".join(parts) or "(spec)"
+
+
 def _format_validation_error(err: ValidationError) -> str:
-    lines = []
+    # One line per field; a union's members' complaints about the same field are joined with "or".
+    messages: dict[str, list[str]] = {}
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(spec)"
-        lines.append(f"{loc}: {e['msg']}")
-    return "invalid spec:\n  " + "\n  ".join(lines)
+        said = messages.setdefault(_field_name(e["loc"]), [])
+        if e["msg"] not in said:
+            said.append(e["msg"])
+    return "invalid spec:\n  " + "\n  ".join(f"{loc}: {' or '.join(msgs)}" for loc, msgs in messages.items())
 
 
 def parse_spec(data: dict[str, Any] | str, overrides: dict[str, float] | None = None) -> JobSpec:
@@ -260,7 +280,7 @@ def parse_spec(data: dict[str, Any] | str, overrides: dict[str, float] | None = 
     """
     if isinstance(data, str):
         try:
-            data = yaml.safe_load(data)
+            data = load_yaml(data)  # anchors bounded, integers bounded (pipelines.spec.loader)
         except yaml.YAMLError as exc:
             raise SpecError(f"spec is neither valid YAML nor JSON: {exc}") from None
     if not isinstance(data, dict):
@@ -277,14 +297,101 @@ def parse_spec(data: dict[str, Any] | str, overrides: dict[str, float] | None = 
         raise SpecError(_format_validation_error(err)) from None
 
 
-def load_spec(path: str | Path, overrides: dict[str, float] | None = None) -> JobSpec:
-    """Read and validate a YAML or JSON spec file."""
+#: Largest spec file :func:`load_spec` reads, in bytes (the service's default ``max_body_bytes``).
+MAX_SPEC_BYTES = 1 << 20
+
+
+def _file_kind(mode: int) -> str:
+    import stat
+
+    kinds = [(stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+             (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device")]
+    return next((name for test, name in kinds if test(mode)), "not a regular file")
+
+
+def read_spec_text(path: str | Path, max_bytes: int = MAX_SPEC_BYTES) -> str:
+    """The text of a spec file: a regular file (a FIFO or a device is refused without being read, so neither
+    blocks nor streams forever) of at most ``max_bytes`` bytes of UTF-8 text.
+
+    Raises
+    ------
+    SpecError
+        Naming the file and what is wrong with it.
+    """
+    import os
+    import stat
+
     p = Path(path)
     try:
-        text = p.read_text()
+        mode = os.stat(p).st_mode
+        if not stat.S_ISREG(mode):
+            raise SpecError(f"cannot read spec {p}: it is {_file_kind(mode)}; give a YAML or JSON file")
+        # O_NONBLOCK: should the path have become a FIFO since the stat, opening it does not wait for a writer.
+        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0))
+        with os.fdopen(fd, "rb") as fh:
+            mode = os.fstat(fh.fileno()).st_mode
+            if not stat.S_ISREG(mode):
+                raise SpecError(f"cannot read spec {p}: it is {_file_kind(mode)}; give a YAML or JSON file")
+            data = fh.read(max_bytes + 1)
     except OSError as exc:
-        raise SpecError(f"cannot read spec {p}: {exc.strerror}") from None
-    return parse_spec(text, overrides)
+        raise SpecError(f"cannot read spec {p}: {exc.strerror or exc}") from None
+    if len(data) > max_bytes:
+        raise SpecError(f"spec {p} is larger than {max_bytes:,} bytes, the most a spec file may have")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"spec {p} is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start}): a spec is "
+                        "YAML or JSON saved as UTF-8") from None
+    if "\x00" in text:
+        raise SpecError(f"spec {p} contains NUL bytes (offset {text.index(chr(0))}): it is a binary file, not YAML "
+                        "or JSON text")
+    return text
+
+
+def _known(names: Sequence[str]) -> str:
+    return f"its parameters: {', '.join(sorted(names))}" if names else "it has no parameters"
+
+
+def check_overrides(spec: JobSpec, overrides: Mapping[str, float]) -> None:
+    """Refuse a ``--set NAME=VALUE`` for a parameter the spec does not define, or a value that is not finite.
+
+    Raises
+    ------
+    SpecError
+        Naming the unknown parameters and the spec's own.
+    """
+    unknown = sorted(set(overrides) - set(spec.parameters))
+    if unknown:
+        which = ", ".join(repr(n) for n in unknown)
+        raise SpecError(f"--set {which}: the spec '{spec.name}' has no such parameter ({_known(list(spec.parameters))})")
+    for name, value in overrides.items():
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise SpecError(f"--set {name}: {value!r} is not a finite number")
+
+
+def load_spec(path: str | Path, overrides: dict[str, float] | None = None) -> JobSpec:
+    """Read and validate a YAML or JSON spec file (:func:`read_spec_text`).
+
+    Parameters
+    ----------
+    overrides
+        Parameter values that replace the spec's (``--set N=16``); each must name a parameter the spec defines.
+
+    Raises
+    ------
+    SpecError
+        The file cannot be read or is not text, the spec is invalid (naming the field), or an override names a
+        parameter the spec does not have (naming those it has).
+    """
+    text = read_spec_text(path)
+    try:
+        spec = parse_spec(text)
+        if overrides:
+            check_overrides(spec, overrides)
+            spec = parse_spec(text, overrides)
+    except (ValueError, OverflowError, RecursionError) as exc:  # a parser's own limit, not a field: still the spec's
+        raise SpecError(f"cannot parse spec {path}: {type(exc).__name__}: {exc}") from None
+    return spec
 
 
 def spec_hash(spec: JobSpec) -> str:

@@ -3,7 +3,7 @@
 
 Authentication: with ``settings.token`` set, every route but ``/health`` (and the dashboard's static assets,
 which hold no data) needs the token, as ``Authorization: Bearer <token>`` or, for what a browser cannot send
-headers with (``EventSource``, ``<img src>``, opening ``/`` or ``/docs``), as the query parameter
+headers with (``EventSource``, ``<img src>``), as the query parameter
 ``?token=<token>``. A token in a URL can end up in proxy logs and browser history: prefer the header where a
 client can set one, and serve over TLS (a reverse proxy) beyond 127.0.0.1.
 """

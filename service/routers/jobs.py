@@ -104,13 +104,20 @@ def cancel_job(rec: FoundJob, manager: Manager) -> Job:
     return Job.of(manager.cancel(rec.id))
 
 
+#: ``Last-Event-ID``: an event id as this API sends them, ASCII decimal digits only (``str.isdigit`` would take
+#: "²", which ``int`` refuses) and below 10^18 (ids are SQLite integers, < 2^63); anything else is a 422.
+LAST_EVENT_ID_PATTERN = r"^[0-9]{1,18}$"
+
+
 def _stream_start(
     rec: FoundJob,
     last_event_id: Annotated[
-        str | None, Header(description="resume after this event id (EventSource sends it)")
+        str | None,
+        Header(pattern=LAST_EVENT_ID_PATTERN,
+               description="resume after this event id (EventSource sends it): 1 to 18 decimal digits"),
     ] = None,
 ) -> tuple[JobRecord, int]:
-    after = int(last_event_id) if last_event_id and last_event_id.strip().isdigit() else 0
+    after = int(last_event_id) if last_event_id else 0
     if after and rec.terminal and rec.last_seq <= after:
         raise _StreamEnded()
     return rec, after

@@ -35,6 +35,19 @@ function withToken(path) {
   return path + (path.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(t);
 }
 
+// The API's JSON with exact integers: JSON.parse makes every number a double, which rounds integers beyond 2^53
+// (13422659310152401 abstract states would show as 13,422,659,310,152,400). The reviver reads such an integer
+// again from its source text (the reviver's context.source, in Chromium since 114) as a BigInt.
+function parseJson(text) {
+  return JSON.parse(text, (key, value, context) => {
+    if (typeof value === "number" && !Number.isSafeInteger(value) && context && typeof context.source === "string" &&
+        /^-?[0-9]+$/.test(context.source)) {
+      return BigInt(context.source);
+    }
+    return value;
+  });
+}
+
 class ApiError extends Error {
   constructor(status, message) {
     super(message);
@@ -63,7 +76,7 @@ async function api(path, options = {}) {
   let body = null;
   const type = response.headers.get("Content-Type") || "";
   if (type.includes("json")) {
-    try { body = await response.json(); } catch (e) { body = null; }
+    try { body = parseJson(await response.text()); } catch (e) { body = null; }
   }
   if (response.status === 401 || response.status === 403) {
     showAuthNotice(response.status, detailOf(body, response.statusText));
@@ -100,6 +113,7 @@ function showNotice(text) {
 
 // ------------------------------------------------------------------------------------------------ formatting
 function formatNumber(v) {
+  if (typeof v === "bigint") return v.toLocaleString("en-US");  // exact, grouped
   if (typeof v !== "number") return String(v);
   if (Number.isInteger(v)) return v.toLocaleString("en-US");
   return Math.abs(v) >= 1e6 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : String(+v.toFixed(3));
@@ -133,7 +147,7 @@ function flatten(obj, prefix = "", out = []) {
   for (const [k, v] of Object.entries(obj || {})) {
     const key = prefix ? `${prefix}.${k}` : k;
     if (v !== null && typeof v === "object" && !Array.isArray(v)) flatten(v, key, out);
-    else if (["number", "string", "boolean"].includes(typeof v)) out.push([key, v]);  // null: not known, not shown
+    else if (["number", "bigint", "string", "boolean"].includes(typeof v)) out.push([key, v]);  // null: not known, not shown
   }
   return out;
 }
@@ -166,7 +180,7 @@ function stageRow(view, name) {
 
 function setStage(view, p) {
   const row = stageRow(view, p.stage);
-  const done = Number(p.done) || 0;
+  const done = Number(p.done) || 0;  // for the fraction; the counts shown are p.done and p.total as parsed
   const total = Number(p.total) || 0;
   let fraction = typeof p.fraction === "number" ? p.fraction : total > 0 ? done / total : 0;
   if (total === 0 && view.job && view.job.status === "succeeded") fraction = 1;  // a stage with nothing to do
@@ -175,9 +189,9 @@ function setStage(view, p) {
   row.querySelector("progress").value = pct;
   row.querySelector(".pct").textContent = `${pct}%`;
   row.querySelector(".stage-message").textContent =
-    (total > 0 ? `${formatNumber(done)} / ${formatNumber(total)}` : "") + (p.message ? `  ${p.message}` : "");
-  row.dataset.done = String(done);
-  row.dataset.total = String(total);
+    (total > 0 ? `${formatNumber(p.done)} / ${formatNumber(p.total)}` : "") + (p.message ? `  ${p.message}` : "");
+  row.dataset.done = String(p.done ?? 0);
+  row.dataset.total = String(p.total ?? 0);
   row.classList.toggle("complete", pct === 100);
 }
 
@@ -294,7 +308,7 @@ function openStream(id) {
     const view = views.get(id);
     if (!view) return;
     try {
-      setStage(view, JSON.parse(ev.data));
+      setStage(view, parseJson(ev.data));
       renderTimes(view);
     } catch (e) {
       console.warn("bad progress event", e);
@@ -303,7 +317,7 @@ function openStream(id) {
   source.addEventListener("status", (ev) => {
     let job;
     try {
-      job = JSON.parse(ev.data);
+      job = parseJson(ev.data);
     } catch (e) {
       console.warn("bad status event", e);
       return;
