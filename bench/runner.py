@@ -57,6 +57,7 @@ def stage_seconds(spec: JobSpec, workers: int | None) -> tuple[float, dict]:
 def task_overhead(spec: JobSpec, n_tasks: int = 40) -> dict[str, float]:
     """Round trip minus compute of single-cell tasks, one at a time, on a 2-worker cluster (seconds)."""
     from workers.cluster import connect
+    from workers.jobdir import relations_url
     from workers.store import RelationStore, group_name
     from workers.tasks import abstract_chunk
 
@@ -65,7 +66,7 @@ def task_overhead(spec: JobSpec, n_tasks: int = 40) -> dict[str, float]:
     L_x, L_w = float(sub.spec.lipschitz.x), float(sub.spec.lipschitz.w)
     n = min(n_tasks, sub.state_grid.size)
     with tempfile.TemporaryDirectory() as out, connect(workers=2) as (client, _):
-        store = RelationStore.open(out, spec, network)
+        store = RelationStore.open(relations_url(out), spec, network)
         group = group_name(sub, L_x, L_w, sub.spec.growth_bound, sub.spec.scp_objective, 1)
         store.prepare(group, sub, [sub.name], 1, {})
         over, comp = [], []

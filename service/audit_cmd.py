@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from service.arguments import count
 from workers import jobdir
 from workers.audit import audit_job
 
@@ -58,8 +59,8 @@ def add_parser(sub: Any) -> None:
     """Register ``compabs audit`` on the CLI's subparsers."""
     a = sub.add_parser("audit", help="re-check a finished job's stored abstraction and controller; writes DIR/audit.json")
     a.add_argument("dir", help="output directory of 'compabs run' (or a service job's directory)")
-    a.add_argument("--transitions", type=int, default=None, metavar="N",
+    a.add_argument("--transitions", type=count(0), default=None, metavar="N",
                    help="random concrete transitions per part (default: the spec's options.audit_transitions)")
-    a.add_argument("--seed", type=int, default=None, help="seed of the random draws (default: fresh, reported)")
-    a.add_argument("--runs", type=int, default=20, help="closed-loop runs from random domain states (default 20)")
+    a.add_argument("--seed", type=count(0), default=None, help="seed of the random draws (default: fresh, reported)")
+    a.add_argument("--runs", type=count(0), default=20, help="closed-loop runs from random domain states (default 20)")
     a.set_defaults(func=cmd_audit)

@@ -1,24 +1,38 @@
 """The ``compabs`` command.
 
 ``compabs run SPEC --out DIR`` runs a job's stages with a progress bar each and writes ``DIR/report.json``
-and the relation arrays. ``compabs schema`` prints the spec's JSON Schema. Errors a user can cause are
-printed as one message and exit with status 2; nothing from the spec is executed except whitelisted
-expressions (and ``module:function`` names, which the local command line allows).
+and the relation arrays; ``compabs validate SPEC`` runs the checks that need no black-box evaluation
+(:mod:`pipelines.spec.validate`), which ``run`` runs first too. ``compabs schema`` prints the spec's JSON Schema.
+
+Every failure ends in one line ``error: ...`` on stderr and exit status 2, never a traceback: a bad argument,
+a spec that cannot be read or is invalid, a directory that cannot be written or holds another spec's job, a
+black box's NaN, a damaged store, even an internal error (``COMPABS_DEBUG=1`` prints its traceback too). Exit
+status 3 is a violation the audit or the closed loop found, 130 an interrupt. Nothing from the spec is executed
+except whitelisted expressions (and ``module:function`` names, which the local command line allows).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import sys
-from collections.abc import Sequence
+import traceback
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn, cast
 
 import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
+from service.arguments import count
 from workers.jobdir import json_default as _json_default
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.spec.costs import Caps
+    from pipelines.spec.model import JobSpec
 
 
 class _Bars:
@@ -48,6 +62,14 @@ class _Bars:
             bar.close()
 
 
+#: Environment variable that makes an internal error print its traceback and keeps the workers' task-error logs.
+DEBUG_ENV = "COMPABS_DEBUG"
+#: Log levels of the embedded cluster's worker processes (Dask's ``logging`` setting, handed to them through
+#: the environment): a failing task, e.g. a black box's NaN, is reported once as the ``error:`` line, not also
+#: as the worker's "Compute Failed" record and its traceback. Memory warnings still show.
+QUIET_WORKER_LOGGING = "{'distributed.worker': 'critical', 'distributed.worker.memory': 'warning'}"
+
+
 def _parse_sets(items: Sequence[str]) -> dict[str, float]:
     out = {}
     for item in items:
@@ -55,26 +77,81 @@ def _parse_sets(items: Sequence[str]) -> dict[str, float]:
             raise SpecError(f"--set expects NAME=VALUE, got {item!r}")
         name, value = item.split("=", 1)
         try:
-            out[name.strip()] = float(value)
+            number = float(value)
         except ValueError:
             raise SpecError(f"--set {name}: {value!r} is not a number") from None
+        if not math.isfinite(number):
+            raise SpecError(f"--set {name}: {value!r} is not a finite number")
+        out[name.strip()] = number
     return out
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def _load(args: argparse.Namespace) -> JobSpec:
+    """The spec of ``args.spec`` with ``--set`` (and ``--audit-transitions``) applied, validated."""
     from pipelines.spec.model import load_spec
-    from workers.job import run_job
+    from pipelines.spec.validate import with_options
 
     spec = load_spec(args.spec, _parse_sets(args.set))
-    if args.audit_transitions is not None:
-        spec = spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": args.audit_transitions})})
+    if getattr(args, "audit_transitions", None) is not None:
+        try:
+            spec = with_options(spec, audit_transitions=args.audit_transitions)
+        except SpecError as exc:
+            raise SpecError(f"--audit-transitions {args.audit_transitions}: {exc}") from None
+    return spec
+
+
+def _caps() -> Caps:
+    """The command line's caps of the cost model (:meth:`~pipelines.spec.costs.Caps.local`), each overridden by its
+    ``COMPABS_<NAME>`` environment variable (``COMPABS_MAX_CELLS=100000000``), as the cost model's messages say."""
+    from pipelines.spec.costs import CAP_NAMES, ENV_PREFIX, Caps
+
+    found = {}
+    for name in CAP_NAMES:
+        var = ENV_PREFIX + name.upper()
+        raw = os.environ.get(var)
+        if raw is not None:
+            try:
+                found[name] = int(raw.strip().replace("_", ""))
+            except ValueError:
+                raise SpecError(f"{var}={raw!r}: a cap is a positive integer") from None
+    return Caps.local(**found)
+
+
+@contextlib.contextmanager
+def _quiet_workers() -> Iterator[None]:
+    """Worker processes started meanwhile log no task errors (:data:`QUIET_WORKER_LOGGING`), unless the user set
+    Dask's logging (``DASK_LOGGING``) or asked for debugging output."""
+    if os.environ.get(DEBUG_ENV) or "DASK_LOGGING" in os.environ:
+        yield
+        return
+    os.environ["DASK_LOGGING"] = QUIET_WORKER_LOGGING
+    try:
+        yield
+    finally:
+        os.environ.pop("DASK_LOGGING", None)
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    """The ``validate`` subcommand: one line per check, then ``ok`` (exit 0), or one ``error:`` line (exit 2)."""
+    from pipelines.spec.validate import validate_spec
+
+    result = validate_spec(_load(args), allowed_modules=None, caps=_caps())
+    print("\n".join([*result.lines, "ok"]))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from workers.job import run_job
+
+    spec = _load(args)  # run_job validates it (pipelines.spec.validate) before creating --out or a cluster
     bars = _Bars(not args.quiet)
     try:
-        report = run_job(
-            spec, Path(args.out), scheduler=args.scheduler or os.environ.get("COMPABS_SCHEDULER"),
-            workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
-            audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite,
-        )
+        with _quiet_workers():
+            report = run_job(
+                spec, Path(args.out), scheduler=args.scheduler or os.environ.get("COMPABS_SCHEDULER"),
+                workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
+                audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite, caps=_caps(),
+            )
     finally:
         bars.close()
     keys = ("abstract_states", "region_states", "domain_states", "domain_states_by_fixed_point", "stage_seconds")
@@ -127,27 +204,41 @@ def cmd_schema(args: argparse.Namespace) -> int:
     return 0
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse, with a usage error as one ``error:`` line (exit 2) like every other failure of the command."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"error: {self.prog}: {message} (see '{self.prog} --help')", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="compabs", description="Data-driven compositional abstractions and controllers.")
-    sub = p.add_subparsers(dest="command", required=True)
+    p = Parser(prog="compabs", description="Data-driven compositional abstractions and controllers.")
+    # (Subcommands are Parsers too; the cast is for the subcommand modules' add_parser(sub), typed for argparse's.)
+    sub = cast("argparse._SubParsersAction[argparse.ArgumentParser]", p.add_subparsers(dest="command", required=True))
+    v = sub.add_parser("validate", help="check a job spec without running it (no black-box evaluation)")
+    v.add_argument("spec", help="job spec, YAML or JSON")
+    v.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a spec parameter")
+    v.set_defaults(func=cmd_validate)
     r = sub.add_parser("run", help="abstract (and audit) the system of a job spec")
     r.add_argument("spec", help="job spec, YAML or JSON")
     r.add_argument("--out", required=True, help="output directory (report.json, relations.zarr, controller, figures)")
     r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="override a spec parameter")
-    r.add_argument("--audit-transitions", type=int, default=None, help="override options.audit_transitions")
+    r.add_argument("--audit-transitions", type=count(0), default=None, metavar="N",
+                   help="override options.audit_transitions (0: no audit)")
     r.add_argument("--no-audit", action="store_true", help="skip the audit")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     r.add_argument("--no-synthesis", action="store_true", help="stop after the abstraction and its audit")
-    r.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER)")
-    r.add_argument("--workers", type=int, default=2, help="worker processes of the embedded local cluster")
+    r.add_argument("--scheduler", default=None, help="tls://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER); credentials from COMPABS_TLS_*")
+    r.add_argument("--workers", type=count(1), default=2, help="worker processes of the embedded local cluster")
     r.add_argument("--in-process", action="store_true", help="no cluster: run the per-cell stage in this process")
     r.add_argument("--overwrite", action="store_true", help="if --out holds relations of another spec, delete them")
     r.set_defaults(func=cmd_run)
     m = sub.add_parser("simulate", help="run the concrete system under a saved controller; prints JSON")
     m.add_argument("dir", help="output directory of 'compabs run'")
     m.add_argument("--x0", required=True, help="initial state, comma-separated")
-    m.add_argument("--steps", type=int, default=50)
-    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--steps", type=count(1), default=50)
+    m.add_argument("--seed", type=count(0), default=0)
     m.add_argument("--choose", choices=["random", "first"], default="random", help="which admissible input")
     m.add_argument("--free", action="store_true", help="all inputs 0 instead of the controller")
     m.set_defaults(func=cmd_simulate)
@@ -156,19 +247,49 @@ def build_parser() -> argparse.ArgumentParser:
     from service.audit_cmd import add_parser as add_audit_parser
 
     add_audit_parser(sub)
+    from service.serve import add_credentials_parser
     from service.serve import add_parser as add_serve_parser
 
     add_serve_parser(sub)
+    add_credentials_parser(sub)
     return p
 
 
+def one_line(message: str) -> str:
+    """A (possibly multi-line) message as one line: ``"invalid spec:\\n  a: x\\n  b: y"`` -> ``"invalid spec: a: x;
+    b: y"``."""
+    out = ""
+    for part in (line.strip() for line in str(message).splitlines()):
+        if part:
+            out = part if not out else f"{out}{' ' if out.endswith(':') else '; '}{part}"
+    return out
+
+
+def _fail(message: str, status: int = 2) -> int:
+    print(f"error: {one_line(message)}", file=sys.stderr)
+    return status
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command line ``argv``; returns the exit status (usage errors too, which argparse raises)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2, its error: line printed)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     try:
         return args.func(args)
     except CompabsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(str(exc))
+    except OSError as exc:  # a file of the job or its store that cannot be read or written
+        where = f" ({exc.filename})" if exc.filename else ""
+        return _fail(f"{exc.strerror or exc}{where}")
+    except KeyboardInterrupt:
+        return _fail("interrupted", 130)
+    except Exception as exc:  # a bug: still one line; its traceback on request
+        if os.environ.get(DEBUG_ENV):
+            traceback.print_exc()
+        return _fail(f"internal error ({type(exc).__name__}: {exc}); {DEBUG_ENV}=1 prints its traceback. Please "
+                     "report it with the spec")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -51,6 +51,20 @@ def test_bad_input_fails_with_a_specific_message(tmp_path, capsys, label, mutate
     assert "Traceback" not in err
 
 
+#: The cases of BAD that need no black-box evaluation: ``compabs validate`` finds them.
+STATIC = {"expression outside the whitelist", "attribute access", "empty state box", "empty input grid", "empty region",
+          "sigma < 1", "wrong type"}
+
+
+@pytest.mark.parametrize("label,mutate,match", [b for b in BAD if b[0] in STATIC], ids=sorted(STATIC, key=[b[0] for b in BAD].index))
+def test_validate_finds_what_needs_no_evaluation(tmp_path, capsys, label, mutate, match):
+    code = main(["validate", str(_write(tmp_path, mutate))])
+    out, err = capsys.readouterr()
+    assert code == 2, out
+    assert err.startswith("error: ") and match in err and len(err.strip().splitlines()) == 1
+    assert "ok" not in out.splitlines()
+
+
 def test_missing_spec_file(tmp_path, capsys):
     assert main(["run", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "cannot read spec" in capsys.readouterr().err

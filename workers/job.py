@@ -25,6 +25,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,8 +36,10 @@ from pipelines.abstraction.relation import CellsResult, SubsystemRelation, assem
 from pipelines.errors import CompabsError, SpecError
 from pipelines.interconnection import abstract_interconnection
 from pipelines.network import Network, Subsystem, build_network
+from pipelines.spec.costs import Caps
 from pipelines.spec.model import JobSpec, spec_hash
 from pipelines.spec.regions import spec_regions
+from pipelines.spec.validate import validate_spec
 from pipelines.verification.audit import audit_abstraction
 from workers import jobdir
 from workers.control import run_synthesis
@@ -231,6 +234,7 @@ def abstract_job(
     audit: bool = True,
     overwrite: bool = False,
     audit_beside: bool = False,
+    caps: Caps | None = None,
 ) -> tuple[Abstraction, dict[str, Any]]:
     """The abstraction stages of a job whose relations go into its directory's store (resumable).
 
@@ -242,36 +246,52 @@ def abstract_job(
     Returns the abstraction and the report's ``runner`` section (``scheduler``, ``workers``, ``dashboard``,
     ``embedded``, ``store``, chunk counts, ``task_compute_seconds``).
 
+    Before anything else the spec is validated (:func:`pipelines.spec.validate.validate_spec`, with ``caps`` for
+    the cost model) and a local directory claimed (:func:`workers.jobdir.claim`: created if needed, writable, not
+    another spec's); a directory this call created is removed again if the call fails before storing anything.
+
     Raises
     ------
     CompabsError
-        As :func:`run_abstraction`; :class:`~workers.errors.StoreMismatchError` for a store of another spec (unless
-        ``overwrite``), :class:`~workers.errors.ClusterError` when the cluster cannot be reached.
+        As :func:`run_abstraction` and :func:`~pipelines.spec.validate.validate_spec`;
+        :class:`~workers.errors.StoreMismatchError` for a store or job files of another spec (unless ``overwrite``),
+        :class:`~workers.errors.StoreError` for a directory that cannot be written,
+        :class:`~workers.errors.ClusterError` when the cluster cannot be reached.
     """
-    # Resolve the spec and open the store before starting a cluster: a bad spec or a stale store fails at once.
-    network = build_network(spec, allowed_modules)
-    store = RelationStore.open(out_dir, spec, network, overwrite=overwrite)
-    executor, conn = _executor(spec, network, store, client=client, scheduler=scheduler, workers=workers,
-                               in_process=in_process)
+    # Check the spec, claim the directory and open the store before starting a cluster: a bad spec, a directory
+    # that cannot be written or holds another job, or a stale store fails at once, and leaves no new directory.
+    network = validate_spec(spec, allowed_modules=allowed_modules, caps=caps).network
+    local = "://" not in os.fspath(out_dir)
+    created = None
+    if local:
+        out_dir, created = jobdir.claim(out_dir, spec, overwrite=overwrite)
     try:
-        result = run_abstraction(spec, executor=executor, progress=progress, allowed_modules=allowed_modules,
-                                 audit=audit, audit_beside=audit_beside)
+        store = RelationStore.open(jobdir.relations_url(out_dir), spec, network, overwrite=overwrite)
+        executor, conn = _executor(spec, network, store, client=client, scheduler=scheduler, workers=workers,
+                                   in_process=in_process)
         try:
-            store.consolidate()
-            if "://" not in os.fspath(out_dir):  # what `compabs audit` checks
-                jobdir.save_interconnection(result.interconnection, out_dir, spec)
-        except OSError as exc:
-            result.cancel_audit()
-            raise StoreError(
-                f"writing the job's files in {os.fspath(out_dir)} failed: {exc}. Every chunk is stored; free space or "
-                "fix the permissions and run the job again to finish it."
-            ) from None
-        except BaseException:
-            result.cancel_audit()
-            raise
-    finally:
-        if conn is not None:
-            conn.close()
+            result = run_abstraction(spec, executor=executor, progress=progress, allowed_modules=allowed_modules,
+                                     audit=audit, audit_beside=audit_beside)
+            try:
+                store.consolidate()
+                if local:  # what `compabs audit` checks
+                    jobdir.save_interconnection(result.interconnection, out_dir, spec)
+            except OSError as exc:
+                result.cancel_audit()
+                raise StoreError(
+                    f"writing the job's files in {os.fspath(out_dir)} failed: {exc}. Every chunk is stored; free space "
+                    "or fix the permissions and run the job again to finish it."
+                ) from None
+            except BaseException:
+                result.cancel_audit()
+                raise
+        finally:
+            if conn is not None:
+                conn.close()
+    except BaseException:
+        if created is not None:  # a directory this run made and stored nothing in is not left behind
+            jobdir.discard_unused(created)
+        raise
     runner = {**executor.describe(), "store": store.url, **executor.stats.as_dict()}
     return result, runner
 
@@ -290,6 +310,7 @@ def run_job(
     audit: bool = True,
     synthesis: bool = True,
     overwrite: bool = False,
+    caps: Caps | None = None,
 ) -> dict[str, Any]:
     """Run every stage of a job and write its files into ``out_dir`` (:mod:`workers.jobdir`).
 
@@ -297,7 +318,8 @@ def run_job(
     ----------
     spec : JobSpec
     out_dir : str or path
-        The job's directory (created).
+        The job's directory: created, or one of an earlier run of the same spec (its stored chunks are reused);
+        refused if it cannot be written or holds another spec's job (before any work).
     client, scheduler, workers, in_process
         Where the per-cell tasks run, as for :func:`abstract_job`.
     progress : callable, optional
@@ -310,7 +332,10 @@ def run_job(
         Run the audit; synthesize a controller, run the closed loop and draw the figures (if
         ``spec.options.synthesis`` too).
     overwrite : bool
-        Replace a relation store of another spec in ``out_dir`` instead of refusing.
+        Replace the relation store and job files of another spec in ``out_dir`` instead of refusing.
+    caps : Caps, optional
+        The cost model's caps (:mod:`pipelines.spec.costs`) the spec is validated against before anything starts
+        (``None``: the command line's, :meth:`~pipelines.spec.costs.Caps.local`; the service passes its own).
 
     Returns
     -------
@@ -325,13 +350,14 @@ def run_job(
         Or whatever else ``progress`` raised.
     """
     progress = progress or no_progress
-    out = jobdir.create(out_dir)
     synthesize = bool(spec.options.synthesis and synthesis)
-    # With synthesis to run, the audit runs beside it in a child process: it needs nothing synthesis makes, and
-    # its violations set the job's status at the end either way.
-    result, runner = abstract_job(spec, out, client=client, scheduler=scheduler, workers=workers,
+    # The spec is validated and the directory claimed (created) first, in abstract_job. With synthesis to run,
+    # the audit runs beside it in a child process: it needs nothing synthesis makes, and its violations set the
+    # job's status at the end either way.
+    result, runner = abstract_job(spec, Path(out_dir), client=client, scheduler=scheduler, workers=workers,
                                   in_process=in_process, progress=progress, allowed_modules=allowed_modules,
-                                  audit=audit, overwrite=overwrite, audit_beside=synthesize)
+                                  audit=audit, overwrite=overwrite, audit_beside=synthesize, caps=caps)
+    out = Path(out_dir)
     result.report["runner"] = runner
     try:
         if synthesize:

@@ -12,7 +12,9 @@
     DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
 
 :func:`load_job` rebuilds the network from ``spec.json`` and reads every stored relation exactly as stored;
-nothing is recomputed, so an audit of what it returns checks what a controller was synthesized from.
+nothing is recomputed, so an audit of what it returns checks what a controller was synthesized from. Every
+relation chunk is verified against the checksum in its done-marker; damaged chunks are returned, named, for
+the audit to report (``JobArtifacts.damaged_chunks``).
 
 Interconnection files
 ---------------------
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import uuid
 import zipfile
 from collections.abc import Sequence
@@ -42,6 +45,7 @@ from pipelines.grid import UniformGrid
 from pipelines.interconnection import InterconnectionAbstraction, NodeRelation
 from pipelines.network import Network, build_network
 from pipelines.spec.model import JobSpec, parse_spec, spec_hash
+from workers.errors import StoreError, StoreMismatchError
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     import zarr
@@ -104,6 +108,93 @@ def create(out_dir: str | os.PathLike[str]) -> Path:
     except OSError as exc:
         raise SpecError(f"--out {out}: cannot create the directory: {exc.strerror}") from None
     return out
+
+
+# ====================================================================================== claiming a directory
+def _writable(directory: Path) -> None:
+    """Create and remove a file in ``directory``: a read-only one fails here, at the start of a job."""
+    probe = directory / f".compabs-write-check-{uuid.uuid4().hex[:8]}"
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        probe.unlink()
+    except OSError as exc:
+        raise StoreError(f"--out {directory}: cannot write in this directory ({exc.strerror or exc}); fix its "
+                         "permissions or give another output directory") from None
+
+
+def _job_files(out: Path) -> list[Path]:
+    """The job files (other than the relation store) in ``out``, report.json first."""
+    named = [out / n for n in (REPORT, SPEC, AUDIT, INTERCONNECTION_META, INTERCONNECTION_ARRAYS, EXAMPLE_RUN,
+                               "trajectory.png", "domain_slice.png")]
+    named += sorted(p for ext in ("dddmp", "json", "zip") for p in out.glob(f"{CONTROLLER}*.{ext}"))
+    return [p for p in dict.fromkeys(named) if p.is_file()]
+
+
+def _stored_hashes(out: Path) -> set[str]:
+    """The spec hashes the job files of ``out`` belong to (report.json's ``spec_hash``, spec.json's spec)."""
+    hashes = set()
+    try:
+        if (out / REPORT).is_file():
+            report = json.loads((out / REPORT).read_text())
+            hashes.add(str(report.get("spec_hash")) if isinstance(report, dict) else "(not a compabs report)")
+        if (out / SPEC).is_file():
+            hashes.add(spec_hash(parse_spec(json.loads((out / SPEC).read_text()))))
+    except (OSError, ValueError, CompabsError) as exc:
+        hashes.add(f"(unreadable: {type(exc).__name__})")
+    return hashes - {"None"}
+
+
+def claim(out_dir: str | os.PathLike[str], spec: JobSpec, *, overwrite: bool = False) -> tuple[Path, Path | None]:
+    """Create (or take over) the job directory of ``spec``; returns it and the topmost directory this call created
+    (``out_dir`` or an ancestor; ``None`` if it existed), which :func:`discard_unused` removes after a failure.
+
+    Raises
+    ------
+    StoreMismatchError
+        ``out_dir`` holds the files of another spec's job (report.json or spec.json of another spec hash),
+        unless ``overwrite``, which deletes them (report.json first; the relation store is checked, and with
+        ``overwrite`` replaced, by :meth:`workers.store.RelationStore.open`).
+    StoreError, SpecError
+        ``out_dir`` (or its relation store) cannot be written, or created: at the start, not after the work.
+    """
+    out = Path(out_dir)
+    created = None
+    for d in (out, *out.parents):
+        if os.path.lexists(d):
+            break
+        created = d
+    out = create(out)
+    try:
+        for d in (out, out / RELATIONS):
+            if d == out or d.is_dir():
+                _writable(d)
+        mine = spec_hash(spec)
+        theirs = sorted(_stored_hashes(out) - {mine})
+        if theirs and not overwrite:
+            raise StoreMismatchError(
+                f"{out} holds the files of another job (spec hash {', '.join(theirs)}; this job: {mine}): its "
+                f"{REPORT} would be overwritten. Use another output directory, or pass --overwrite (overwrite=True) "
+                "to delete them and recompute."
+            )
+        if theirs:
+            for path in _job_files(out):
+                path.unlink()
+    except BaseException:
+        if created is not None:
+            discard_unused(created)
+        raise
+    return out, created
+
+
+def discard_unused(out_dir: str | os.PathLike[str]) -> bool:
+    """Remove a directory that holds no work (no file but Zarr metadata): what a run that created it (``claim``)
+    and failed before storing anything leaves. Returns whether it was removed."""
+    out = Path(out_dir)
+    for _root, _dirs, files in os.walk(out):
+        if any(name != "zarr.json" for name in files):
+            return False
+    shutil.rmtree(out, ignore_errors=True)
+    return not out.exists()
 
 
 def relations_url(out_dir: str | os.PathLike[str]) -> str:
@@ -320,14 +411,18 @@ def _check_shape(rel: SubsystemRelation, sub, where: str) -> None:
         )
 
 
-def _whole(group: zarr.Group, name: str) -> np.ndarray:
-    """All of the array ``name`` of a relation group. zarr types a member as ``Array | Group`` and a read as
-    array-like or scalar; the store (:mod:`workers.store`) writes these members as arrays, read here whole."""
-    return cast(np.ndarray, cast("zarr.Array", group[name])[:])
+def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict[str, dict[str, Any]]
+                         ) -> tuple[dict[str, SubsystemRelation], dict[str, str], list[dict[str, Any]], int]:
+    """The stored relations, each chunk verified against its checksum (:func:`workers.store.check_chunks`).
 
-
-def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict[str, dict[str, Any]]) -> tuple[dict[str, SubsystemRelation], dict[str, str]]:
+    Returns the relations (by subsystem key), their groups, the damaged chunks (``group``, ``subsystem``,
+    ``chunk``, ``start``, ``stop``, ``reason``, ``message``) and the number of chunks checked. A damaged chunk's
+    data are kept as read when they can be read (the audit checks them too); cells that cannot be read are
+    blocking (their transitions are skipped, the chunk is reported).
+    """
     import zarr
+
+    from workers.store import LAYOUT_VERSION, check_chunks, chunk_place, group_markers
 
     try:
         root = zarr.open_group(store=url, mode="r", use_consolidated=False)
@@ -338,8 +433,13 @@ def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict
             f"{url} holds the relations of spec hash {root.attrs.get('spec_hash')!r}, spec.json has {spec_hash(spec)!r}: "
             "the directory mixes two jobs"
         )
+    if root.attrs.get("layout") != LAYOUT_VERSION:
+        raise ArtifactError(
+            f"{url} has store layout {root.attrs.get('layout')!r}; this version reads layout {LAYOUT_VERSION} (chunks "
+            "with checksums) and cannot verify it. Run the job again into this directory with --overwrite."
+        )
     subs = {s.key: s for s in network.subsystems}
-    rels, groups = {}, {}
+    rels, groups, damaged, checked = {}, {}, [], 0
     for key, p in params.items():
         candidates = []
         for name, g in root.groups():
@@ -350,25 +450,36 @@ def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict
             L_x, L_w = cast(float, a.get("L_x", np.nan)), cast(float, a.get("L_w", np.nan))
             if float(L_x) != p["L_x"] or float(L_w) != p["L_w"]:
                 continue
-            if "done" not in g:
+            if "done" not in g or "lo" not in g:
                 continue
-            done = _whole(g, "done")
-            if all(t for t in done.tolist()):
-                candidates.append(name)
+            markers, bad = group_markers(g)
+            if len(markers) + len(bad) == cast("zarr.Array", g["done"]).shape[0]:  # every chunk marked (or damaged)
+                candidates.append((name, markers, bad))
         if not candidates:
             raise ArtifactError(
                 f"{url}: no complete relation group for subsystem '{p['name']}' (key {key}, L_x = {p['L_x']:g}, "
                 f"L_w = {p['L_w']:g}, {p['method']}); the job did not finish: run it again"
             )
         if len(candidates) > 1:
-            raise ArtifactError(f"{url}: several complete relation groups {candidates} fit subsystem '{p['name']}'")
-        g = cast("zarr.Group", root[candidates[0]])  # a name from root.groups()
-        rel = SubsystemRelation(p["method"], _whole(g, "lo"), _whole(g, "hi"), _whole(g, "blocking"),
-                                p["L_x"], p["L_w"])
-        _check_shape(rel, subs[key], f"{url}/{candidates[0]}")
+            raise ArtifactError(f"{url}: several complete relation groups {[c[0] for c in candidates]} fit subsystem "
+                                f"'{p['name']}'")
+        name, markers, bad = candidates[0]
+        g = cast("zarr.Group", root[name])  # a name from root.groups()
+        check = check_chunks(g, name, markers, whole=True)
+        lo, hi, blocking = (check.arrays[k] for k in ("lo", "hi", "blocking"))
+        rel = SubsystemRelation(p["method"], lo, hi, blocking, p["L_x"], p["L_w"])
+        _check_shape(rel, subs[key], f"{url}/{name}")
+        chunk_cells, n_x = int(cast("zarr.Array", g["lo"]).chunks[0]), lo.shape[0]
+        checked += -(-n_x // chunk_cells)
+        for i, reason in sorted({**bad, **check.damaged}.items()):
+            start, stop = i * chunk_cells, min((i + 1) * chunk_cells, n_x)
+            if i in check.unreadable:  # no data to audit: skipped as blocking
+                lo[start:stop], hi[start:stop], blocking[start:stop] = 0, -1, True
+            damaged.append({"group": name, "subsystem": p["name"], "chunk": i, "start": start, "stop": stop,
+                            "reason": reason, "message": f"{chunk_place(name, i, chunk_cells, n_x)}: {reason}"})
         rels[key] = rel
-        groups[key] = candidates[0]
-    return rels, groups
+        groups[key] = name
+    return rels, groups, damaged, checked
 
 
 # ====================================================================================== the whole job
@@ -393,6 +504,11 @@ class JobArtifacts:
         Per key, the Zarr group the relation came from.
     interconnection : InterconnectionAbstraction
         As stored.
+    damaged_chunks : list of dict
+        Relation chunks that are missing, unreadable or do not match their checksum (``group``, ``subsystem``,
+        ``chunk``, ``start``, ``stop``, ``reason``, ``message``); their cells are as read (blocking where unreadable).
+    chunks_checked : int
+        Relation chunks verified against their checksums.
     """
 
     directory: Path
@@ -403,6 +519,8 @@ class JobArtifacts:
     relation_source: str
     relation_files: dict[str, str] = field(default_factory=dict)
     interconnection: InterconnectionAbstraction | None = None
+    damaged_chunks: list[dict[str, Any]] = field(default_factory=list)
+    chunks_checked: int = 0
 
     @property
     def has_controller(self) -> bool:
@@ -447,11 +565,11 @@ def load_job(directory: str | os.PathLike[str], allowed_modules: Sequence[str] |
     zarr_dir = out / RELATIONS
     if not zarr_dir.is_dir():
         raise ArtifactError(f"{out} holds no relations ({RELATIONS}); run the job again")
-    rels, files = _load_zarr_relations(str(zarr_dir), spec, network, params)
+    rels, files, damaged, checked = _load_zarr_relations(str(zarr_dir), spec, network, params)
     ia = load_interconnection(out, spec)
     if ia.n != network.state_dim or ia.p != len(network.internal_grids):
         raise ArtifactError(
             f"{out / INTERCONNECTION_META}: maps {ia.n} states to {ia.p} internal variables; the spec has "
             f"{network.state_dim} and {len(network.internal_grids)}"
         )
-    return JobArtifacts(out, spec, network, report, rels, "zarr", files, ia)
+    return JobArtifacts(out, spec, network, report, rels, "zarr", files, ia, damaged, checked)

@@ -1,0 +1,146 @@
+"""Every check of a job spec that needs no black-box evaluation: what ``compabs validate`` prints and what
+:func:`workers.job.run_job` runs before it creates the job's directory or starts a cluster.
+
+Pure (no file or network I/O), so the command line, the orchestrator and the service share it. The checks, in
+order, each giving one line of :attr:`Validation.lines` or raising a :class:`~pipelines.errors.SpecError` that
+names the field:
+
+1. ``parameters``: those overridden by ``--set`` exist in the spec (:func:`check_overrides`, called by
+   :func:`pipelines.spec.model.load_spec` before the overrides are applied) and are finite;
+2. ``network``: the network builds: grids non-empty, ``replicate`` counts, ``reads``, and every expression
+   compiled against its declared dimensions (the one-point probe that infers a map's output dimension is the
+   only evaluation, as when the job itself starts);
+3. ``cells``: every subsystem's ``(x, u, w)`` triples within ``options.max_cells``;
+4. ``options.initial_states``: each has the state dimension and finite components;
+5. ``specification.*``: every region of the specification contains a whole cell (targets and safe sets from
+   inside) or meets one (sets to avoid);
+6. ``caps``: every knob of the cost model (:mod:`pipelines.spec.costs`) within its cap: subsystems after
+   ``replicate`` and expression lengths before the network is built (:func:`~pipelines.spec.costs.check_spec`),
+   the rest after (:func:`~pipelines.spec.costs.check_costs`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from pipelines.errors import SpecError
+from pipelines.network import Network, build_network
+from pipelines.spec.costs import Caps, check_costs, check_spec
+from pipelines.spec.model import JobSpec, check_overrides, parse_spec
+from pipelines.spec.regions import AbstractRegion, spec_regions
+
+
+@dataclass(frozen=True)
+class Validation:
+    """The outcome of :func:`validate_spec`: what was built, and one line per check (``"<check>: <result>"``)."""
+
+    spec: JobSpec
+    network: Network
+    regions: dict[str, AbstractRegion]
+    lines: tuple[str, ...]
+
+
+def with_options(spec: JobSpec, **updates: Any) -> JobSpec:
+    """``spec`` with some ``options`` replaced, validated like the spec's own (a command-line override such as
+    ``--audit-transitions`` gets the field's bounds, not a silent ``model_copy``).
+
+    Raises
+    ------
+    SpecError
+        Naming the option and its bound.
+    """
+    data = spec.model_dump(mode="json")
+    data["options"] = {**data["options"], **updates}
+    return parse_spec(data)
+
+
+def check_cells(spec: JobSpec, network: Network) -> str:
+    """Every subsystem's ``(x, u, w)`` triples within ``options.max_cells``."""
+    cap = spec.options.max_cells
+    for s in network.subsystems:
+        if s.triples > cap:
+            raise SpecError(
+                f"subsystem '{s.name}': {s.triples} (x, u, w) triples exceed options.max_cells = {cap}; coarsen its "
+                "grids or raise the cap"
+            )
+    largest = max(network.subsystems, key=lambda s: s.triples)
+    return f"cells: at most {largest.triples:,} (x, u, w) triples per subsystem ('{largest.name}'); options.max_cells {cap:,}"
+
+
+def check_initial_states(spec: JobSpec, network: Network) -> str:
+    """Each of ``options.initial_states`` has one finite component per state of the composed system."""
+    n = network.state_dim
+    states = spec.options.initial_states
+    for i, x in enumerate(states):
+        if len(x) != n:
+            raise SpecError(f"options.initial_states[{i}] has {len(x)} components; the system has {n} states")
+        bad = [k for k, v in enumerate(x) if not math.isfinite(v)]
+        if bad:
+            raise SpecError(f"options.initial_states[{i}][{bad[0]}] is {x[bad[0]]}; a state is finite")
+    if not states:
+        return "options.initial_states: none given"
+    return f"options.initial_states: {len(states)} of dimension {n}"
+
+
+def _region_lines(regions: Mapping[str, AbstractRegion]) -> list[str]:
+    how = {"avoid": "cells meeting it"}
+    return [f"specification.{name}: {r.states:,} abstract states ({how.get(name, 'whole cells inside it')})"
+            for name, r in regions.items()]
+
+
+def check_caps(spec: JobSpec, network: Network, caps: Caps | None = None) -> str:
+    """Every knob of the cost model within its cap (:func:`pipelines.spec.costs.check_costs`; ``caps``: default
+    the command line's, :meth:`~pipelines.spec.costs.Caps.local`).
+
+    Raises
+    ------
+    CostError
+        The first knob over its cap, naming the knob (field path), its value, the cap and the fix.
+    """
+    return f"caps: {check_costs(spec, network, caps)}"
+
+
+def validate_spec(spec: JobSpec, *, allowed_modules: Sequence[str] | None = (), caps: Caps | None = None) -> Validation:
+    """Run every check that needs no black-box evaluation (the module docstring lists them).
+
+    Parameters
+    ----------
+    spec : JobSpec
+        As parsed (:func:`~pipelines.spec.model.parse_spec`, :func:`~pipelines.spec.model.load_spec`), overrides
+        applied.
+    allowed_modules
+        Modules a ``module:function`` may name, as for :func:`~pipelines.network.build_network` (``None``: any,
+        the local command line; the default ``()``: none).
+    caps
+        The cost model's caps (:class:`~pipelines.spec.costs.Caps`; ``None``: the command line's,
+        :meth:`~pipelines.spec.costs.Caps.local`; the service passes its settings').
+
+    Raises
+    ------
+    SpecError
+        The first check that fails, naming the field (and index) at fault (a
+        :class:`~pipelines.spec.costs.CostError` for a knob over its cap).
+    """
+    params = ", ".join(f"{k} = {v:g}" for k, v in spec.parameters.items()) or "none"
+    lines = [f"spec: '{spec.name}' parses", f"parameters: {params}"]
+    check_spec(spec, caps)  # subsystems after replicate, expression lengths: before anything is built
+    network = build_network(spec, allowed_modules)
+    distinct = len(network.unique_subsystems())
+    lines.append(
+        f"network: {len(network.subsystems)} subsystems ({distinct} distinct), {network.state_dim} states, "
+        f"{len(network.internal_grids)} internal variables, {network.abstract_states:,} abstract states; "
+        "expressions compile"
+    )
+    lines.append(check_cells(spec, network))
+    lines.append(check_initial_states(spec, network))
+    regions = spec_regions(spec, network)
+    lines += _region_lines(regions)
+    lines.append(check_caps(spec, network, caps))
+    return Validation(spec, network, regions, tuple(lines))
+
+
+__all__ = ["Validation", "check_caps", "check_cells", "check_initial_states", "check_overrides",
+           "validate_spec", "with_options"]
