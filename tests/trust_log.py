@@ -3,13 +3,15 @@
 A test calls :func:`record` with counts under the keys of :data:`COLUMNS`; the records go to this process's
 list (printed as one table at the end of the pytest session by :func:`pytest_terminal_summary`, which
 ``tests/conftest.py`` imports, so the table shows with or without ``-s``) and, one JSON object a line, to the
-file named by ``COMPABS_TRUST_LOG`` (``bench/trust.py`` sets it and sums the file).
+file named by ``COMPABS_TRUST_LOG`` (``bench/trust.py`` sets it and sums the file). A generated campaign counts
+its cases with a :class:`Tally`, which records one row and then fails the test on any wrong case.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections import Counter
 from typing import Any
 
 #: Columns of the trust table, in order, with their meaning.
@@ -42,6 +44,46 @@ def record(label: str, **counts: int) -> dict[str, Any]:
             fh.write(json.dumps(rec) + "\n")
     print(f"trust: {label}: " + ", ".join(f"{COLUMNS[k]} {v}" for k, v in counts.items()))
     return rec
+
+
+class Tally:
+    """One row of a generated campaign: :meth:`check` counts a case and collects it if its outcome was wrong
+    (instead of stopping at the first), :meth:`done` records the row, then fails the test on any wrong case.
+
+    ``executed`` is a list that guards append to when a payload ran (its growth is the row's "payloads executed").
+    """
+
+    def __init__(self, label: str, executed: list[Any] | None = None, seed: Any = None) -> None:
+        self.label, self.seed, self.n = label, seed, Counter[str]()
+        self.bad: list[str] = []
+        self._executed = executed if executed is not None else []
+        self._start = len(self._executed)
+
+    def check(self, ok: bool, case: str, status: int | None = None) -> None:
+        """Count one case; ``status``: its HTTP status, for the 4xx and 5xx columns (None when not over HTTP)."""
+        self.n["cases"] += 1
+        if status is not None:
+            self.n["4xx"] += 400 <= status < 500
+            self.n["5xx"] += status >= 500
+        if not ok:
+            self.n["wrong"] += status is None or status < 500  # a 5xx has its own column
+            self.bad.append(case[:600])
+
+    def done(self, cases: str = "inputs", ok_as: str | None = None, api: bool = False) -> dict[str, Any]:
+        """Record the row (the cases under the column ``cases``, those that passed under ``ok_as``), then assert
+        that every case passed and that nothing was executed."""
+        executed = len(self._executed) - self._start
+        counts = {cases: self.n["cases"], "executed": executed, "wrong": self.n["wrong"]}
+        if api:
+            counts.update({"4xx": self.n["4xx"], "5xx": self.n["5xx"]})
+        if ok_as:
+            counts[ok_as] = self.n["cases"] - len(self.bad)
+        rec = record(self.label, **counts)
+        seed = f" (seed {self.seed})" if self.seed is not None else ""
+        assert not self.bad, f"{self.label}: {len(self.bad)} of {self.n['cases']} cases wrong{seed}:\n" + \
+            "\n".join(self.bad[:8])
+        assert executed == 0, self._executed[self._start:]
+        return rec
 
 
 def totals(records: list[dict[str, Any]]) -> dict[str, int]:
