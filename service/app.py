@@ -103,7 +103,8 @@ class BodyLimitMiddleware:
                     await JSONResponse({"detail": "Content-Length must be a byte count in decimal digits, got "
                                         f"{value[:40].decode('latin-1')!r}"}, status_code=400)(scope, receive, send)
                     return
-                length = int(value) if len(value) <= 20 else self.limit + 1
+                digits = value.lstrip(b"0") or b"0"  # zero-padded is still the same count
+                length = int(digits) if len(digits) <= 20 else self.limit + 1
                 if length > self.limit:
                     await _too_large(self.limit)(scope, receive, send)
                     return

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from service.arguments import count
+from service.settings import local_caps
 from workers import jobdir
 from workers.audit import audit_job
 
@@ -46,7 +47,7 @@ def format_table(result: dict[str, Any]) -> str:
 
 def cmd_audit(args: argparse.Namespace) -> int:
     """The ``audit`` subcommand: 0 if nothing is violated, 3 otherwise (2 for a user error, raised)."""
-    result = audit_job(args.dir, args.transitions, args.seed, args.runs)
+    result = audit_job(args.dir, args.transitions, args.seed, args.runs, caps=local_caps())
     print(format_table(result))
     if result["violations"]:
         print(f"error: the audit of {args.dir} found {result['violations']} violations (details in "

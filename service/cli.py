@@ -28,10 +28,10 @@ import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
+from service.settings import local_caps
 from workers.jobdir import json_default as _json_default
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
-    from pipelines.spec.costs import Caps
     from pipelines.spec.model import JobSpec
 
 
@@ -100,23 +100,6 @@ def _load(args: argparse.Namespace) -> JobSpec:
     return spec
 
 
-def _caps() -> Caps:
-    """The command line's caps of the cost model (:meth:`~pipelines.spec.costs.Caps.local`), each overridden by its
-    ``COMPABS_<NAME>`` environment variable (``COMPABS_MAX_CELLS=100000000``), as the cost model's messages say."""
-    from pipelines.spec.costs import CAP_NAMES, ENV_PREFIX, Caps
-
-    found = {}
-    for name in CAP_NAMES:
-        var = ENV_PREFIX + name.upper()
-        raw = os.environ.get(var)
-        if raw is not None:
-            try:
-                found[name] = int(raw.strip().replace("_", ""))
-            except ValueError:
-                raise SpecError(f"{var}={raw!r}: a cap is a positive integer") from None
-    return Caps.local(**found)
-
-
 @contextlib.contextmanager
 def _quiet_workers() -> Iterator[None]:
     """Worker processes started meanwhile log no task errors (:data:`QUIET_WORKER_LOGGING`), unless the user set
@@ -135,7 +118,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     """The ``validate`` subcommand: one line per check, then ``ok`` (exit 0), or one ``error:`` line (exit 2)."""
     from pipelines.spec.validate import validate_spec
 
-    result = validate_spec(_load(args), allowed_modules=None, caps=_caps())
+    result = validate_spec(_load(args), allowed_modules=None, caps=local_caps())
     print("\n".join([*result.lines, "ok"]))
     return 0
 
@@ -150,7 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             report = run_job(
                 spec, Path(args.out), scheduler=args.scheduler or os.environ.get("COMPABS_SCHEDULER"),
                 workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
-                audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite, caps=_caps(),
+                audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite, caps=local_caps(),
             )
     finally:
         bars.close()
@@ -230,7 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     r.add_argument("--no-synthesis", action="store_true", help="stop after the abstraction and its audit")
     r.add_argument("--scheduler", default=None, help="tls://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER); credentials from COMPABS_TLS_*")
-    r.add_argument("--workers", type=count(1), default=2, help="worker processes of the embedded local cluster")
+    r.add_argument("--workers", type=count(1, 256), default=2, help="worker processes of the embedded local cluster "
+                   "(1 to 256)")
     r.add_argument("--in-process", action="store_true", help="no cluster: run the per-cell stage in this process")
     r.add_argument("--overwrite", action="store_true", help="if --out holds relations of another spec, delete them")
     r.set_defaults(func=cmd_run)

@@ -222,8 +222,6 @@ def test_numbers_through_parse_spec():
     row.done()
 
 
-@pytest.mark.xfail(strict=True, reason="pipelines/spec/loader.py (issue 23 follow-up): JSON's NaN and Infinity "
-                   "constants are refused (422) without naming the field they are in")
 def test_json_nan_constant_names_the_field(api):
     status, body = post(api, json.dumps(with_value("small.yaml", ("options", "seed"), MARK)).replace(f'"{MARK}"', "NaN"))
     assert status == 422 and "options.seed" in detail(body), body
@@ -396,8 +394,6 @@ def content_length(rng: random.Random, size: int) -> tuple[bytes, str]:
     return value.encode(), want
 
 
-@pytest.mark.xfail(strict=True, reason="service/app.py BodyLimitMiddleware: a Content-Length of more than 20 "
-                   "characters is taken as over the cap, zero-padded or not: a 14-byte body is refused 413")
 def test_zero_padded_content_length_is_read(api):
     status, text = call(api, "POST", "/jobs", headers=[(b"content-type", b"application/json"),
                                                       (b"content-length", b"0" * 25 + b"14")], body=b'{"name": "cl"}')

@@ -23,6 +23,7 @@ import numpy as np
 
 from pipelines.controller import load_controller
 from pipelines.errors import CompabsError
+from pipelines.spec.costs import Caps, CostError
 from pipelines.spec.model import parse_spec, spec_hash
 from pipelines.spec.regions import spec_regions
 from pipelines.verification.audit import audit_abstraction
@@ -79,6 +80,7 @@ def audit_job(
     allowed_modules: Sequence[str] | None = None,
     progress: AuditProgress | None = None,
     write: bool = True,
+    caps: Caps | None = None,
 ) -> dict[str, Any]:
     """Audit a finished job's stored abstraction and controller; write ``DIR/audit.json``.
 
@@ -100,6 +102,9 @@ def audit_job(
         ``progress(part, done, total)``.
     write : bool
         Write ``DIR/audit.json``.
+    caps : Caps, optional
+        The cost model's caps; ``transitions`` is bounded by ``max_audit_evaluations`` (default:
+        :meth:`~pipelines.spec.costs.Caps.local`).
 
     Returns
     -------
@@ -122,6 +127,14 @@ def audit_job(
         transitions = arts.spec.options.audit_transitions or 1_000_000
     if transitions < 0:
         raise CompabsError(f"--transitions must be >= 0, got {transitions}")
+    caps = caps if caps is not None else Caps.local()
+    # Each part draws `transitions`: every distinct subsystem and the map once, the composition every subsystem
+    # and the map again.
+    evaluations = transitions * (len(arts.network.unique_subsystems()) + 1 + len(arts.network.subsystems) + 1)
+    if evaluations > caps.max_audit_evaluations:
+        raise CostError("--transitions", evaluations, caps.max_audit_evaluations, "max_audit_evaluations",
+                        f"--transitions {transitions:,} makes {evaluations:,} black-box evaluations; {caps.owner} cap "
+                        f"max_audit_evaluations is {caps.max_audit_evaluations:,}: give fewer transitions")
     if seed is None:
         entropy = np.random.SeedSequence().entropy
         assert isinstance(entropy, int)  # drawn fresh (an int) when none is given

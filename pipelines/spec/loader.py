@@ -133,15 +133,19 @@ class _BigInt:
         self.digits = digits
 
 
-def _reject_constant(name: str) -> Any:
-    raise SpecError(f"the JSON text contains {name}, which is not a number a spec can use")
+class _Constant:
+    """JSON's ``NaN``, ``Infinity`` or ``-Infinity``, kept until its path is known."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
 
 
-def _find_big_int(data: Any) -> tuple[str, _BigInt] | None:
+def _find_marker(data: Any) -> tuple[str, _BigInt | _Constant] | None:
+    """The path and marker of the first refused literal in document order."""
     stack: list[tuple[str, Any]] = [("", data)]
     while stack:
         path, value = stack.pop()
-        if isinstance(value, _BigInt):
+        if isinstance(value, (_BigInt, _Constant)):
             return path or "(the document)", value
         items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
         stack.extend((f"{path}.{k}" if path else str(k), v) for k, v in reversed(list(items)))
@@ -158,19 +162,26 @@ def load_json(text: str) -> Any:
     json.JSONDecodeError
         For text that does not parse.
     """
-    big_ints = 0
+    refused = 0
 
     def parse_int(literal: str) -> int | _BigInt:
-        nonlocal big_ints
+        nonlocal refused
         digits = len(literal.lstrip("-"))
         if digits <= MAX_INT_DIGITS:
             return int(literal)
-        big_ints += 1
+        refused += 1
         return _BigInt(digits)
 
-    data = json.loads(text, parse_constant=_reject_constant, parse_int=parse_int)
-    found = _find_big_int(data) if big_ints else None
+    def parse_constant(name: str) -> _Constant:
+        nonlocal refused
+        refused += 1
+        return _Constant(name)
+
+    data = json.loads(text, parse_constant=parse_constant, parse_int=parse_int)
+    found = _find_marker(data) if refused else None
     if found is not None:
-        path, big = found
-        raise _int_refusal(path, big.digits)
+        path, marker = found
+        if isinstance(marker, _Constant):
+            raise SpecError(f"{path}: {marker.name} is not a number a spec can use (give a finite number)")
+        raise _int_refusal(path, marker.digits)
     return data

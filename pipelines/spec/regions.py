@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cache
 
 import numpy as np
 
@@ -65,20 +64,38 @@ def union_count(boxes: list[IndexBox]) -> int:
     his = np.array([b[1] for b in boxes], dtype=np.int64)
     n = los.shape[1]
 
-    @cache
-    def count(d: int, active: frozenset[int]) -> int:
-        if d == n:
-            return 1
+    def slabs(d: int, active: frozenset[int]) -> list[tuple[int, frozenset[int]]]:
+        """The slabs of coordinate ``d`` between consecutive box boundaries: (width, the boxes covering it)."""
         idx = np.fromiter(active, dtype=np.int64)
         cuts = np.unique(np.concatenate([los[idx, d], his[idx, d] + 1]))
-        total = 0
+        out = []
         for a, b in zip(cuts[:-1], cuts[1:]):
             cover = idx[(los[idx, d] <= a) & (his[idx, d] >= b - 1)]
             if cover.size:
-                total += int(b - a) * count(d + 1, frozenset(cover.tolist()))
-        return total
+                out.append((int(b - a), frozenset(cover.tolist())))
+        return out
 
-    return count(0, frozenset(range(len(boxes))))
+    # Depth-first over (coordinate, covering boxes) with an explicit stack: the depth is the dimension, which
+    # reaches thousands for large networks (recursion would hit Python's limit).
+    memo: dict[tuple[int, frozenset[int]], int] = {}
+    stack = [(0, frozenset(range(len(boxes))))]
+    while stack:
+        key = stack[-1]
+        d, active = key
+        if key in memo:
+            stack.pop()
+        elif d == n:
+            memo[key] = 1
+            stack.pop()
+        else:
+            parts = slabs(d, active)
+            missing = [(d + 1, cover) for _, cover in parts if (d + 1, cover) not in memo]
+            if missing:
+                stack.extend(missing)
+            else:
+                memo[key] = sum(width * memo[(d + 1, cover)] for width, cover in parts)
+                stack.pop()
+    return memo[(0, frozenset(range(len(boxes))))]
 
 
 def _broadcast(v, n: int, name: str) -> np.ndarray:
