@@ -437,3 +437,12 @@ def test_black_box_nan_on_the_cluster_prints_no_worker_traceback(tmp_path):
         assert proc.stderr.strip().splitlines()[-1] == errors[0]
         assert not (tmp_path / "out" / "report.json").exists()
     record("CLI: black box NaN on the cluster", faults=2, failed_cleanly=2)
+
+
+def test_credentials_refuses_bad_input_with_one_error_line(tmp_path, capsys):
+    """``compabs credentials DIR``: a DIR that is a file, or a non-positive validity, is one ``error:`` line."""
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a directory")
+    assert_one_error(*run_cli(capsys, "credentials", a_file)[::2], "a_file")
+    assert_one_error(*run_cli(capsys, "credentials", tmp_path / "tls", "--days", "-3")[::2], "--days")
+    assert not (tmp_path / "tls").exists()
