@@ -33,13 +33,13 @@ import numpy as np
 from pipelines.abstraction.cells import CellTask
 from pipelines.abstraction.lipschitz import ConstantRecord, check_constants, resolve_constant
 from pipelines.abstraction.relation import CellsResult, SubsystemRelation, assemble, chunk_ranges
-from pipelines.errors import CompabsError, SpecError
+from pipelines.errors import CompabsError
 from pipelines.interconnection import abstract_interconnection
 from pipelines.network import Network, Subsystem, build_network
 from pipelines.spec.costs import Caps
 from pipelines.spec.model import JobSpec, spec_hash
 from pipelines.spec.regions import spec_regions
-from pipelines.spec.validate import validate_spec
+from pipelines.spec.validate import Validation, check_cells, validate_spec
 from pipelines.verification.audit import audit_abstraction
 from workers import jobdir
 from workers.control import run_synthesis
@@ -108,6 +108,7 @@ def run_abstraction(
     allowed_modules: Sequence[str] | None = None,
     audit: bool = True,
     audit_beside: bool = False,
+    validated: Validation | None = None,
 ) -> Abstraction:
     """Run the abstraction stages of a job (plan to audit) and build its report.
 
@@ -124,6 +125,9 @@ def run_abstraction(
         Start the audit in a child process and return without waiting: synthesis needs nothing the audit makes,
         so it runs on another core meanwhile. The caller must call :meth:`Abstraction.finish_audit` (which fills
         ``report["audit"]``) or :meth:`Abstraction.cancel_audit`.
+    validated : Validation, optional
+        The spec's :func:`~pipelines.spec.validate.validate_spec`, if the caller ran it: its network and regions
+        (with their exact counts) are the plan, not built and counted again.
 
     Raises
     ------
@@ -137,14 +141,12 @@ def run_abstraction(
 
     t0 = time.perf_counter()
     progress("plan", 0, 1, "building grids")
-    network = build_network(spec, allowed_modules)
-    for s in network.subsystems:
-        if s.triples > spec.options.max_cells:
-            raise SpecError(
-                f"subsystem '{s.name}': {s.triples} (x, u, w) triples exceed options.max_cells = "
-                f"{spec.options.max_cells}; coarsen its grids or raise the cap"
-            )
-    regions = spec_regions(spec, network)
+    if validated is not None:
+        network, regions = validated.network, validated.regions
+    else:
+        network = build_network(spec, allowed_modules)
+        check_cells(spec, network)
+        regions = spec_regions(spec, network)
     groups = network.unique_subsystems()
     progress("plan", 1, 1, f"{len(network.subsystems)} subsystems, {len(groups)} distinct")
     seconds["plan"] = time.perf_counter() - t0
@@ -260,7 +262,8 @@ def abstract_job(
     """
     # Check the spec, claim the directory and open the store before starting a cluster: a bad spec, a directory
     # that cannot be written or holds another job, or a stale store fails at once, and leaves no new directory.
-    network = validate_spec(spec, allowed_modules=allowed_modules, caps=caps).network
+    validated = validate_spec(spec, allowed_modules=allowed_modules, caps=caps)
+    network = validated.network
     local = "://" not in os.fspath(out_dir)
     created = None
     if local:
@@ -271,7 +274,7 @@ def abstract_job(
                                    in_process=in_process)
         try:
             result = run_abstraction(spec, executor=executor, progress=progress, allowed_modules=allowed_modules,
-                                     audit=audit, audit_beside=audit_beside)
+                                     audit=audit, audit_beside=audit_beside, validated=validated)
             try:
                 store.consolidate()
                 if local:  # what `compabs audit` checks

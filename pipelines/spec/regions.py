@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -27,9 +28,9 @@ class AbstractRegion:
 
     boxes: tuple[IndexBox, ...]
 
-    @property
+    @cached_property
     def states(self) -> int:
-        """Exact number of abstract states in the union."""
+        """Exact number of abstract states in the union (a sweep: counted once per region)."""
         return union_count(list(self.boxes))
 
     def contains(self, idx: np.ndarray) -> np.ndarray:
