@@ -23,7 +23,7 @@ import numpy as np
 
 from pipelines.controller import load_controller
 from pipelines.errors import CompabsError
-from pipelines.spec.costs import Caps, CostError
+from pipelines.spec.costs import Caps, CostError, audit_evaluations
 from pipelines.spec.model import parse_spec, spec_hash
 from pipelines.spec.regions import spec_regions
 from pipelines.verification.audit import audit_abstraction
@@ -128,9 +128,9 @@ def audit_job(
     if transitions < 0:
         raise CompabsError(f"--transitions must be >= 0, got {transitions}")
     caps = caps if caps is not None else Caps.local()
-    # Each part draws `transitions`: every distinct subsystem and the map once, the composition every subsystem
-    # and the map again.
-    evaluations = transitions * (len(arts.network.unique_subsystems()) + 1 + len(arts.network.subsystems) + 1)
+    # Every part draws `transitions`, the composition too (not the job audit's tenth).
+    evaluations = audit_evaluations(transitions, len(arts.network.unique_subsystems()), len(arts.network.subsystems),
+                                    composition=transitions)
     if evaluations > caps.max_audit_evaluations:
         raise CostError("--transitions", evaluations, caps.max_audit_evaluations, "max_audit_evaluations",
                         f"--transitions {transitions:,} makes {evaluations:,} black-box evaluations; {caps.owner} cap "

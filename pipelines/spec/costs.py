@@ -62,12 +62,10 @@ from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS
 from pipelines.errors import SpecError
 from pipelines.network import Network, Subsystem
 from pipelines.spec.model import JobSpec
+from pipelines.verification.audit import composition_transitions
 
 #: Steps of a closed-loop run when ``closed_loop_steps`` is automatic, at the least (``2 * iterations + 30``).
 AUTO_STEPS_MIN = 30
-#: Composed transitions of the audit: ``max(min(count, AUDIT_COMPOSITION_MIN), count // 10)``
-#: (:func:`pipelines.verification.audit.audit_abstraction`).
-AUDIT_COMPOSITION_MIN = 10_000
 #: Environment variables of the caps: ``COMPABS_`` + the field's name in upper case.
 ENV_PREFIX = "COMPABS_"
 
@@ -308,11 +306,14 @@ def _interconnection_costs(spec: JobSpec, network: Network) -> list[Cost]:
     return costs
 
 
-def audit_evaluations(count: int, distinct: int, subsystems: int) -> int:
-    """Black-box evaluations of an audit of ``count`` transitions (:func:`~pipelines.verification.audit.audit_abstraction`)."""
+def audit_evaluations(count: int, distinct: int, subsystems: int, composition: int | None = None) -> int:
+    """Black-box evaluations of an audit of ``count`` transitions per part and ``composition`` composed ones
+    (default: the job's, :func:`~pipelines.verification.audit.composition_transitions`), as
+    :func:`~pipelines.verification.audit.audit_abstraction` draws them."""
     if count <= 0:
         return 0
-    composition = max(min(count, AUDIT_COMPOSITION_MIN), count // 10)
+    if composition is None:
+        composition = composition_transitions(count)
     return count * (distinct + 1) + composition * (subsystems + 1)
 
 
@@ -321,7 +322,7 @@ def _tail_costs(spec: JobSpec, network: Network, distinct: int) -> list[Cost]:
     subs = len(network.subsystems)
     count = opts.audit_transitions
     audit = audit_evaluations(count, distinct, subs)
-    composition = max(min(count, AUDIT_COMPOSITION_MIN), count // 10)
+    composition = composition_transitions(count)
     costs = [Cost(
         "max_audit_evaluations", "options.audit_transitions", audit,
         f"options.audit_transitions = {count} means {audit} black-box evaluations in the audit ({count} for each of "

@@ -259,6 +259,17 @@ def audit_composition(
     return AuditResult(checked, violations, skipped, first)
 
 
+#: Composed transitions of an audit of ``count`` transitions per part: at least ``min(count, COMPOSITION_MIN)``.
+COMPOSITION_MIN = 10_000
+
+
+def composition_transitions(count: int) -> int:
+    """Transitions of the composed system that :func:`audit_abstraction` draws by default: a tenth of ``count``
+    (the composition checks the same inclusions again, plus the wiring between the parts), at least
+    ``min(count, COMPOSITION_MIN)``."""
+    return max(min(count, COMPOSITION_MIN), count // 10)
+
+
 def audit_abstraction(
     network: Network, relations: dict[str, SubsystemRelation], ia: Any, count: int, rng: np.random.Generator,
     progress: Callable[[int, int, str], None] | None = None, composition: int | None = None,
@@ -269,7 +280,7 @@ def audit_abstraction(
     Returns the report's ``audit`` entry (``transitions_checked``, ``violations``, ``parts``). Draws from ``rng``
     in a fixed order, so the same generator state gives the same report in any process.
     ``progress(done, total, part)`` is called after each part. ``composition``: transitions of the composed
-    system (default: a tenth of ``count``, at least ``min(count, 10^4)``). ``seconds``, if given, receives each
+    system (default: :func:`composition_transitions`). ``seconds``, if given, receives each
     part's wall time (kept out of the report, so the same draws give the same report).
     """
     report = progress or (lambda done, total, part: None)
@@ -289,10 +300,10 @@ def audit_abstraction(
         timed(sub.name, lambda: audit_subsystem(sub, rel, count, rng))  # noqa: B023 - called at once
     timed("interconnection", lambda: audit_interconnection(network, ia, count, rng))
     # The composed system: the same inclusions again, plus the wiring between the parts (which w_j each
-    # subsystem reads, offsets, which relation serves which replica). A tenth of the transitions is plenty
-    # for that here; `compabs audit DIR --transitions N` draws N of them against the stored abstraction.
+    # subsystem reads, offsets, which relation serves which replica); `compabs audit DIR --transitions N` draws
+    # N of them against the stored abstraction.
     if composition is None:
-        composition = max(min(count, 10_000), count // 10)
+        composition = composition_transitions(count)
     timed("composition", lambda: audit_composition(network, relations, ia, composition, rng))
     return {
         "transitions_checked": sum(p.transitions_checked for p in parts.values()),
