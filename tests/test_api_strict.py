@@ -428,3 +428,20 @@ def test_a_query_parameter_given_twice_is_refused(tmp_path):
         r = client.get("/jobs?limit=1&limit=360")
         assert r.status_code == 422 and "'limit' is given 2 times" in r.json()["detail"], r.text
         assert client.get("/jobs?limit=1").status_code == 200
+
+
+def test_an_unknown_key_named_like_a_union_tag_is_named():
+    """The error formatter drops pydantic's union tags (``float``, ``none``, ...) from field names; an unknown key a
+    user called ``none`` is not a tag and must still be named (found by the trust campaign's mutated specs)."""
+    import yaml
+
+    from pipelines.errors import SpecError
+    from pipelines.spec.model import parse_spec
+
+    from .conftest import EXAMPLES
+
+    data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
+    data["none"], data["options"]["float"] = 1, 2
+    with pytest.raises(SpecError) as err:
+        parse_spec(data)
+    assert "\n  none: Extra inputs" in str(err.value) and "options.float: Extra inputs" in str(err.value), err.value

@@ -249,9 +249,12 @@ def json_schema() -> dict[str, Any]:
 _UNION_TAG = re.compile(r"^(float|int|str|bool|none|[a-z-]+\[.*\]|[A-Z][A-Za-z]*(Spec|Region))$")
 
 
-def _field_name(loc: tuple[int | str, ...]) -> str:
+def _field_name(loc: tuple[int | str, ...], kind: str = "") -> str:
+    """The field an error is about, without union tags. The last element of an ``extra_forbidden`` location is the
+    user's own key (which may well be called ``none`` or ``float``), never a tag."""
+    keep = len(loc) - 1 if kind == "extra_forbidden" else len(loc)
     parts = [str(p) for i, p in enumerate(loc)
-             if not (isinstance(p, str) and _UNION_TAG.match(p) and (i == 0 or loc[i - 1] != "parameters"))]
+             if i >= keep or not (isinstance(p, str) and _UNION_TAG.match(p) and (i == 0 or loc[i - 1] != "parameters"))]
     return ".".join(parts) or "(spec)"
 
 
@@ -259,7 +262,7 @@ def _format_validation_error(err: ValidationError) -> str:
     # One line per field; a union's members' complaints about the same field are joined with "or".
     messages: dict[str, list[str]] = {}
     for e in err.errors():
-        said = messages.setdefault(_field_name(e["loc"]), [])
+        said = messages.setdefault(_field_name(e["loc"], e["type"]), [])
         if e["msg"] not in said:
             said.append(e["msg"])
     return "invalid spec:\n  " + "\n  ".join(f"{loc}: {' or '.join(msgs)}" for loc, msgs in messages.items())
