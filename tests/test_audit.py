@@ -187,3 +187,25 @@ def test_relations_of_another_spec_are_refused(job, capsys):
     assert main(["audit", str(job), "--transitions", "10"]) == 2
     err = capsys.readouterr().err
     assert "relations.zarr" in err and "mixes two jobs" in err, err
+
+
+def test_either_cell_chooses_per_coordinate_and_stays_on_the_grid():
+    """A point on the upper box edge in one coordinate and on an inner cell boundary in another: each coordinate
+    takes its upper or lower cell independently, and the edge coordinate never leaves the grid (the whole-point
+    swap did, and grid.ravel raised 'invalid entry in coordinates array')."""
+    from pipelines.grid import UniformGrid
+    from pipelines.verification.audit import _either_cell
+
+    grid = UniformGrid.covering([0.0, 0.0], [2.0, 3.0], [1.0, 1.0])  # points 0..2 and 0..3: edges at 2.5, 3.5
+    x = np.tile([[2.0, 1.5]], (400, 1))  # x1 = 2 is the grid's last point; x2 = 1.5 is a boundary of cells 1, 2
+    x[:200, 0] = 2.5  # the upper edge of the last cell in x1 ...
+    x[:100, 0] = 0.5  # ... and an inner boundary (cells 0 and 1)
+    corner = np.tile([[-0.5, 3.5]], (50, 1))  # the lower edge in x1 and the upper edge in x2 at once
+    idx = _either_cell(grid, np.vstack([x, corner]), np.random.default_rng(0))
+    grid.ravel(idx)  # every index is on the grid
+    assert (idx[400:] == [0, 3]).all()
+    idx = idx[:400]
+    assert set(idx[:100, 0]) == {0, 1} and set(idx[:, 1]) == {1, 2}
+    assert set(idx[100:200, 0]) == {2}  # the edge of the box: only the cell that holds it
+    pairs = {tuple(r) for r in idx[:100]}
+    assert len(pairs) == 4  # the coordinates are chosen independently

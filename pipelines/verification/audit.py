@@ -61,16 +61,18 @@ def draw_in_box(grid: UniformGrid, count: int, rng: np.random.Generator, boundar
 def _either_cell(grid: UniformGrid, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Cell indices of points, shape (B, d), taking at random the upper or lower cell on a boundary.
 
-    A point on a boundary is related to both cells, so over many draws both assignments get checked.
+    A point on a boundary is related to both cells, so over many draws both assignments get checked. The choice
+    is per coordinate (a point may lie on a boundary in one coordinate only), and so is the fallback: on the box
+    edge the outer cell of that coordinate may be off the grid, and the other one, which holds the point, is
+    taken for that coordinate alone.
     """
-    up, inside = grid.cell_of(x, "upper")
-    low, inside_low = grid.cell_of(x, "lower")
-    pick = rng.random(len(x)) < 0.5
-    idx = np.where(pick[:, None], up, low)
-    ok = np.where(pick, inside, inside_low)
-    # On the box edge the outer cell may be off the grid: use the other one, which holds the point.
-    idx = np.where(ok[:, None], idx, np.where(pick[:, None], low, up))
-    return idx
+    up = grid.cell_of(x, "upper")[0]
+    low = grid.cell_of(x, "lower")[0]
+    top = np.asarray(grid.shape, dtype=np.int64)
+    pick_up = rng.random(up.shape) < 0.5
+    idx = np.where(pick_up, up, low)
+    off = (idx < 0) | (idx >= top)
+    return np.where(off, np.where(pick_up, low, up), idx)
 
 
 def audit_subsystem(sub: Subsystem, rel: SubsystemRelation, count: int, rng: np.random.Generator) -> AuditResult:
