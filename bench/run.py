@@ -1,4 +1,4 @@
-"""compabs benchmark (issue 6): the paper's cases end to end, scalability in N, and baselines, in one run.
+"""compabs benchmark (issues 6 and 22): the paper's cases end to end, scalability in N, and baselines, in one run.
 
     python bench/run.py                      # every case except consensus (about 8-10 minutes here)
     python bench/run.py --quick              # small sizes, about 1 minute (what tests/test_bench.py runs)
@@ -41,6 +41,10 @@ Cases (``--cases``; default: all but ``consensus``):
     One subsystem relation built as a BDD from its interval arrays (the bulk Shannon tree of
     ``SymbolicModel.range_leaves`` + ``SymbolicModel.tree``) against a naive construction, the OR of one cube
     per (cell, input, internal cell) constraint conjoined with its successor interval; same BDD checked.
+``general`` (issue 22; only when named, never under ``--quick``)
+    The field's standard benchmarks (``examples/dcdc.yaml``, ``vehicle.yaml``, ``rooms.yaml``) end to end as
+    ``tanks`` is, their transitions and winning domains, and the per-cell stage against the floor, beside SCOTS's
+    figures (:mod:`bench.general`).
 
 Measurement: every case (every N, every worker count) runs in a fresh child process (``--child``), whose
 stage events are written to a JSON-lines file as they happen, so a case killed at its timeout still reports
@@ -213,6 +217,9 @@ def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
     rep = r.report
     emit({"type": "info", "stage_seconds": rep["stage_seconds"], "abstract_states": rep["abstract_states"],
           "region_states": rep.get("region_states"),
+          "subsystems": [_jsonable({k: s.get(k) for k in ("name", "growth_bound", "scp_objective", "triples",
+                                                            "mean_successors", "non_blocking")})
+                         for s in rep["subsystems"]],
           "interconnection_mode": _jsonable(rep["interconnection"].get("output_modes"))})
     with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
         try:
@@ -298,6 +305,9 @@ def _floor_function(sub, network) -> tuple[Callable, Callable]:
     from pipelines.expressions import compile_expression
     from pipelines.spec.model import is_module_function
 
+    if getattr(sub.spec, "ode", None):
+        # An ODE: the black box is the integrator over the right-hand side; the floor is that integration alone.
+        return (lambda *arrays: sub.dynamics(*arrays)), (lambda arrays: arrays)
     src = sub.spec.dynamics
     names = list(sub.dynamics.inputs)  # x, u, w in call order
     if is_module_function(src):
@@ -1036,6 +1046,12 @@ def print_table(results: dict, out=sys.stdout) -> None:
         ex = s["exponents"]
         w(f"  scalability exponent over N={s['fit_N']}: abstraction {_fmt(ex['abstraction'])}, composition "
           f"{_fmt(ex['composition'])}, total {_fmt(ex['total'])}" + (f"; breaks: {s['breaks']}" if s["breaks"] else ""))
+    if "general" in results["cases"]:
+        from bench.general import general_lines
+
+        w("  general: the field's benchmarks beside SCOTS (examples/dcdc, vehicle, rooms)")
+        for line in general_lines(results["cases"]["general"], _fmt):
+            w(line)
     for name in ("floor", "scp", "workers", "bdd"):
         c = results["cases"].get(name)
         if not c:
@@ -1069,7 +1085,7 @@ def print_table(results: dict, out=sys.stdout) -> None:
         if c.get("error"):
             w(f"    error: {c['error'][:300]}")
     w()
-    w("issue 6 targets")
+    w("targets (issues 6 and 22)")
     for k, (val, target, ok) in results["targets"].items():
         w(f"  {k:<34} {_fmt(val):>10}  target {target:<10} {'met' if ok else ('NOT met' if ok is False else '-')}")
 
@@ -1113,6 +1129,10 @@ def targets(results: dict) -> dict[str, tuple]:
     if "bdd" in c:
         v = c["bdd"]["ratio"]
         put("bulk BDD speed-up (least)", v, "> 1", v is not None and v > 1)
+    if "general" in c:
+        from bench.general import general_targets
+
+        general_targets(c["general"], put)
     return out
 
 
@@ -1167,8 +1187,8 @@ def meta(args) -> dict:
     }
 
 
-ALL_CASES = ("tanks", "consensus", "scalability", "floor", "scp", "workers", "bdd")
-DEFAULT_CASES = tuple(c for c in ALL_CASES if c != "consensus")
+ALL_CASES = ("tanks", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general")
+DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1214,6 +1234,17 @@ def main(argv: list[str] | None = None) -> int:
             _progress(rec)
         elif case == "scalability":
             results["cases"]["scalability"] = bench_scalability(args)
+        elif case == "general":
+            if args.quick:
+                results["skipped"]["general"] = "not run under --quick"
+                continue
+            from bench.general import bench_general
+            from workers.cluster import worker_environ
+
+            rec = bench_general(args, run_child=run_child, case_record=case_record, examples=EXAMPLES,
+                                worker_environ=worker_environ)
+            results["cases"]["general"] = rec
+            _progress({**rec, "process_wall": sum(r["process_wall"] for r in rec["runs"])})
         else:
             rec = {"floor": bench_floor, "scp": bench_scp, "workers": bench_workers, "bdd": bench_bdd}[case](args)
             results["cases"][case] = rec

@@ -1,0 +1,126 @@
+"""The ``general`` case of ``bench/run.py`` (issue 22): the field's standard benchmarks, side by side with SCOTS.
+
+For each example (``examples/dcdc.yaml``, ``examples/vehicle.yaml``, ``examples/rooms.yaml``): the job end to end in
+one process (abstraction with the audit beside synthesis, synthesis, closed loop, files), its abstract states,
+transitions and winning domain, and the per-cell stage against the floor (the black box alone on the same samples,
+:func:`bench.run.child_floor`), printed beside SCOTS's figures (:data:`SCOTS`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+#: SCOTS v0.2 (and Dionysos.jl) on the same problems, measured on this 2-core machine when issue 22 was written.
+#: SCOTS builds the abstraction from the model (a growth bound from the ODE's Jacobian), not from data.
+SCOTS: dict[str, dict[str, Any]] = {
+    "dcdc": {
+        "abstraction_seconds": 0.36,
+        "transitions": 3.8e6,
+        "states": 800 * 799,
+        "domain_states": 593_089,
+        "other": "Dionysos.jl 0.76 s abstraction + 0.22 s synthesis",
+        "source": "SCOTS v0.2 examples/dcdc (safety), grid 800 x 799 (its absolute rounding tolerance)",
+    },
+    "vehicle": {
+        "abstraction_seconds": 4.4,
+        "transitions": 35.8e6,
+        "states": None,
+        "domain_states": None,
+        "other": "",
+        "source": "SCOTS v0.2 examples/vehicle (reach-avoid around 15 obstacles)",
+    },
+    "rooms": None,  # a compositional benchmark: no SCOTS run of it
+}
+#: Issue 22's targets ("Done when") for the general case.
+GENERAL_TARGETS = {"dcdc_seconds": 60.0, "dcdc_domain_vs_scots": 0.95, "audit_transitions": 10**6, "floor": 3.0,
+                   "closed_loop_runs": 100}
+
+
+def transitions_of(subsystems: list[dict]) -> int:
+    """Transitions of the subsystem relations a job built: per distinct subsystem, the non-blocking triples times
+    their mean number of successors under the growth bound that built the relation."""
+    total = 0
+    for s in subsystems:
+        key = "scp_radius" if s["growth_bound"] == "scp" and s.get("scp_objective") == "radius" else s["growth_bound"]
+        mean, live = (s.get("mean_successors") or {}).get(key), (s.get("non_blocking") or {}).get(key)
+        if mean is not None and live is not None:
+            total += round(mean * live)
+    return total
+
+
+def bench_general(args, *, run_child, case_record, examples, worker_environ) -> dict:
+    """Run every example end to end and its floor; the parent side of the ``general`` case."""
+    rows: list[dict] = []
+    for name in ("dcdc", "vehicle", "rooms"):
+        spec = examples / f"{name}.yaml"
+        child = run_child("end_to_end", {"spec": str(spec)}, args.point_timeout, args.mem_limit_gb * 1024)
+        rec = case_record(f"general {name}", child, spec=spec.name)
+        d = rec["details"]
+        rec["transitions"] = transitions_of(d.get("subsystems") or [])
+        floor = run_child("floor", {"spec": str(spec), "repeat": 1}, args.point_timeout, args.mem_limit_gb * 1024,
+                          env=worker_environ())
+        frows = [e["row"] for e in floor["events"] if e["type"] == "row"]
+        rec["floor"] = {"status": floor["status"], "error": floor["error"],
+                        "ratio": max((r["ratio_cpu"] for r in frows), default=None), "rows": frows}
+        scots = SCOTS.get(name)
+        rec["scots"] = scots
+        if scots:
+            rec["vs_scots"] = {
+                "domain_states": _ratio(rec["domain_states"], scots["domain_states"]),
+                "transitions": _ratio(rec["transitions"], scots["transitions"]),
+                "subsystems_seconds": _ratio(rec["stages"].get("subsystems", {}).get("wall"),
+                                             scots["abstraction_seconds"]),
+            }
+        rows.append(rec)
+    return {"case": "general", "status": "ok" if all(r["status"] == "ok" for r in rows) else "error",
+            "error": "; ".join(f"{r['case']}: {r['error']}" for r in rows if r.get("error")) or None,
+            "runs": rows, "peak_rss_mb": max((r["peak_rss_mb"] for r in rows), default=None),
+            "others_cores": max((r["others_cores"] for r in rows), default=None),
+            "ratio": max((r["floor"]["ratio"] or 0.0 for r in rows), default=None)}
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b not in (None, 0) else None
+
+
+def general_lines(c: dict, fmt) -> list[str]:
+    """The general case's table: ours beside SCOTS's per example."""
+    out = [f"  {'example':<9}{'states':>11}{'transitions':>13}{'domain':>11}{'end-to-end s':>14}{'per-cell s':>12}"
+           f"{'/floor':>8}{'audit':>10}{'viol.':>6}{'runs':>6}{'viol.':>6}   SCOTS (states, transitions, domain, s)"]
+    for r in c["runs"]:
+        d = r["details"]
+        audit, loop = d.get("audit") or {}, d.get("closed_loop") or {}
+        s = r.get("scots") or {}
+        scots = (f"{fmt(s.get('states'))}, {fmt(s.get('transitions'))}, {fmt(s.get('domain_states'))}, "
+                 f"{fmt(s.get('abstraction_seconds'))}" if s else "-")
+        out.append(f"  {r['case'].split()[-1]:<9}{fmt(r['abstract_states']):>11}{fmt(r['transitions']):>13}"
+                   f"{fmt(r['domain_states']):>11}{fmt(r['total_wall']):>14}"
+                   f"{fmt(r['stages'].get('subsystems', {}).get('wall')):>12}{fmt(r['floor']['ratio']):>8}"
+                   f"{fmt(audit.get('transitions_checked')):>10}{fmt(audit.get('violations')):>6}"
+                   f"{fmt(loop.get('runs')):>6}{fmt(loop.get('violations')):>6}   {scots}")
+    return out
+
+
+def general_targets(c: dict, put) -> None:
+    """Issue 22's "Done when" checks, through ``put(name, value, target, ok)``."""
+    runs = {r["case"].split()[-1]: r for r in c["runs"]}
+    dc = runs.get("dcdc")
+    if dc:
+        d = dc["details"]
+        audit, loop = d.get("audit") or {}, d.get("closed_loop") or {}
+        ok = dc["status"] == "ok" and dc["total_wall"] <= GENERAL_TARGETS["dcdc_seconds"]
+        put("dcdc end to end s", dc["total_wall"], f"<= {GENERAL_TARGETS['dcdc_seconds']}", ok)
+        share = _ratio(dc["domain_states"], SCOTS["dcdc"]["domain_states"])
+        put("dcdc domain / SCOTS", share, f">= {GENERAL_TARGETS['dcdc_domain_vs_scots']}",
+            share is not None and share >= GENERAL_TARGETS["dcdc_domain_vs_scots"])
+        put("dcdc audit transitions (violations)", audit.get("transitions_checked"), ">= 1e6, 0 violations",
+            (audit.get("transitions_checked") or 0) >= GENERAL_TARGETS["audit_transitions"]
+            and audit.get("violations") == 0 and loop.get("violations") == 0)
+    ve = runs.get("vehicle")
+    if ve:
+        loop = ve["details"].get("closed_loop") or {}
+        put("vehicle closed-loop runs (violations)", loop.get("runs"), ">= 100, 0 violations",
+            (loop.get("runs") or 0) >= GENERAL_TARGETS["closed_loop_runs"] and loop.get("violations") == 0)
+    worst = c.get("ratio")
+    put("general per-cell / floor (worst)", worst, f"<= {GENERAL_TARGETS['floor']}",
+        worst is not None and worst <= GENERAL_TARGETS["floor"])
