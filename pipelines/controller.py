@@ -13,12 +13,14 @@ disk and answers in milliseconds.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipelines.errors import CompabsError
+from pipelines.export.table import EXPORT_FORMAT, ExportedController, load_export, quantize
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
 from pipelines.symbolic.files import dump, load_all
@@ -64,6 +66,25 @@ class Controller:
         return sum(g.dim for g in self._input_grids)
 
     @property
+    def model(self):
+        """The :class:`~.symbolic.model.SymbolicModel` the controller's BDDs live in."""
+        return self._model
+
+    @property
+    def relation(self) -> Function:
+        """The controller ``C(x̂, û)`` over current-state and input bits."""
+        return self._bdd
+
+    @property
+    def domain(self) -> Function:
+        """The controller's domain ``∃û.C`` over current-state bits."""
+        return self._domain
+
+    @property
+    def input_grids(self) -> list[UniformGrid]:
+        return list(self._input_grids)
+
+    @property
     def state_grid(self) -> UniformGrid:
         return self._state_grid
 
@@ -73,14 +94,13 @@ class Controller:
         return idx[0] if ok[0] else None
 
     def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cell indices of concrete states, shape (B, n) -> (B, n), and whether each is in the box and on the
-        grid, shape (B,) (indices of the others are meaningless)."""
-        X = np.asarray(X, dtype=float)
-        if X.ndim != 2 or X.shape[1] != self._state_grid.dim:
-            raise CompabsError(f"a state has {self._state_grid.dim} components, got shape {X.shape[1:]}")
-        in_box = np.all((X >= np.asarray(self._state_grid.lb)) & (X <= np.asarray(self._state_grid.ub)), axis=1)
-        idx, inside = self._state_grid.cell_of(X)
-        return idx, in_box & inside
+        """Cell indices of concrete states, shape (B, n) -> (B, n), and whether each is in the box, shape (B,)
+        (indices of the others are meaningless).
+
+        A state on a cell boundary gets the upper cell, per coordinate the lower one where the upper is off the
+        grid, so a state on the upper edge of the box has a cell (:func:`~.export.table.quantize`, which the C
+        export reproduces)."""
+        return quantize(self._state_grid, X)
 
     def input_set(self, idx: np.ndarray):
         """The inputs allowed at a cell as a BDD over the input bits."""
@@ -214,6 +234,24 @@ class LayeredController(Controller):
         return cls(cpre.model, cpre.admissible, cpre.chain, cpre.M, result.layers, result.stay, meta)
 
     @property
+    def layers(self) -> tuple[Function, ...]:
+        return self._layers
+
+    @property
+    def stay(self) -> bool:
+        return self._stay
+
+    @property
+    def ingredients(self) -> tuple[list[tuple[Function, list[str]]], Function, Function | None]:
+        """``(chain, admissible, M)``: the CPre ingredients (:func:`~.synthesis.cpre.bad_inputs`)."""
+        return self._chain, self._admissible, self._M
+
+    @property
+    def relation(self) -> Function:
+        raise CompabsError("a layered controller is not stored as one BDD over states and inputs; evaluate it per "
+                           "cell (input_set) or determinize it (pipelines.export)")
+
+    @property
     def nodes(self) -> int:
         roots = [self._admissible, *(r for r, _ in self._chain), *self._layers] + ([self._M] if self._M is not None else [])
         return sum(f.dag_size for f in roots)
@@ -268,8 +306,17 @@ class LayeredController(Controller):
         return dump(self._model, Path(directory) / name, roots, meta)
 
 
-def load_controller(directory: str | os.PathLike[str], name: str = CONTROLLER_FILE) -> Controller:
-    """Load a controller written by ``compabs run`` (``DIR/controller.dddmp`` and ``DIR/controller.json``)."""
+def load_controller(
+    directory: str | os.PathLike[str], name: str = CONTROLLER_FILE
+) -> Controller | ExportedController:
+    """Load a controller written by ``compabs run`` (``DIR/controller.dddmp`` and ``DIR/controller.json``), or a
+    determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
+    ``inputs(x)`` (:class:`~.export.table.ExportedController`)."""
+    path = Path(directory)
+    if path.is_file():
+        if _is_export(path):
+            return load_export(path)
+        directory, name = path.parent, path.name.removesuffix(".json").removesuffix(".dddmp")
     base = Path(directory) / name
     if not base.with_name(base.name + ".json").exists():
         raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
@@ -281,6 +328,13 @@ def load_controller(directory: str | os.PathLike[str], name: str = CONTROLLER_FI
     admissible, chain, layers = roots[0], roots[1:1 + n_chain], roots[1 + n_chain:1 + n_chain + n_layers]
     M = roots[1 + n_chain + n_layers] if meta["shared"] else None
     return LayeredController(model, admissible, list(zip(chain, meta["chain_next_bits"])), M, layers, meta["stay"], meta)
+
+
+def _is_export(path: Path) -> bool:
+    """Whether a file is a JSON export (its ``format``; the first bytes are enough)."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    return re.search(rb'"format"\s*:\s*"' + re.escape(EXPORT_FORMAT.encode()) + rb'"', head) is not None
 
 
 def controller_of(cpre: ControllablePredecessor, result: SynthesisResult, meta: dict) -> Controller:

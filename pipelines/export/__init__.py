@@ -1,0 +1,13 @@
+"""Controllers that leave the tool: determinized, minimised, written as JSON, CSV or C, and read back (issue 25).
+
+* :mod:`.table` — the exported form of a determinized controller (a reduced BDD over the state bits as a node
+  table, or an exact decision tree over the cell indices), the quantizer shared with
+  :meth:`~pipelines.controller.Controller.cells`, and :class:`~.table.ExportedController` (the JSON read back).
+* :mod:`.determinize` — one input per domain state, by a documented rule, as a BDD; its node table.
+* :mod:`.tree` — an exact axis-aligned decision tree over the cell indices (greedy, CART-like).
+* :mod:`.emit` — the export (the smaller of the two forms) as JSON and CSV.
+* :mod:`.c` — the export as a C99 header and source (``compabs_control``).
+
+This ``__init__`` imports nothing: :mod:`pipelines.controller` imports :mod:`.table`, and :mod:`.determinize`
+imports :mod:`pipelines.controller`.
+"""

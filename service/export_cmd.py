@@ -1,0 +1,177 @@
+"""``compabs export``, ``compabs import`` and ``compabs control``: controllers that leave the tool (docs/export.md).
+
+* ``export DIR --format {json,csv,c}``: the job's controller determinized and minimised (:mod:`pipelines.export`);
+* ``import FILE.json``: a JSON export read back (its summary, or its input at ``--x``);
+* ``control DIR --x 1,2``: the admissible inputs at a concrete state, and the determinized one. Outside the
+  controller's domain (or the state box) it says so and exits 1.
+
+Every failure is one ``error:`` line and exit status 2 (:func:`service.cli.main`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipelines.errors import SpecError
+from service.arguments import count
+from workers import jobdir
+
+#: Exit status of ``compabs control`` / ``compabs import --x`` at a state without an input.
+NO_INPUT = 1
+
+
+def parse_state(text: str, dim: int, flag: str = "--x") -> np.ndarray:
+    """A comma-separated concrete state with ``dim`` finite components."""
+    try:
+        x = np.array([float(v) for v in text.split(",")], dtype=float)
+    except ValueError:
+        raise SpecError(f"{flag} expects comma-separated numbers, got {text!r}") from None
+    if x.size != dim:
+        raise SpecError(f"{flag} has {x.size} components; the controller's states have {dim}")
+    if not all(math.isfinite(v) for v in x):
+        raise SpecError(f"{flag} {text!r} has a component that is not a finite number")
+    return x
+
+
+def _name(args: argparse.Namespace) -> str:
+    return jobdir.CONTROLLER if not args.controller else f"{jobdir.CONTROLLER}_{args.controller}"
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Write the export; print its sizes (JSON) and the files written."""
+    from pipelines.controller import load_controller
+    from pipelines.export.c import write_c
+    from pipelines.export.emit import export_controller, write_csv, write_json
+
+    ctrl = load_controller(args.dir, _name(args))
+    from pipelines.controller import Controller
+
+    assert isinstance(ctrl, Controller)
+    form = args.form if args.format != "csv" else "bdd"  # a CSV lists cells: no need for a tree
+    export = export_controller(ctrl, form=form, rule=args.rule)
+    default = Path(args.dir) / f"{_name(args)}_export"
+    out = Path(args.out) if args.out else default
+    if args.format == "json":
+        files = [write_json(export, out if args.out else out.with_suffix(".json"))]
+    elif args.format == "csv":
+        files = [write_csv(export, out if args.out else out.with_suffix(".csv"), args.max_rows)]
+    else:
+        files = list(write_c(export, out))
+    summary = {"rule": export.rule, **export.sizes, "files": [str(f) for f in files]}
+    if args.format == "c":
+        summary["c_bytes"] = sum(f.stat().st_size for f in files)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Read a JSON export back; print its summary, or its input at ``--x`` (exit 1 outside its domain)."""
+    from pipelines.export.table import load_export
+
+    ctrl = load_export(args.file)
+    if args.x is None:
+        print(json.dumps({**ctrl.meta, "state_dim": ctrl.state_grid.dim, "input_dim": ctrl.input_dim}, indent=1))
+        return 0
+    x = parse_state(args.x, ctrl.state_grid.dim)
+    u = ctrl.input(x)
+    if u is None:
+        print(f"x = {x.tolist()} is outside the exported controller's domain: no input")
+        return NO_INPUT
+    print(",".join(repr(float(v)) for v in u))
+    return 0
+
+
+def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobdir.CONTROLLER) -> dict[str, Any]:
+    """What ``compabs control`` reports at a state: its cell, the admissible inputs, the determinized one."""
+    from pipelines.controller import Controller, LayeredController, load_controller
+    from pipelines.export.determinize import determinized_at, resolve_rule
+
+    ctrl = load_controller(directory, name)
+    assert isinstance(ctrl, Controller)
+    x = parse_state(x_text, ctrl.state_grid.dim)
+    rule = resolve_rule(ctrl, rule)
+    idx = ctrl.cell(x)
+    out: dict[str, Any] = {"x": x.tolist(), "cell": None, "cell_centre": None, "in_domain": False, "inputs": [],
+                           "determinized": None, "rule": rule, "fixed_point": ctrl.meta.get("fixed_point")}
+    if idx is None:
+        out["reason"] = "outside the state box"
+        return out
+    out["cell"] = [int(v) for v in idx]
+    out["cell_centre"] = ctrl.state_grid.points(idx[None, :])[0].tolist()
+    if isinstance(ctrl, LayeredController):
+        out["layer"] = ctrl.layer_of(idx)
+    inputs = ctrl.inputs(x)
+    out["inputs"] = inputs.tolist()
+    out["in_domain"] = bool(inputs.shape[0])
+    if not out["in_domain"]:
+        out["reason"] = "outside the controller's domain"
+        return out
+    codes = determinized_at(ctrl, idx, rule)
+    assert codes is not None
+    parts = [g.points(g.unravel(codes[s:s + 1])) for s, g in enumerate(ctrl.input_grids)]
+    out["determinized"] = np.concatenate(parts, axis=1)[0].tolist()
+    return out
+
+
+def format_control(r: dict[str, Any], limit: int) -> str:
+    """The report of :func:`control_at` as a short table."""
+    lines = [f"x = {r['x']}"]
+    if r["cell"] is None:
+        return "\n".join(lines + [f"no input: x is {r['reason']}"])
+    layer = f", layer {r['layer']}" if r.get("layer") is not None else ""
+    lines.append(f"cell {r['cell']} (centre {r['cell_centre']}){layer}")
+    if not r["in_domain"]:
+        return "\n".join(lines + [f"no input: x is {r['reason']}"])
+    m = len(r["inputs"][0])
+    rows = [[f"u{j + 1}" for j in range(m)]] + [[f"{v:g}" for v in u] for u in r["inputs"][:limit]]
+    width = max(len(c) for row in rows for c in row)
+    lines.append(f"admissible inputs ({len(r['inputs'])}):")
+    lines += ["  " + "  ".join(c.rjust(width) for c in row) for row in rows]
+    if len(r["inputs"]) > limit:
+        lines.append(f"  ... and {len(r['inputs']) - limit} more (--limit, --json)")
+    lines.append(f"determinized ({r['rule']} rule): " + ", ".join(f"{v:g}" for v in r["determinized"]))
+    return "\n".join(lines)
+
+
+def cmd_control(args: argparse.Namespace) -> int:
+    """Print the inputs at ``--x``: 0 if there is one, 1 outside the domain or the box (2 for a user error)."""
+    r = control_at(args.dir, args.x, args.rule, _name(args))
+    print(json.dumps(r) if args.json else format_control(r, args.limit))
+    return 0 if r["in_domain"] else NO_INPUT
+
+
+def add_parser(sub: Any) -> None:
+    """Register ``compabs export``, ``compabs import`` and ``compabs control`` on the CLI's subparsers."""
+    from pipelines.export.determinize import RULES
+    from pipelines.export.emit import CSV_MAX_ROWS, FORMS
+
+    e = sub.add_parser("export", help="write a job's controller determinized and minimised as JSON, CSV or C")
+    e.add_argument("dir", help="output directory of 'compabs run'")
+    e.add_argument("--format", choices=["json", "csv", "c"], required=True)
+    e.add_argument("--out", default=None, help="file (json, csv) or base name of NAME.h/NAME.c (c); default "
+                   "DIR/controller_export.*")
+    e.add_argument("--rule", choices=RULES, default="auto", help="determinization rule (docs/export.md)")
+    e.add_argument("--form", choices=FORMS, default="auto", help="bdd, tree or the smaller (auto)")
+    e.add_argument("--controller", default=None, metavar="FIXED_POINT",
+                   help="another stored fixed point's controller (controller_<FIXED_POINT>.json)")
+    e.add_argument("--max-rows", type=count(1), default=CSV_MAX_ROWS, help="largest CSV (domain cells)")
+    e.set_defaults(func=cmd_export)
+    i = sub.add_parser("import", help="read a JSON controller export back: its summary, or its input at --x")
+    i.add_argument("file", help="a file written by 'compabs export --format json'")
+    i.add_argument("--x", default=None, help="a state, comma-separated: print the exported controller's input")
+    i.set_defaults(func=cmd_import)
+    c = sub.add_parser("control", help="the admissible inputs of a job's controller at a state (exit 1 outside "
+                       "its domain)")
+    c.add_argument("dir", help="output directory of 'compabs run'")
+    c.add_argument("--x", required=True, help="the state, comma-separated")
+    c.add_argument("--rule", choices=RULES, default="auto", help="rule of the determinized input")
+    c.add_argument("--controller", default=None, metavar="FIXED_POINT", help="as for export")
+    c.add_argument("--json", action="store_true", help="print JSON")
+    c.add_argument("--limit", type=count(1), default=20, help="admissible inputs listed in the table")
+    c.set_defaults(func=cmd_control)
