@@ -10,8 +10,11 @@ shape ``(n_x, n_u, n_w[, n])`` indexed by the flat cell indices of the three gri
 of state cells; :func:`abstract_cells` computes one chunk and is what a distributed runner maps.
 
 Successor statistics (the report's ``mean_successors``) are exact for ``lipschitz``, ``hull`` and the SCP
-objective that builds the relation; the other SCP objective is counted on a fixed sample of about one triple in
-eight (:data:`STATISTICS_SAMPLE`), so its mean is an estimate and its ``non_blocking`` count the sample's.
+objective that builds the relation. An SCP objective that does not build it is counted on every triple of a
+scalar subsystem (the closed-form SCP costs little there) and, for ``dim(x) > 1``, on a fixed sample of the
+triples (:func:`statistics_sample`, at most one in eight and small enough that it never costs more than the
+chosen growth bound: :func:`~pipelines.abstraction.cost.statistics_fraction`), so its mean is an estimate and
+its ``non_blocking`` count the sample's.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 import pipelines.abstraction.kernels as compiled
+from pipelines.abstraction.cost import STATISTICS_SAMPLE, statistics_fraction, triple_cost
 from pipelines.abstraction.growth_bound import (
     FP_RTOL,
     SCP_TIE_RTOL,
@@ -30,12 +34,12 @@ from pipelines.abstraction.growth_bound import (
     lipschitz_radius,
     pair_maxima_batch_last,
     scp_parameters_batch_last,
-    scp_reference,
     scp_rho,
     subgrid_counts,
     widen,
 )
 from pipelines.abstraction.relation import CellsResult, SlopeRecord
+from pipelines.abstraction.scp import scp_radii
 from pipelines.grid import SNAP_RTOL, UniformGrid
 from pipelines.network import Subsystem
 
@@ -157,15 +161,12 @@ def _slope(d: np.ndarray, h: np.ndarray) -> np.ndarray:
     return np.divide(d, h, out=np.zeros_like(d), where=h > 0)
 
 
-#: Share of the triples on which the successor statistic of an SCP objective that is *not* the one building
-#: the relation is computed when ``abstract_cells(..., full_statistics=False)`` (the default counts all).
-STATISTICS_SAMPLE = 1 / 8
 
 
-def statistics_sample(first_triple: int, count: int) -> np.ndarray:
+def statistics_sample(first_triple: int, count: int, fraction: float = STATISTICS_SAMPLE) -> np.ndarray:
     """Which of the triples ``first_triple .. first_triple + count - 1`` (global flat indices ``(x, u, w)``
-    of a subsystem) the sampled statistics use: a fixed hash of the global index below
-    :data:`STATISTICS_SAMPLE`, so the sample does not depend on how the cells are chunked.
+    of a subsystem) the sampled statistics use: a fixed hash of the global index below ``fraction``
+    (:data:`STATISTICS_SAMPLE` by default), so the sample does not depend on how the cells are chunked.
 
     Returns
     -------
@@ -175,7 +176,7 @@ def statistics_sample(first_triple: int, count: int) -> np.ndarray:
     t = np.arange(first_triple, first_triple + count, dtype=np.uint64)
     with np.errstate(over="ignore"):
         hashed = (t * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(40)  # Fibonacci hashing, top 24 bits
-    return np.flatnonzero(hashed < np.uint64(int(STATISTICS_SAMPLE * (1 << 24))))
+    return np.flatnonzero(hashed < np.uint64(int(fraction * (1 << 24))))
 
 
 @functools.lru_cache(maxsize=64)
@@ -237,7 +238,7 @@ def abstract_cells(
     method: str,
     objective: str,
     *,
-    full_statistics: bool = True,
+    full_statistics: bool | None = None,
 ) -> CellsResult:
     """Abstract the state cells ``start .. stop-1`` of a subsystem under every input and internal cell.
 
@@ -252,13 +253,14 @@ def abstract_cells(
         The growth bound whose successors are returned (all are counted for the report).
     objective : {'paper', 'radius'}
         SCP objective for ``method == 'scp'``.
-    full_statistics : bool
+    full_statistics : bool or None
         The successor counts of ``CellsResult.successors`` are exact for ``lipschitz``, ``hull`` and the SCP
         objective that builds the relation. An SCP objective that does not (both of them unless ``method ==
-        'scp'``) costs one more SCP per triple (0-3 % of the stage with the closed-form SCP), so by default it is
-        counted on every triple and the report's means are exact; ``False`` counts it on a fixed sample of about
-        :data:`STATISTICS_SAMPLE` of the triples (:func:`statistics_sample`): an estimate, with the sample's count
-        of non-blocking triples.
+        'scp'``) is counted on every triple if ``True``, or on a fixed sample of the triples if ``False``
+        (:func:`statistics_sample` with :func:`~pipelines.abstraction.cost.statistics_fraction`, which is
+        :data:`STATISTICS_SAMPLE` for ``dim(x) = 1``): an estimate, with the sample's count of non-blocking
+        triples. ``None`` (the default): every triple for ``dim(x) = 1`` (the closed-form SCP costs 0-3 % of the
+        stage there), the sample otherwise (an LP per triple and row would cost more than the chosen bound).
 
     Returns
     -------
@@ -278,8 +280,9 @@ def abstract_cells(
     samples = off_x.shape[0] * ws.shape[0]
     B = c * n_u * n_w
     step = max(1, BLOCK_POINTS // samples)
+    full = sub.n == 1 if full_statistics is None else full_statistics
     parts = [
-        _abstract_block(sub, start, x_lo, x_hi, t0, min(t0 + step, B), L_x, L_w, method, objective, full_statistics)
+        _abstract_block(sub, start, x_lo, x_hi, t0, min(t0 + step, B), L_x, L_w, method, objective, full)
         for t0 in range(0, B, step)
     ]
     successors = {
@@ -310,6 +313,13 @@ class CellTask:
     L_w: float
     method: str
     objective: str
+
+    @property
+    def cost(self) -> float:
+        """Work of the task in black-box evaluations (:func:`~pipelines.abstraction.cost.triple_cost`)."""
+        sub = self.subsystem
+        triples = (self.stop - self.start) * sub.input_grid.size * sub.n_w_cells
+        return triples * triple_cost(sub, self.method, self.objective)
 
     @property
     def constants(self) -> tuple[float, float, str, str]:
@@ -444,9 +454,10 @@ def _abstract_block(
     rho = scp_rho(HX, HW, L_x, L_w)
     sampled: dict[str, np.ndarray] = {}  # method -> triples (positions in the block) it is computed on
     if not full_statistics:
+        fraction = statistics_fraction(sub, method, objective)
         for name in ("scp", "scp_radius"):
             if name != chosen:
-                sampled[name] = statistics_sample(start * n_u * n_w + t0, B)
+                sampled[name] = statistics_sample(start * n_u * n_w + t0, B, fraction)
     if n == 1 and not scalar:
         vmax_w, vmin_w = V3[..., 0].max(axis=1), V3[..., 0].min(axis=1)
     # The SCP of each objective, on every triple or on the statistics sample (see full_statistics).
@@ -480,18 +491,10 @@ def _abstract_block(
                 rad[todo, 0] = np.minimum(t1_ * RX[t_ix, 0] + t2_, lip[t_ix, 0])  # both bounds are sound: so is the min
             boxes[name] = (C[sel] - rad, C[sel] + rad)
     else:
-        # No batched solver for dim(x) > 1 yet: the reference LP per triple (correct, slow).
-        xs_b = np.broadcast_to(xs[:, None], shape + (n,))
+        radii = scp_radii(V3, RX, HX, rho, lip[:, 0], L_x, tuple(cx), rows, SCP_SKIP_RTOL)
         for name, ix in rows.items():
-            idx = np.arange(B) if ix is None else ix
-            rad = np.empty((idx.size, n))
-            for k, b in enumerate(idx):
-                wt = np.ones(n) if name == "scp" else RX[b]
-                th1, th2 = scp_reference(xs_b[:, :, b].reshape(-1, n), V3[:, :, b].reshape(-1, n), float(rho[b]),
-                                         L_x, wt)
-                rad[k] = th1 @ RX[b] + th2
-            rad = np.minimum(rad, lip[idx])  # both bounds are sound, so is their minimum
-            boxes[name] = (C[idx] - rad, C[idx] + rad)
+            sel = slice(None) if ix is None else ix
+            boxes[name] = (C[sel] - radii[name], C[sel] + radii[name])
 
     # Successor cells of every box at once (elementwise, so the same bits as one box at a time).
     names = list(boxes)

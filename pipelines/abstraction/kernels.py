@@ -376,7 +376,11 @@ def scalar_block(
 
 
 def warm_up() -> None:
-    """Compile (or load from the disk cache) every kernel for the argument types the per-cell stage passes."""
+    """Compile (or load from the disk cache) every kernel for the argument types the per-cell stage passes,
+    those of the n-D SCP (:mod:`pipelines.abstraction.scp`) included."""
+    from pipelines.abstraction import scp
+
+    scp.warm_up()
     V = np.zeros((2, 2, 2))
     vmax, vmin, _, _ = scalar_sample_pass(V)
     E = pair_maxima_batch_last(vmax, vmin)

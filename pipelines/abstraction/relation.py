@@ -89,18 +89,36 @@ def assemble(results: list[CellsResult], n_x: int, method: str, L_x: float, L_w:
     )
 
 
-def chunk_ranges(sub: Subsystem, chunk_cells: int | None, target_points: int | None = None) -> list[tuple[int, int]]:
-    """Split the state cells of a subsystem into chunks.
+#: A subsystem whose per-cell stage costs at least half a task is split into at least this many tasks, so that
+#: the two workers of the embedded cluster (and twice as many on a cluster) all get work: an 81 x 81 grid of a
+#: 2-D system once became one task while a worker idled.
+MIN_TASKS = 4
 
-    By default a chunk holds as many state cells as keep its black-box evaluations near ``target_points``
-    (a few tenths of a second of numpy work: large enough that per-task overhead is small, small enough to
-    bound memory).
+
+def default_chunk_cells(sub: Subsystem, target_points: int | None = None) -> int:
+    """State cells per chunk when the spec does not say (``options.chunk_cells``).
+
+    A chunk costs about ``target_points`` in units of one black-box evaluation: its triples times
+    :func:`~pipelines.abstraction.cost.triple_cost`, which counts the samples, the growth bounds, the SCP's pair
+    maxima and LPs and an ODE's integration steps (tasks sized by their real cost, not their evaluations), and a
+    subsystem of at least half a task is split into at least :data:`MIN_TASKS`.
     """
-    n_x = sub.state_grid.size
+    from pipelines.abstraction.cost import triple_cost
+
     if target_points is None:
         target_points = DEFAULT_CHUNK_POINTS
-    if chunk_cells is None:
-        per_cell = sub.input_grid.size * sub.n_w_cells * max(1, sub.spec.samples)
-        chunk_cells = max(1, target_points // per_cell)
-    return [(s, min(n_x, s + chunk_cells)) for s in range(0, n_x, chunk_cells)]
+    n_x = sub.state_grid.size
+    per_cell = sub.input_grid.size * sub.n_w_cells * triple_cost(sub, sub.spec.growth_bound, sub.spec.scp_objective)
+    by_cost = max(1, int(target_points // per_cell))
+    spread = -(-n_x // MIN_TASKS) if per_cell * n_x >= target_points / 2 else n_x
+    return max(1, min(by_cost, spread))
 
+
+def chunk_ranges(sub: Subsystem, chunk_cells: int | None, target_points: int | None = None) -> list[tuple[int, int]]:
+    """Split the state cells of a subsystem into chunks of ``chunk_cells`` (by default
+    :func:`default_chunk_cells`: a few tenths of a second of work, large enough that per-task overhead is small,
+    small enough to bound memory)."""
+    n_x = sub.state_grid.size
+    if chunk_cells is None:
+        chunk_cells = default_chunk_cells(sub, target_points)
+    return [(s, min(n_x, s + chunk_cells)) for s in range(0, n_x, chunk_cells)]
