@@ -27,7 +27,8 @@ _FIRST_LAST = {k: (*range(1, k), 0) for k in range(1, 65)}
 def as_rows(arrays: Sequence[np.ndarray], shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
     """Arrays of shape ``(*batch_k, d_k)`` that broadcast to ``shape`` as copies of shape ``(prod(shape), d_k)``:
     the arguments a ``module:function`` black box is written for."""
-    return tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(-1, a.shape[-1]) for a in arrays)
+    rows = math.prod(shape)  # not -1: an argument of dimension 0 (no internal variable) has no size to divide
+    return tuple(np.broadcast_to(a, shape + a.shape[-1:]).reshape(rows, a.shape[-1]) for a in arrays)
 
 
 class BlackBox:
@@ -166,14 +167,24 @@ class BlackBox:
         -------
         ndarray, shape (B, out_dim) or (*batch, out_dim), float64, all finite.
         """
+        shape = self._batch_shape(arrays)
+        out = self._evaluate(arrays, shape, describe)
+        self._check_finite(out, shape, arrays, describe)
+        return out
+
+    def _batch_shape(self, arrays: Sequence[np.ndarray]) -> tuple[int, ...]:
         try:
-            shape = np.broadcast_shapes(*(a.shape[:-1] for a in arrays)) if arrays else (0,)
+            return np.broadcast_shapes(*(a.shape[:-1] for a in arrays)) if arrays else (0,)
         except ValueError:
             raise BlackBoxError(
                 f"{self._name}: argument batch shapes {[a.shape[:-1] for a in arrays]} do not broadcast"
             ) from None
+
+    def _evaluate(
+        self, arrays: Sequence[np.ndarray], shape: tuple[int, ...], describe: Callable[[int], str] | None
+    ) -> np.ndarray:
+        """The function on a batch of broadcast ``shape``, shape and exceptions checked, finiteness not."""
         B = math.prod(shape)
-        given = arrays
         flat = len(shape) == 1 and all(a.shape[:-1] == shape for a in arrays)
         if not flat and self._is_module:  # a user function gets the (B, d) arrays it is written for
             arrays = as_rows(arrays, shape)
@@ -193,6 +204,17 @@ class BlackBox:
             out = out.reshape(shape + (self._out_dim,))
         elif out.shape != shape + (self._out_dim,):  # an expression that reads only some of the batch axes
             out = np.ascontiguousarray(np.broadcast_to(out, shape + (self._out_dim,)))
+        return out
+
+    def _check_finite(
+        self,
+        out: np.ndarray,
+        shape: tuple[int, ...],
+        given: Sequence[np.ndarray],
+        describe: Callable[[int], str] | None,
+        what: str = "returned",
+    ) -> None:
+        """Raise :class:`BlackBoxError` naming the first row of ``out`` that is not finite and its inputs."""
         # One read, no temporary: a sum is finite only if every term is (a finite sum can overflow, so a
         # non-finite sum is checked value by value).
         if not np.isfinite(out.sum()):
@@ -206,5 +228,28 @@ class BlackBox:
                     for k, a in zip(self._inputs, given)
                 )
                 where = f" ({describe(row)})" if describe is not None else ""
-                raise BlackBoxError(f"{self._name}: returned {bad.tolist()} (not finite) at {point}{where}")
-        return out
+                raise BlackBoxError(f"{self._name}: {what} {bad.tolist()} (not finite) at {point}{where}")
+
+
+class NoInternalVariables(BlackBox):
+    """The interconnection map of a network without internal variables (a single system): ``x -> ()``.
+
+    Stages that evaluate ``Network.interconnection_map`` get a ``(*batch, 0)`` array, as from a map with no
+    outputs, and need no special case.
+    """
+
+    def __init__(self, state_dim: int) -> None:  # nothing to compile or probe: skip BlackBox.__init__
+        self._name = "interconnection map (none: no internal variables)"
+        self._source = ""
+        self._inputs = {"x": int(state_dim)}
+        self._constants = {}
+        self._allowed = ()
+        self._is_module = False
+        self._fn = self._compile()
+        self._out_dim = 0
+
+    def _compile(self) -> Callable[..., np.ndarray]:
+        def none(x: np.ndarray) -> np.ndarray:
+            return np.zeros(x.shape[:-1] + (0,))
+
+        return none

@@ -13,10 +13,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from pipelines.blackbox import BlackBox
+import numpy as np
+
+from pipelines.blackbox import BlackBox, NoInternalVariables
 from pipelines.errors import SpecError
 from pipelines.grid import UniformGrid
-from pipelines.spec.model import GridSpec, JobSpec, SubsystemSpec
+from pipelines.integrators import SampledFlow
+from pipelines.spec.model import MAX_READ_LENGTH, GridSpec, JobSpec, SubsystemSpec
 
 
 @dataclass(frozen=True)
@@ -115,6 +118,83 @@ def _replicas(s: SubsystemSpec, params: dict[str, float]) -> int:
     return int(r)
 
 
+def _copy_reads(s: SubsystemSpec, si: int, copies: int, params: dict[str, float], p: int) -> list[tuple[int, ...]]:
+    """The internal variables each copy of ``s`` reads: ``reads`` entries are indices, or integer expressions in
+    the copy index ``i`` and the parameters, evaluated for all copies at once.
+
+    Raises
+    ------
+    SpecError
+        An expression that does not compile, is not an integer, or gives an index outside ``0..p-1`` (naming
+        the copy); a copy reading a variable twice.
+    """
+    from pipelines.errors import ExpressionError
+    from pipelines.expressions import compile_expression
+
+    i = np.arange(copies, dtype=float)[None]  # (1, copies): the variable i of dimension 1
+    columns = []
+    for k, j in enumerate(s.reads):
+        where = f"subsystems[{si}] ('{s.name}').reads[{k}]"
+        if isinstance(j, int):
+            values = np.full(copies, float(j))
+        else:
+            try:
+                expr = compile_expression(j, {"i": 1}, params, max_length=MAX_READ_LENGTH)
+                if expr.output_dim() != 1:
+                    raise SpecError(f"{where}: {j!r} has {expr.output_dim()} components; an index is one number")
+                with np.errstate(all="ignore"):  # a non-finite index is refused below, naming the copy
+                    values = np.broadcast_to(np.asarray(expr(i=i), dtype=float), (1, copies))[0]
+            except ExpressionError as exc:
+                raise SpecError(f"{where}: {exc}") from None
+        bad = ~(np.isfinite(values) & (values == np.round(values)) & (values >= 0) & (values < p))
+        if bad.any():
+            r = int(np.argmax(bad))
+            copy = "" if s.replicate == 1 else f" for copy i = {r} ('{s.name}[{r}]')"
+            what = f"internal variable {j}" if isinstance(j, int) else f"{j!r} gives {values[r]:g}{copy}; internal variable"
+            raise SpecError(f"{where}: {what} does not exist ("
+                            + (f"the map has {p} outputs, 0 to {p - 1})" if p else "the network has none)"))
+        columns.append(values.astype(np.int64))
+    table = np.stack(columns, axis=1) if columns else np.zeros((copies, 0), dtype=np.int64)
+    ordered = np.sort(table, axis=1)
+    repeated = (ordered[:, 1:] == ordered[:, :-1]).any(axis=1)
+    if repeated.any():
+        r = int(np.argmax(repeated))
+        copy = "" if s.replicate == 1 else f" of copy i = {r} ('{s.name}[{r}]')"
+        raise SpecError(f"subsystems[{si}] ('{s.name}').reads: repeated internal variable in {table[r].tolist()}"
+                        f"{copy}")
+    return [tuple(int(v) for v in row) for row in table.tolist()]
+
+
+def _dynamics(s: SubsystemSpec, name: str, dims: dict[str, int], params: dict[str, float],
+              allowed_modules: Sequence[str] | None) -> BlackBox:
+    """The subsystem's map ``x+ = f(x, u, w)``: the given one, or the sampled map of its ``ode``."""
+    if s.ode is None:
+        assert s.dynamics is not None
+        return BlackBox(f"subsystem '{name}' dynamics", s.dynamics, dims, dims["x"], params, allowed_modules)
+    assert s.sampling_time is not None  # required with ode (SubsystemSpec)
+    return SampledFlow(f"subsystem '{name}' ode", s.ode, dims, dims["x"], params, allowed_modules,
+                       sampling_time=s.sampling_time, substeps=s.substeps)
+
+
+def _internal(spec: JobSpec, n_total: int, params: dict[str, float], allowed_modules: Sequence[str] | None,
+              ) -> tuple[BlackBox, list[UniformGrid]]:
+    """The interconnection map and the grids of the internal variables (none without an interconnection)."""
+    ic = spec.interconnection
+    if ic is None:
+        return NoInternalVariables(n_total), []
+    imap = BlackBox("interconnection map", ic.map, {"x": n_total}, None, params, allowed_modules)
+    p = imap.out_dim
+    internal_specs = ic.internal if isinstance(ic.internal, list) else [ic.internal] * p
+    if len(internal_specs) != p:
+        raise SpecError(f"interconnection.internal: {len(internal_specs)} grids given, the map has {p} outputs")
+    internal_grids = []
+    for j, g in enumerate(internal_specs):
+        if g.dim != 1:
+            raise SpecError(f"interconnection.internal[{j}]: each internal variable is scalar, got dimension {g.dim}")
+        internal_grids.append(_grid(g, f"interconnection.internal[{j}]", "cover"))
+    return imap, internal_grids
+
+
 def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> Network:
     """Resolve a spec into grids and black boxes.
 
@@ -130,48 +210,26 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
         For an empty grid, an unknown internal variable, a dimension mismatch, a bad expression.
     """
     params = dict(spec.parameters)
-    ic = spec.interconnection
     subsystems: list[Subsystem] = []
     offset = 0
     # Internal grids are known once the map's output dimension is; the map needs the state dimension.
-    state_dims = []
-    for s in spec.subsystems:
-        state_dims += [s.state.dim] * _replicas(s, params)
-    n_total = sum(state_dims)
-    imap = BlackBox("interconnection map", ic.map, {"x": n_total}, None, params, allowed_modules)
+    copies = [_replicas(s, params) for s in spec.subsystems]
+    n_total = sum(s.state.dim * r for s, r in zip(spec.subsystems, copies))
+    imap, internal_grids = _internal(spec, n_total, params, allowed_modules)
     p = imap.out_dim
-    internal_specs = ic.internal if isinstance(ic.internal, list) else [ic.internal] * p
-    if len(internal_specs) != p:
-        raise SpecError(f"interconnection.internal: {len(internal_specs)} grids given, the map has {p} outputs")
-    internal_grids = []
-    for j, g in enumerate(internal_specs):
-        if g.dim != 1:
-            raise SpecError(f"interconnection.internal[{j}]: each internal variable is scalar, got dimension {g.dim}")
-        internal_grids.append(_grid(g, f"interconnection.internal[{j}]", "cover"))
 
     index = 0
     for si, s in enumerate(spec.subsystems):
-        for r in range(_replicas(s, params)):
+        reads = _copy_reads(s, si, copies[si], params, p)
+        for r in range(copies[si]):
             name = s.name if s.replicate == 1 else f"{s.name}[{r}]"
             where = f"subsystems[{si}] ('{name}')"
             xg = _grid(s.state, f"{where}.state", "cover")
             ug = _grid(s.input, f"{where}.input", "inside")
-            for j in s.reads:
-                if not 0 <= j < p:
-                    raise SpecError(f"{where}.reads: internal variable {j} does not exist (the map has {p} outputs)")
-            if len(set(s.reads)) != len(s.reads):
-                raise SpecError(f"{where}.reads: repeated internal variable in {s.reads}")
             wg = None
-            if s.reads:
-                wg = UniformGrid.product([internal_grids[j] for j in s.reads])
-            dyn = BlackBox(
-                f"subsystem '{name}' dynamics",
-                s.dynamics,
-                {"x": xg.dim, "u": ug.dim, "w": len(s.reads)},
-                xg.dim,
-                params,
-                allowed_modules,
-            )
+            if reads[r]:
+                wg = UniformGrid.product([internal_grids[j] for j in reads[r]])
+            dyn = _dynamics(s, name, {"x": xg.dim, "u": ug.dim, "w": len(reads[r])}, params, allowed_modules)
             ident = {
                 "spec": s.model_dump(mode="json", exclude={"name", "replicate", "reads"}),
                 "w": None if wg is None else wg.describe(),
@@ -179,7 +237,7 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
             }
             key = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
             subsystems.append(
-                Subsystem(name, index, s, xg, ug, wg, tuple(s.reads), dyn, offset, key)
+                Subsystem(name, index, s, xg, ug, wg, reads[r], dyn, offset, key)
             )
             offset += xg.dim
             index += 1

@@ -210,7 +210,11 @@ def test_default_chunking_counts_the_executor_tasks():
     spec = parse_spec(data)
     network = build_network(spec, ())
     tasks = {c.cap_name: c.value for c in estimate_costs(spec, network, task_points=100_000_000)}["max_tasks"]
-    assert tasks == 50_001 // 6 + 1  # 6 cells per cluster task
+    # 6 cells per cluster task by evaluations alone; 5 with the growth bound's own work per triple (the SCP's pair
+    # maxima over 316 state samples, the hull's extremes), which sizes tasks by their real cost (triple_cost)
+    assert tasks == 50_001 // 5 + 1
+    in_process = {c.cap_name: c.value for c in estimate_costs(spec, network)}["max_tasks"]
+    assert in_process == 50_001  # 2e6 per in-process chunk: one cell a task
     with pytest.raises(CostError, match=r"set options\.chunk_cells to at least \d+"):
         check_costs(spec, network, dataclasses.replace(Caps.local(), max_tasks=100, max_evaluations=10**14))
 

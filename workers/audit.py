@@ -25,7 +25,7 @@ from pipelines.controller import load_controller
 from pipelines.errors import CompabsError
 from pipelines.spec.costs import Caps, CostError, audit_evaluations
 from pipelines.spec.model import parse_spec, spec_hash
-from pipelines.spec.regions import spec_regions
+from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.verification.audit import audit_abstraction
 from pipelines.verification.closed_loop import run_closed_loop
 from workers import jobdir
@@ -42,12 +42,12 @@ def _closed_loop(arts: jobdir.JobArtifacts, runs: int, rng: np.random.Generator)
         raise CompabsError(f"{arts.directory}/{jobdir.CONTROLLER}.json was synthesized for another spec than "
                            f"{jobdir.SPEC}")
     spec, network = arts.spec, arts.network
-    regions = spec_regions(spec, network)
+    checked = closed_loop_regions(spec, network, spec_regions(spec, network))
     steps = (arts.report.get("closed_loop") or {}).get("steps") or spec.options.closed_loop_steps or 60
     t0 = time.perf_counter()
     loop = run_closed_loop(network, controller, spec.options.initial_states, runs, int(steps), rng,
-                           spec.specification.kind, regions.get("target") or regions.get("safe"),
-                           regions.get("avoid"), policy=controller.inputs)
+                           spec.specification.kind, checked["target"], checked["avoid"], safe=checked["safe"],
+                           policy=controller.inputs)
     random_runs = sum(1 for origin, _, _ in loop.runs if origin == "random")
     return {
         "runs": len(loop.runs),

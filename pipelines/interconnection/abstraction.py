@@ -27,10 +27,30 @@ from pipelines.interconnection.relation import InterconnectionAbstraction, NodeR
 from pipelines.interconnection.sampling import Sampler
 from pipelines.network import Network
 
-__all__ = ["abstract_interconnection", "Progress"]
+__all__ = ["abstract_interconnection", "empty_interconnection", "Progress"]
 
 #: ``progress(stage, done, total, message)``, called as the stages advance.
 Progress = Callable[[str, int, int, str], None]
+
+
+def empty_interconnection(network: Network) -> InterconnectionAbstraction:
+    """The abstraction of a map with no outputs (a network without ``interconnection``): no nodes, ``p = 0``.
+
+    Exact, hence sound: ``M̂(x̂)`` is the one empty tuple of internal cells for every ``x̂``.
+    """
+    grid = network.composed_state_grid()
+    n = network.state_dim
+    return InterconnectionAbstraction(
+        mode="none",
+        M_bar=np.zeros((0, n)),
+        supports=(),
+        offsets=np.zeros(0),
+        error_bounds=np.zeros(0),
+        nodes=(),
+        intermediate_grids={},
+        output_modes=(),
+        details={"evaluations": 0, "seconds": 0.0, "state_sizes": [axis_grid(grid, i).size for i in range(n)]},
+    )
 
 
 def abstract_interconnection(
@@ -65,6 +85,8 @@ def abstract_interconnection(
     """
     ic = network.spec.interconnection
     report = progress or (lambda *_: None)
+    if ic is None:  # a single system, or subsystems reading nothing: M has no outputs
+        return empty_interconnection(network)
     t0 = time.perf_counter()
     mode = ic.error
     if mode in ("certify", "direct") and ic.lipschitz is None:

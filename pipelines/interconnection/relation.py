@@ -98,7 +98,8 @@ class InterconnectionAbstraction:
     Attributes
     ----------
     mode : str
-        ``'linear'``, ``'certify'`` or ``'direct'`` (the spec's ``error``).
+        ``'linear'``, ``'certify'`` or ``'direct'`` (the spec's ``error``); ``'none'`` for a network without an
+        interconnection (``p = 0``, no nodes).
     M_bar : ndarray, shape (p, n_total)
         Learned linear map (lasso support, least-squares refit); a zero row for a constant output.
     supports : tuple of p tuples of int

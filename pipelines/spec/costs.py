@@ -58,10 +58,10 @@ from dataclasses import dataclass, fields, replace
 from functools import partial
 from typing import Any
 
-from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS
+from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS, default_chunk_cells
 from pipelines.errors import SpecError
 from pipelines.network import Network, Subsystem
-from pipelines.spec.model import JobSpec
+from pipelines.spec.model import JobSpec, SubsystemSpec
 from pipelines.verification.audit import composition_transitions
 
 #: Steps of a closed-loop run when ``closed_loop_steps`` is automatic, at the least (``2 * iterations + 30``).
@@ -192,12 +192,19 @@ def spec_costs(spec: JobSpec) -> list[Cost]:
         f"{knob}{' (' + ', '.join(named) + ')' if named else ''}: the spec has {shown} subsystems after replicate",
         _says("lower replicate, or the parameter it names"),
     )]
-    exprs = [(f"subsystems[{i}].dynamics", s.dynamics) for i, s in enumerate(spec.subsystems)]
-    exprs.append(("interconnection.map", spec.interconnection.map))
+    exprs = [(f"subsystems[{i}].{'dynamics' if s.ode is None else 'ode'}", s.source)
+             for i, s in enumerate(spec.subsystems)]
+    if spec.interconnection is not None:
+        exprs.append(("interconnection.map", spec.interconnection.map))
     for where, text in exprs:
         costs.append(Cost("max_expression_length", where, len(text), f"{where} is {len(text)} characters",
                           _says("shorten it (a parameter can name a repeated number)")))
     return costs
+
+
+def rhs_evaluations(s: SubsystemSpec) -> int:
+    """Evaluations of the user's function per sampled step: 1 for a map, ``4 x substeps`` for an ODE (RK4)."""
+    return 1 if s.ode is None else 4 * s.substeps
 
 
 def _index(spec: JobSpec, sub: Subsystem) -> int:
@@ -212,8 +219,7 @@ def chunk_count(sub: Subsystem, chunk_cells: int | None, task_points: int = DEFA
     """``(tasks, cells per task)`` of a subsystem's per-cell stage: ``len(chunk_ranges(...))`` without the list."""
     n_x = sub.state_grid.size
     if chunk_cells is None:
-        per_cell = sub.input_grid.size * sub.n_w_cells * max(1, sub.spec.samples)
-        chunk_cells = max(1, task_points // per_cell)
+        chunk_cells = default_chunk_cells(sub, task_points)
     return -(-n_x // chunk_cells), chunk_cells
 
 
@@ -233,10 +239,11 @@ def _cell_costs(spec: JobSpec, groups: list[Subsystem], task_points: int) -> lis
             f"{sub.input_grid.size} inputs x {sub.n_w_cells} internal cells)",
             _says("coarsen its grids (larger eta, smaller boxes)"), own_cap=spec.options.max_cells,
         ))
-    parts = sorted(((s.triples * s.spec.samples, s) for s in groups), key=lambda t: -t[0])
+    parts = sorted(((s.triples * s.spec.samples * rhs_evaluations(s.spec), s) for s in groups), key=lambda t: -t[0])
     total = sum(v for v, _ in parts)
     shown = "; ".join(f"'{s.name}': {s.triples} triples x {s.spec.samples} samples (subsystems[{_index(spec, s)}]"
-                      f".samples)" for _, s in parts[:3])
+                      f".samples)" + (f" x {rhs_evaluations(s.spec)} right-hand-side evaluations per sampled step"
+                                      if s.spec.ode is not None else "") for _, s in parts[:3])
     top = parts[0][1]
     costs.append(Cost(
         "max_evaluations", "subsystems[*].samples × (x, u, w) triples", total,
@@ -286,6 +293,8 @@ def _lipschitz_costs(spec: JobSpec, groups: list[Subsystem]) -> list[Cost]:
 
 def _interconnection_costs(spec: JobSpec, network: Network) -> list[Cost]:
     ic = spec.interconnection
+    if ic is None:  # a single system (or subsystems that read nothing): no interconnection stage
+        return []
     n, p = network.state_dim, len(network.internal_grids)
     costs = []
     for which, k in (("samples", ic.samples), ("holdout", ic.holdout)):

@@ -19,12 +19,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer, model_validator
 
 from pipelines.errors import SpecError
 from pipelines.spec.loader import load_yaml
 
 Vector = float | list[float]
+#: Longest ``reads`` expression, in characters.
+MAX_READ_LENGTH = 200
 MODULE_FUNCTION = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -81,20 +83,76 @@ class LipschitzSpec(_Model):
 
 
 class SubsystemSpec(_Model):
-    """One subsystem ``Xi_i``, or ``replicate`` identical copies of it."""
+    """One subsystem ``Xi_i``, or ``replicate`` identical copies of it.
+
+    Its dynamics are a discrete-time map (``dynamics``: ``x+ = f(x, u, w)``) or a continuous-time one (``ode``:
+    ``dx/dt = f(x, u, w)``, sampled every ``sampling_time`` by ``substeps`` fixed steps of Runge-Kutta 4 with
+    ``u`` and ``w`` held over the period, :mod:`pipelines.integrators`).
+    """
 
     name: str = Field(min_length=1, max_length=64)
     replicate: int | str = Field(default=1, description="number of copies, or the name of an integer parameter")
     state: GridSpec
     input: GridSpec
-    reads: list[int] = Field(default_factory=list, description="indices of the internal variables w it reads")
-    dynamics: str = Field(min_length=1, description="safe expression in x, u, w (vectors) or module:function")
+    reads: list[int | str] = Field(
+        default_factory=list,
+        description="the internal variables w_j it reads, in order: indices, or integer expressions in the copy "
+        "index i and the parameters (\"(i + 1) % N\"), evaluated per copy",
+    )
+    dynamics: str | None = Field(
+        default=None, min_length=1, description="x+ = f(x, u, w): safe expression in x, u, w (vectors) or module:function"
+    )
+    ode: str | None = Field(
+        default=None, min_length=1,
+        description="dx/dt = f(x, u, w), instead of dynamics: safe expression or module:function; needs sampling_time",
+    )
+    sampling_time: float | None = Field(default=None, gt=0, description="tau of an ode: the sampled map is x(tau)")
+    substeps: int = Field(default=5, ge=1, le=1000, description="Runge-Kutta 4 steps per sampling period (ode)")
     lipschitz: LipschitzSpec
     samples: int = Field(default=100, ge=1, le=100_000, description="N_C, samples per cell (x and w jointly)")
     growth_bound: Literal["lipschitz", "scp", "hull"] = "scp"
     scp_objective: Literal["paper", "radius"] = Field(
         default="paper", description="'paper' minimises 1'theta (Eq. 4.5); 'radius' the radius actually used"
     )
+
+    @field_validator("reads")
+    @classmethod
+    def _reads(cls, v):
+        for j in v:
+            if isinstance(j, str) and not 0 < len(j.strip()) <= MAX_READ_LENGTH:
+                raise ValueError(f"a reads entry is an index or an expression of 1 to {MAX_READ_LENGTH} characters, "
+                                 f"got {j!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _time(self):
+        if (self.dynamics is None) == (self.ode is None):
+            raise ValueError("give either 'dynamics' (a discrete-time map x+ = f(x, u, w)) or 'ode' (dx/dt = f(x, u, w) "
+                             "with sampling_time), " + ("not both" if self.ode is not None else "none is given"))
+        if self.ode is not None and self.sampling_time is None:
+            raise ValueError("an 'ode' needs 'sampling_time' (tau > 0, the period of the sampled map x(tau))")
+        if self.dynamics is not None:
+            given = [k for k in ("sampling_time", "substeps") if k in self.model_fields_set]
+            if given:
+                verb = "belong" if len(given) > 1 else "belongs"
+                raise ValueError(f"{' and '.join(repr(k) for k in given)} {verb} to an 'ode'; 'dynamics' is already a "
+                                 "discrete-time map")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # The ode fields are left out of a discrete-time subsystem's dump (and dynamics out of an ode's), so that
+        # spec_hash and the subsystem keys of specs written before ode existed do not change.
+        data = handler(self)
+        drop = ("ode", "sampling_time", "substeps") if self.ode is None else ("dynamics",)
+        return {k: v for k, v in data.items() if k not in drop}
+
+    @property
+    def source(self) -> str:
+        """The text of ``dynamics`` or of ``ode``, whichever is given."""
+        text = self.dynamics if self.ode is None else self.ode
+        assert text is not None  # one of them is (checked above)
+        return text
 
 
 class InterconnectionSpec(_Model):
@@ -143,10 +201,20 @@ class Region(_Model):
 
 
 class SpecificationSpec(_Model):
+    """What the controller must achieve on the composed state (Algorithm 5; METHOD §6).
+
+    ``safe`` is required for ``safe`` and optional for the other kinds, where it restricts every run to ``S``
+    until (``reach``, ``reach_avoid``) or forever (``reach_and_stay``): "reach T while staying in S", "reach and
+    stay in T while staying in S". A region the kind does not use is refused rather than ignored.
+    """
+
     kind: Literal["safe", "reach", "reach_avoid", "reach_and_stay"]
     target: Region | None = Field(default=None, description="T for reach, reach_avoid; phi for reach_and_stay")
-    safe: Region | None = Field(default=None, description="S for safe")
-    avoid: Region | None = Field(default=None, description="A for reach_avoid")
+    safe: Region | None = Field(
+        default=None, description="S: required for safe; optional for the other kinds, whose runs must then never "
+        "leave S (reach: T is reached inside S; reach_and_stay: the run stays in S and ends in phi within S)",
+    )
+    avoid: Region | None = Field(default=None, description="A for reach_avoid (a union of boxes: the obstacles)")
 
     @model_validator(mode="after")
     def _regions(self):
@@ -155,6 +223,13 @@ class SpecificationSpec(_Model):
             raise ValueError(f"a '{self.kind}' specification needs '{need}'")
         if self.kind == "reach_avoid" and self.avoid is None:
             raise ValueError("a 'reach_avoid' specification needs 'avoid'")
+        # A region given but unused would be silently ignored: the user meant something else.
+        if self.kind != "reach_avoid" and self.avoid is not None:
+            raise ValueError(f"a '{self.kind}' specification has no 'avoid' set: 'avoid' belongs to kind "
+                             "'reach_avoid' (or shrink 'safe' to leave it out)")
+        if self.kind == "safe" and self.target is not None:
+            raise ValueError("a 'safe' specification has no 'target': use kind 'reach' or 'reach_and_stay' with "
+                             "'target' and 'safe' to reach a target while staying safe")
         return self
 
 
@@ -212,13 +287,16 @@ class OptionsSpec(_Model):
 
 
 class JobSpec(_Model):
-    """A compabs job: an interconnected system, its interconnection, a specification and options."""
+    """A compabs job: an interconnected system, its interconnection (none for a single system), a specification
+    and options."""
 
     name: str = Field(default="job", min_length=1, max_length=128)
     description: str = ""
     parameters: dict[str, float] = Field(default_factory=dict, description="named numbers (N, tau, ...)")
     subsystems: list[SubsystemSpec] = Field(min_length=1)
-    interconnection: InterconnectionSpec
+    interconnection: InterconnectionSpec | None = Field(
+        default=None, description="omit for a single system, or subsystems that read no internal variable"
+    )
     specification: SpecificationSpec
     options: OptionsSpec = OptionsSpec()
 
@@ -237,6 +315,17 @@ class JobSpec(_Model):
                 raise ValueError(f"parameter name {name!r} is reserved in expressions (variables x, u, w; "
                                  "constants pi, e; function names)")
         return v
+
+    @model_validator(mode="after")
+    def _reads_need_interconnection(self):
+        if self.interconnection is None:
+            reading = [f"subsystems[{k}] ('{s.name}')" for k, s in enumerate(self.subsystems) if s.reads]
+            if reading:
+                raise ValueError(f"{', '.join(reading)} read internal variables, which only an 'interconnection' "
+                                 "defines: add one, or remove their 'reads'")
+        if "i" in self.parameters and any(isinstance(j, str) for s in self.subsystems for j in s.reads):
+            raise ValueError("parameter 'i' would hide the copy index i of the 'reads' expressions: rename it")
+        return self
 
 
 def json_schema() -> dict[str, Any]:

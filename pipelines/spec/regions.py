@@ -168,3 +168,22 @@ def spec_regions(spec: JobSpec, network: Network) -> dict[str, AbstractRegion]:
         if region is not None:
             regions[name] = abstract_region(region, grid, f"specification.{name}", outer=(name == "avoid"))
     return regions
+
+
+def closed_loop_regions(spec: JobSpec, network: Network,
+                        regions: dict[str, AbstractRegion] | None = None) -> dict[str, AbstractRegion | None]:
+    """The regions a closed-loop run is checked against, as keyword arguments of
+    :func:`~pipelines.verification.closed_loop.simulate` (``target``, ``safe``, ``avoid``).
+
+    For a ``safe`` specification the target is the safe set (a run's ``in_target`` flags say whether it is in
+    ``S``); for the other kinds ``safe`` is the optional safe set, which no run may leave.
+
+    Parameters
+    ----------
+    regions : dict, optional
+        :func:`spec_regions` of the spec, if already computed.
+    """
+    regions = spec_regions(spec, network) if regions is None else regions
+    kind = spec.specification.kind
+    return {"target": regions.get("safe") if kind == "safe" else regions.get("target"),
+            "safe": regions.get("safe"), "avoid": regions.get("avoid")}

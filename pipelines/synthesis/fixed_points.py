@@ -1,13 +1,18 @@
 """The fixed points of the synthesis (Algorithm 5; METHOD §6), as functions of a controllable predecessor.
 
 * :func:`safe`: safety ``□S`` as ``νZ. S ∧ ∃u.CPre(Z)``;
-* :func:`reach`, :func:`reach_avoid`: ``◇T`` as ``μZ. (T ∨ ∃u.CPre(Z)) ∧ ¬A`` with a progress controller;
-* :func:`cobuchi`: reach-and-stay ``◇□φ`` as the co-Büchi ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)``;
-* :func:`reach_safe`: ``◇□φ`` as ``Reach(Safe(φ))``; :func:`reach_and_stay` reports both (METHOD §6).
+* :func:`reach`, :func:`reach_avoid`: ``S U T`` as ``μZ. (T ∨ ∃u.CPre(Z)) ∧ S ∧ ¬A`` with a progress controller
+  (``S`` everything unless a safe set is given, ``A`` empty for plain reachability);
+* :func:`cobuchi`: reach-and-stay ``□S ∧ ◇□φ`` as the co-Büchi ``μX. νY. (φ ∧ S ∧ ∃u.CPre(Y)) ∨ (S ∧ ∃u.CPre(X))``;
+* :func:`reach_safe`: the same as ``Reach_S(Safe(φ ∧ S))``; :func:`reach_and_stay` reports both (METHOD §6).
 
 Each takes a :class:`~.cpre.ControllablePredecessor` (SCOTS's ``solve_invariance_game`` style). By the feedback
 refinement relation (Theorem 4.2) and soundness of the abstraction (Theorem 4.8), the controllers refine to the
 concrete network.
+
+Each takes an optional ``progress(iteration, message)`` (:data:`IterationProgress`), called once per outer and
+once per inner iteration with the size of the current iterate (CUDD's model count of one BDD, linear in its
+nodes; nothing is counted without a callback).
 """
 
 from __future__ import annotations
@@ -27,6 +32,10 @@ from pipelines.synthesis.cpre import ControllablePredecessor
 log = logging.getLogger(__name__)
 P = ParamSpec("P")
 R = TypeVar("R")
+
+#: ``progress(iteration, message)``: the fixed point's own iteration (outer, or inner for an inner fixed point,
+#: counted over the whole run) and a line such as ``"reach iteration 3: 1,234 states"``.
+IterationProgress = Callable[[int, str], None]
 
 
 @dataclass
@@ -106,15 +115,17 @@ class _Meter:
     synthesis (bench/run.py profile), so the peak is CUDD's own counter, read at the end.
     """
 
-    def __init__(self, model: SymbolicModel, kind: str) -> None:
+    def __init__(self, model: SymbolicModel, kind: str, progress: IterationProgress | None = None) -> None:
         self.model = model
         self.kind = kind
+        self.progress = progress
         self.t0 = time.perf_counter()
         self.iterations = 0
         self.inner = 0
         self.peak = 0
 
-    def tick(self, inner: bool = False) -> None:
+    def tick(self, inner: bool = False, current: Function | None = None) -> None:
+        """Count one iteration; ``current``: the iterate after it, whose size goes to ``progress``."""
         if inner:
             self.inner += 1
         else:
@@ -122,10 +133,22 @@ class _Meter:
         if log.isEnabledFor(logging.INFO):
             log.info("%s: iteration %d (inner %d), %.2f s, %d live nodes", self.kind, self.iterations, self.inner,
                      self.seconds, len(self.model.bdd))
+        if self.progress is not None:
+            # Every iterate is a set of current states inside the state domain, so CUDD's count over the state
+            # bits is its number of cells (a double: exact up to 2**53, plenty for a progress line).
+            states = "" if current is None else \
+                f": {int(self.model.bdd.count(current, nvars=len(self.model.x_bits))):,} states"
+            where = f"iteration {self.iterations + 1}, inner {self.inner}" if inner else f"iteration {self.iterations}"
+            self.progress(self.inner if inner else self.iterations, f"{self.kind} {where}{states}")
 
     @property
     def seconds(self) -> float:
         return time.perf_counter() - self.t0
+
+
+def _prefixed(progress: IterationProgress, prefix: str, iteration: int, message: str) -> None:
+    """``progress`` with ``prefix`` before the message (names the part of a composite fixed point)."""
+    progress(iteration, prefix + message)
 
 
 def _guarded(
@@ -162,19 +185,22 @@ def _result(
 
 
 @_guarded
-def safe(cpre: ControllablePredecessor, S: Function, *, layered: bool = False) -> SynthesisResult:
+def safe(
+    cpre: ControllablePredecessor, S: Function, *, layered: bool = False, progress: IterationProgress | None = None,
+) -> SynthesisResult:
     """Safety ``□S``: ``νZ. S ∧ ∃u.CPre(Z)`` (the invariance game of Algorithm 5, SCOTS's
     ``solve_invariance_game``); the controller allows every input that keeps the state in the invariant.
 
     ``layered``: return the invariant as a one-layer controller (``stay``) instead of ``Z ∧ CPre(Z)``.
+    ``progress``: see :data:`IterationProgress`.
     """
-    meter = _Meter(cpre.model, "safe")
+    meter = _Meter(cpre.model, "safe", progress)
     S = S & cpre.model.x_domain
     inside = cpre.within(S)  # every iterate is inside S
     Z = S
     while True:
         Zn = S & cpre.predecessors(Z, within=inside)
-        meter.tick()
+        meter.tick(current=Zn)
         if Zn == Z:
             break
         Z = Zn
@@ -186,10 +212,13 @@ def safe(cpre: ControllablePredecessor, S: Function, *, layered: bool = False) -
 @_guarded
 def reach(
     cpre: ControllablePredecessor, T: Function, avoid: Function | None = None, *, kind: str = "reach",
-    layered: bool = False,
+    layered: bool = False, safe: Function | None = None, progress: IterationProgress | None = None,
 ) -> SynthesisResult:
-    """Reachability ``◇T``: ``μZ. (T ∨ ∃u.CPre(Z)) ∧ ¬A`` (``A`` empty for plain reachability; Algorithm 5,
-    SCOTS's ``solve_reachability_game``) with a progress controller.
+    """Reachability ``◇T`` while staying in ``S``: ``μZ. (T ∨ ∃u.CPre(Z)) ∧ S ∧ ¬A`` (``S`` every state and
+    ``A`` empty unless given; Algorithm 5, SCOTS's ``solve_reachability_game``) with a progress controller.
+
+    The winning set lies in ``S ∖ A``: targets outside it do not count (a run reaching them would have left
+    ``S``), and a state enters only if some input leads surely into the previous iterate.
 
     An input counts at ``x̂`` only in the iteration where ``x̂`` entered the attractor (SCOTS keeps it that way):
     it then leads into the previous iterate, so every closed-loop run reaches ``T`` within as many steps as
@@ -198,64 +227,87 @@ def reach(
     ``layered``: keep the iterates instead of the controller (:class:`SynthesisResult` ``layers``); each
     iteration is then one ``∃u.CPre`` without materialising ``CPre`` over states and inputs, which on the
     consensus network is most of the time and nearly all of the memory of the explicit controller.
+    ``safe``: the safe set ``S``. ``progress``: see :data:`IterationProgress`.
     """
     m = cpre.model
-    meter = _Meter(m, kind)
+    meter = _Meter(m, kind, progress)
     keep = m.x_domain if avoid is None else m.x_domain & ~avoid
+    # Only states of S can enter, so CPre is needed on S only (exact there, empty elsewhere: cpre.within).
+    inside = None
+    if safe is not None:
+        keep &= safe
+        inside = cpre.within(keep)
     Z = T & keep
     if layered:
         layers = [Z]
         while True:
-            new = cpre.predecessors(Z, outside=~Z) & keep & ~Z
-            meter.tick()
-            if new == cpre.bdd.false:
+            new = cpre.predecessors(Z, outside=~Z, within=inside) & keep & ~Z
+            done = new == cpre.bdd.false
+            if not done:
+                Z |= new
+                layers.append(Z)
+            meter.tick(current=Z)
+            if done:
                 break
-            Z |= new
-            layers.append(Z)
         return _result(cpre, kind, Z, None, meter, layers=layers)
     controller = Z & m.u_domain
     while True:
-        C = cpre.cpre(Z)
+        C = cpre.cpre(Z, inside)
         new = cpre.pre(C) & keep & ~Z
-        meter.tick()
-        if new == cpre.bdd.false:
+        done = new == cpre.bdd.false
+        if not done:
+            controller |= C & new
+            Z |= new
+        meter.tick(current=Z)
+        if done:
             break
-        controller |= C & new
-        Z |= new
     return _result(cpre, kind, Z, controller, meter)
 
 
 @_guarded
-def reach_avoid(cpre: ControllablePredecessor, T: Function, A: Function, *, layered: bool = False) -> SynthesisResult:
-    """Reach-avoid: ``μZ. (T ∨ ∃u.CPre(Z)) ∧ ¬A`` (:func:`reach` with ``A``; the states of ``A`` never enter)."""
-    return reach(cpre, T, A, kind="reach_avoid", layered=layered)
+def reach_avoid(
+    cpre: ControllablePredecessor, T: Function, A: Function, *, layered: bool = False, safe: Function | None = None,
+    progress: IterationProgress | None = None,
+) -> SynthesisResult:
+    """Reach-avoid: ``μZ. (T ∨ ∃u.CPre(Z)) ∧ S ∧ ¬A`` (:func:`reach` with ``A``; the states of ``A`` never enter).
+
+    ``A`` is any set of states: a union of obstacle boxes is one BDD (the union of their cells).
+    """
+    return reach(cpre, T, A, kind="reach_avoid", layered=layered, safe=safe, progress=progress)
 
 
 @_guarded
-def cobuchi(cpre: ControllablePredecessor, phi: Function) -> SynthesisResult:
-    """``◇□φ`` as ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)`` (METHOD §6).
+def cobuchi(
+    cpre: ControllablePredecessor, phi: Function, *, safe: Function | None = None,
+    progress: IterationProgress | None = None,
+) -> SynthesisResult:
+    """``◇□φ`` as ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)`` (METHOD §6); with a safe set ``S``, ``□S ∧ ◇□φ`` as
+    ``μX. νY. (φ ∧ S ∧ ∃u.CPre(Y)) ∨ (S ∧ ∃u.CPre(X))``: every iterate lies in ``S``, so no run leaves it.
 
     Controller: a state that enters at outer iteration ``k+1`` (``X_{k+1} \\ X_k``) gets the inputs ``û`` with
     ``(φ(x̂) ∧ CPre(X_{k+1})(x̂, û)) ∨ CPre(X_k)(x̂, û)``. Along a closed-loop run the rank ``k`` never increases,
     and while it stays constant only the first disjunct can hold, so from some time on every state is in ``φ``.
+    ``progress``: see :data:`IterationProgress` (one call per inner ``ν`` iteration and per outer one).
     """
     m = cpre.model
-    meter = _Meter(m, "cobuchi")
-    phi = phi & m.x_domain
+    meter = _Meter(m, "cobuchi", progress)
+    top = m.x_domain if safe is None else m.x_domain & safe
+    phi = phi & top
     on_phi = cpre.within(phi)  # the ν part is needed on φ only
+    inside = None if safe is None else cpre.within(top)  # CPre(X) is needed on S only
     X = cpre.bdd.false
     controller = cpre.bdd.false
     while True:
-        CX = cpre.cpre(X)
+        CX = cpre.cpre(X, inside)
         preX = cpre.pre(CX)
-        Y = m.x_domain
+        Y = top
         while True:
             Yn = cpre.predecessors(Y, within=on_phi) | preX
-            meter.tick(inner=True)
+            meter.tick(inner=True, current=Yn)
             if Yn == Y:
                 break
             Y = Yn
-        meter.tick()
+        meter.tick(current=Y)
         if Y != X:
             controller |= (Y & ~X) & (cpre.cpre(Y, on_phi) | CX)
         if Y == X:
@@ -265,14 +317,23 @@ def cobuchi(cpre: ControllablePredecessor, phi: Function) -> SynthesisResult:
 
 
 @_guarded
-def reach_safe(cpre: ControllablePredecessor, phi: Function, *, layered: bool = False) -> SynthesisResult:
+def reach_safe(
+    cpre: ControllablePredecessor, phi: Function, *, layered: bool = False, safe_set: Function | None = None,
+    progress: IterationProgress | None = None,
+) -> SynthesisResult:
     """``◇□φ`` as ``Reach(Safe(φ))``: inside the safe set the safety controller, outside the reach controller.
 
+    With ``safe_set`` ``S`` (``□S ∧ ◇□φ``): ``Reach_S(Safe(φ ∧ S))``, the invariant inside ``φ ∧ S`` and the
+    attractor inside ``S`` (:func:`reach` with ``safe``), so no run leaves ``S``.
+
     ``layered``: the reach iterates over the safe set, with ``stay`` (layer 0 is the invariant).
+    ``progress``: see :data:`IterationProgress`; the safety part's calls come first (``reach_safe/safe``).
     """
     meter = _Meter(cpre.model, "reach_safe")
-    s = safe(cpre, phi, layered=layered)
-    r = reach(cpre, s.domain, layered=layered)
+
+    named = None if progress is None else functools.partial(_prefixed, progress, "reach_safe/")
+    s = safe(cpre, phi if safe_set is None else phi & safe_set, layered=layered, progress=named)
+    r = reach(cpre, s.domain, layered=layered, safe=safe_set, progress=named)
     meter.iterations = r.iterations
     meter.inner = s.iterations
     meter.peak = max(s.peak_nodes, r.peak_nodes)
@@ -288,11 +349,20 @@ REACH_AND_STAY = {"cobuchi": cobuchi, "reach_safe": reach_safe}
 
 def reach_and_stay(
     cpre: ControllablePredecessor, phi: Function, methods: Sequence[str] = ("cobuchi", "reach_safe"), *,
-    layered: bool = False,
+    layered: bool = False, safe: Function | None = None, progress: IterationProgress | None = None,
 ) -> dict[str, SynthesisResult]:
-    """``◇□φ`` by each of ``methods`` (METHOD §6 asks for both domains to be reported).
+    """``◇□φ`` (``□S ∧ ◇□φ`` with a safe set ``safe``) by each of ``methods`` (METHOD §6 asks for both domains to
+    be reported).
 
-    ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit.
+    ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit. ``progress``: see
+    :data:`IterationProgress`, the methods' calls one after the other.
     """
-    return {name: reach_safe(cpre, phi, layered=layered) if name == "reach_safe" else REACH_AND_STAY[name](cpre, phi)
-            for name in methods}
+    out: dict[str, SynthesisResult] = {}
+    for name in methods:
+        if name == "reach_safe":
+            out[name] = reach_safe(cpre, phi, layered=layered, safe_set=safe, progress=progress)
+        elif name == "cobuchi":
+            out[name] = cobuchi(cpre, phi, safe=safe, progress=progress)
+        else:
+            raise ValueError(f"unknown reach-and-stay fixed point {name!r}: use {sorted(REACH_AND_STAY)}")
+    return out

@@ -16,7 +16,14 @@ from pipelines.spec.regions import abstract_region
 from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
-from pipelines.synthesis.fixed_points import SynthesisResult, reach, reach_and_stay, reach_avoid, safe
+from pipelines.synthesis.fixed_points import (
+    IterationProgress,
+    SynthesisResult,
+    reach,
+    reach_and_stay,
+    reach_avoid,
+    safe,
+)
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -41,6 +48,7 @@ def synthesize(
     controller_form: str = "auto",
     processes: int | str = 1,
     partitioned: PartitionedFactory | None = None,
+    progress: IterationProgress | None = None,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -64,6 +72,9 @@ def synthesize(
     partitioned : callable, optional
         ``partitioned(cpre, processes)``: the partitioned ``∃u.CPre`` (e.g.
         ``workers.processes.partitioned_cpre.PartitionedPredecessors``); ``None``: one process.
+    progress : callable, optional
+        ``progress(iteration, message)``, once per iteration of every fixed point, inner ones included
+        (:data:`~.fixed_points.IterationProgress`); the BDDs are built before the first call.
 
     Returns
     -------
@@ -85,18 +96,25 @@ def synthesize(
     grid = network.composed_state_grid()
 
     def states(name: str) -> Function:
-        return region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}"))
+        # Targets and safe sets from inside, avoid sets from outside (METHOD §1): an abstract winning run then
+        # satisfies the concrete specification.
+        return region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}",
+                                         outer=(name == "avoid")))
 
     layered = controller_form == "layered" or (controller_form == "auto" and cpre.method == "shared")
+    kind = specification.kind
     try:
-        if specification.kind == "safe":
-            results = {"safe": safe(cpre, states("safe"), layered=layered)}
-        elif specification.kind == "reach":
-            results = {"reach": reach(cpre, states("target"), layered=layered)}
-        elif specification.kind == "reach_avoid":
-            results = {"reach_avoid": reach_avoid(cpre, states("target"), states("avoid"), layered=layered)}
+        S = states("safe") if kind != "safe" and specification.safe is not None else None
+        if kind == "safe":
+            results = {"safe": safe(cpre, states("safe"), layered=layered, progress=progress)}
+        elif kind == "reach":
+            results = {"reach": reach(cpre, states("target"), layered=layered, safe=S, progress=progress)}
+        elif kind == "reach_avoid":
+            results = {"reach_avoid": reach_avoid(cpre, states("target"), states("avoid"), layered=layered, safe=S,
+                                                  progress=progress)}
         else:
-            results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered)
+            results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered, safe=S,
+                                     progress=progress)
     finally:
         cpre.close()
     report = {

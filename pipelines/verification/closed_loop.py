@@ -100,16 +100,21 @@ def simulate(
     target: AbstractRegion | None = None,
     avoid: AbstractRegion | None = None,
     choose: str = "random",
+    safe: AbstractRegion | None = None,
 ) -> Run:
     """Run the concrete system from ``x0`` for ``steps`` steps under ``policy`` (``None``: all inputs 0).
 
     ``choose`` picks among the admissible inputs: ``random`` (as in the paper's figures) or ``first``.
+    ``target`` is the safe set for a ``safe`` specification; ``safe`` the optional safe set of the other kinds
+    (:func:`~pipelines.spec.regions.closed_loop_regions` gives all three).
     A violation is recorded, and the run stopped, when the state leaves the concrete state box, leaves the
-    controller's domain (no admissible input), enters the avoid set, or (``safe``) leaves the safe set; at the
-    end, ``reach``/``reach_avoid`` runs must have visited the target and ``reach_and_stay`` runs must be in it.
+    controller's domain (no admissible input), enters the avoid set, or leaves the safe set (``target`` of a
+    ``safe`` specification, ``safe`` of any kind); a ``reach``/``reach_avoid`` run ends when its state is in the
+    target (and none of those holds). At the end, ``reach``/``reach_avoid`` runs must have visited the target
+    and ``reach_and_stay`` runs must be in it.
     """
     x0 = np.asarray(x0, dtype=float)
-    return simulate_many(network, policy, x0[None, :], steps, rng, kind, target, avoid, choose)[0]
+    return simulate_many(network, policy, x0[None, :], steps, rng, kind, target, avoid, choose, safe=safe)[0]
 
 
 def simulate_many(
@@ -123,6 +128,7 @@ def simulate_many(
     avoid: AbstractRegion | None = None,
     choose: str = "random",
     progress: Callable[[int, int], None] | None = None,
+    safe: AbstractRegion | None = None,
 ) -> list[Run]:
     """:func:`simulate` from each row of ``x0``, shape (R, n_total), the runs in lockstep.
 
@@ -142,29 +148,39 @@ def simulate_many(
     inside: list[list[bool]] = [[bool(v)] for v in _cells_in(grid, target, x)]
     violation: list[str | None] = [None] * R
     going = np.ones(R, dtype=bool)
+
+    def check(k: int, live: np.ndarray, X: np.ndarray) -> list[int]:
+        """The state checks at step ``k`` of the runs ``live`` (states ``X``): stops the runs that violate the
+        specification or reached a reach target; returns the positions in ``live`` of the runs going on."""
+        now_in = np.array([inside[r][-1] for r in live])
+        out_of_box = np.any((X < lb) | (X > ub), axis=1)
+        in_avoid = _cells_in(grid, avoid, X)
+        in_safe = _cells_in(grid, safe, X) if safe is not None else np.ones(live.size, dtype=bool)
+        going_on = []
+        for j, r in enumerate(live):
+            # Arriving in the target ends a reach run only if the way there was kept: a state out of the box,
+            # in A or out of S is a violation even on a target cell.
+            if out_of_box[j]:
+                violation[r] = f"step {k}: the state {X[j].tolist()} left the state set"
+            elif in_avoid[j]:
+                violation[r] = f"step {k}: the state entered the avoid set"
+            elif policy is not None and (not in_safe[j] or (kind == "safe" and not now_in[j])):
+                violation[r] = f"step {k}: the state left the safe set"
+            elif kind in ("reach", "reach_avoid") and policy is not None and now_in[j]:
+                going[r] = False  # reached: a reach controller's job ends here
+                continue
+            if violation[r] is not None:
+                going[r] = False
+                continue
+            going_on.append(j)
+        return going_on
+
     for k in range(steps):
         live = np.flatnonzero(going)
         if live.size == 0:
             break
         X = np.array([xs[r][-1] for r in live])
-        now_in = np.array([inside[r][-1] for r in live])
-        out_of_box = np.any((X < lb) | (X > ub), axis=1)
-        in_avoid = _cells_in(grid, avoid, X)
-        choosing = []
-        for j, r in enumerate(live):
-            if kind in ("reach", "reach_avoid") and policy is not None and now_in[j]:
-                going[r] = False  # reached: a reach controller's job ends here
-                continue
-            if out_of_box[j]:
-                violation[r] = f"step {k}: the state {X[j].tolist()} left the state set"
-            elif in_avoid[j]:
-                violation[r] = f"step {k}: the state entered the avoid set"
-            elif kind == "safe" and policy is not None and not now_in[j]:
-                violation[r] = f"step {k}: the state left the safe set"
-            if violation[r] is not None:
-                going[r] = False
-                continue
-            choosing.append(j)
+        choosing = check(k, live, X)
         # Only the choices draw from rng, in row order, as simulate() does run by run.
         if policy is None:
             chosen: list[np.ndarray | None] = [np.zeros(m) for _ in choosing]
@@ -195,6 +211,9 @@ def simulate_many(
                 inside[r].append(f)
         if progress is not None and k + 1 < steps:
             progress(k + 1, steps)
+    live = np.flatnonzero(going)
+    if live.size:  # the state after the last step is checked too: leaving S there is a violation as well
+        check(steps, live, np.array([xs[r][-1] for r in live]))
     if progress is not None:  # also when every run ended early
         progress(steps, steps)
     return [_finish(np.array(xs[r]), us[r], np.array(inside[r]), violation[r], policy is not None, kind, steps, m)
@@ -273,12 +292,14 @@ def run_closed_loop(
     avoid: AbstractRegion | None = None,
     policy: Policy | None = None,
     progress: Callable[[int, int], None] | None = None,
+    safe: AbstractRegion | None = None,
 ) -> ClosedLoop:
     """Refinement in closed loop (Theorem 4.2): the concrete network under ``controller`` from each initial state
     in its domain and from ``runs`` random states, uniform in cells drawn uniformly from its domain.
 
     ``controller`` is a :class:`~pipelines.controller.Controller`; ``policy`` (default: the controller itself, which
-    draws one admissible input directly) is what chooses the inputs.
+    draws one admissible input directly) is what chooses the inputs. ``target``, ``avoid``, ``safe``: as in
+    :func:`simulate`.
     """
     starts: list[tuple[str, np.ndarray]] = []
     initial = []
@@ -295,7 +316,7 @@ def run_closed_loop(
         starts += [("random", x) for x in rng.uniform(lo, hi)]
     X0 = np.array([x0 for _, x0 in starts]).reshape(len(starts), network.state_dim)
     done = simulate_many(network, controller if policy is None else policy, X0, steps, rng, kind, target, avoid,
-                         progress=progress)
+                         progress=progress, safe=safe)
     records = [(origin, x0, run) for (origin, x0), run in zip(starts, done)]
     for rec in initial:
         for origin, x0, run in records:
