@@ -217,7 +217,7 @@ def test_dashboard_runs_small_example(open_page, server):
         img.scroll_into_view_if_needed()
         page.wait_for_function("img => img.complete && img.naturalWidth > 0", arg=img.element_handle(),
                                timeout=30_000)
-        expect(job.locator('img[data-figure="domain_slice.png"]')).to_have_count(1)
+        expect(job.locator('img[data-figure="phase_plane.png"]')).to_have_count(1)
         # small.yaml: 33^2 abstract states, a 629-state controller domain (README).
         expect(job.locator('dd[data-key="abstract_states"]')).to_have_text("1,089")
         expect(job.locator('dd[data-key="domain_states"]')).to_have_text("629")

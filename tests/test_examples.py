@@ -54,7 +54,7 @@ def test_small_example_end_to_end_on_the_local_cluster(tmp_path):
     assert set(report["domain_states_by_fixed_point"]) == {"cobuchi", "reach_safe"}
     assert report["closed_loop"]["runs"] >= 100 and report["closed_loop"]["violations"] == 0
     assert report["closed_loop"]["initial_states"][0]["in_domain"]
-    for fig in ("trajectory.png", "domain_slice.png"):
+    for fig in ("trajectory.png", "phase_plane.png"):
         assert (tmp_path / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (tmp_path / "controller.dddmp").exists() and (tmp_path / "controller.json").exists()
 

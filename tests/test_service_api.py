@@ -342,7 +342,7 @@ def test_a_whole_job_events_results_and_no_path_traversal(client, tmp_path):
     assert [e["id"] for e in rest] == [e["id"] for e in events[-2:]]
 
     report = client.get(f"/jobs/{job['id']}/report", headers=AUTH)
-    assert report.status_code == 200 and report.json()["figures"] == done["figures"] == ["trajectory.png", "domain_slice.png"]
+    assert report.status_code == 200 and report.json()["figures"] == done["figures"] == ["trajectory.png", "phase_plane.png"]
     for name in done["figures"]:
         r = client.get(f"/jobs/{job['id']}/figures/{name}", params={"token": TOKEN})
         assert r.status_code == 200 and r.headers["content-type"] == "image/png" and r.content[:4] == b"\x89PNG"

@@ -157,7 +157,7 @@ def test_small_example_over_http(server):
         assert report["audit"]["violations"] == 0 and report["audit"]["transitions_checked"] > 0
         assert report["closed_loop"]["violations"] == 0 and report["closed_loop"]["runs"] > 0
         assert report["runner"]["workers"] == 2 and report["runner"]["chunks_computed"] == report["runner"]["chunks_total"]
-        assert job["figures"] == report["figures"] == ["trajectory.png", "domain_slice.png"]
+        assert job["figures"] == report["figures"] == ["trajectory.png", "phase_plane.png"]
         for name in job["figures"]:
             img = server.http.get(f"/jobs/{job_id}/figures/{name}")
             assert img.status_code == 200 and img.headers["content-type"] == "image/png"

@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 
 from pipelines.controller import controller_of
-from pipelines.figures import domain_slice_figure, trajectory_figure
-from pipelines.spec.regions import spec_regions
+from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.synthesis.synthesize import synthesize
-from pipelines.verification.closed_loop import run_closed_loop, simulate
+from pipelines.verification.closed_loop import run_closed_loop
 from workers import jobdir
+from workers.figures import draw_figures
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 from workers.stages import Abstraction, Progress, no_progress
 
@@ -45,7 +45,10 @@ def run_synthesis(
     -------
     dict
         The report entries ``domain_states``, ``domain_states_by_fixed_point``, ``controller``, ``synthesis``,
-        ``closed_loop``, ``figures`` and ``stage_seconds``.
+        ``closed_loop``, ``figures``, ``stage_seconds`` and ``warnings`` (:func:`synthesis_warnings`).
+
+    Progress: ``("synthesis", 0, 1)`` while the BDDs are built, then ``("synthesis", k, k + 1)`` at the ``k``-th
+    iteration of any fixed point (their number is unknown beforehand) and ``("synthesis", 1, 1)`` at the end.
     """
     spec = abstraction.spec
     opts = spec.options
@@ -53,10 +56,17 @@ def run_synthesis(
     network = abstraction.network
     t0 = time.perf_counter()
     progress("synthesis", 0, 1, "building BDDs and solving")
+    events = 0
+
+    def iteration(_: int, message: str) -> None:
+        nonlocal events
+        events += 1
+        progress("synthesis", events, events + 1, message)
+
     cpre, results, syn_report = synthesize(
         network, abstraction.relations, abstraction.interconnection, spec.specification,
         reach_and_stay_methods=tuple(opts.fixed_points), processes=opts.synthesis_processes,
-        partitioned=PartitionedPredecessors,
+        partitioned=PartitionedPredecessors, progress=iteration,
     )
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
@@ -85,37 +95,16 @@ def run_synthesis(
     t0 = time.perf_counter()
     rng = np.random.default_rng(opts.seed + 1)
     steps = opts.closed_loop_steps or (2 * (main.iterations + main.inner_iterations) + 30)
-    regions = spec_regions(spec, network)
-    target = regions.get("target") or regions.get("safe")
-    avoid = regions.get("avoid")
+    checked = closed_loop_regions(spec, network, spec_regions(spec, network))
+    target, avoid = checked["target"], checked["avoid"]
     loop = run_closed_loop(
         network, controller, opts.initial_states, opts.closed_loop_runs if runs is None else runs, steps, rng, kind,
-        target, avoid, progress=lambda k, n: progress("closed_loop", k, n, "runs in lockstep"),
+        target, avoid, safe=checked["safe"], progress=lambda k, n: progress("closed_loop", k, n, "runs in lockstep"),
     )
     seconds["closed_loop"] = time.perf_counter() - t0
 
-    figures = []
-    if out_dir is not None and loop.runs:
-        grid = network.composed_state_grid()
-        _, x0, run = loop.runs[0]
-        free = simulate(network, None, x0, run.inputs.shape[0] or steps, rng, kind, target, avoid)
-        band = None
-        target_spec = spec.specification.target
-        if kind in ("reach_and_stay", "reach", "reach_avoid"):
-            assert target_spec is not None  # SpecificationSpec requires a target for these kinds
-            if target_spec.boxes:
-                b = target_spec.boxes[0]
-                lb, ub = np.atleast_1d(b.lb), np.atleast_1d(b.ub)
-                band = (float(lb.min()), float(ub.max()))
-        title = f"{spec.name} from {np.round(x0, 1).tolist()}"
-        figures.append(trajectory_figure(run, free, jobdir.figure(out_dir, "trajectory"), title, band).name)
-        idx = controller.cell(x0)
-        if grid.dim >= 2 and idx is not None:
-            figures.append(domain_slice_figure(
-                controller.in_domain, grid.axis_points(0), grid.axis_points(1), idx, 0, 1,
-                jobdir.figure(out_dir, "domain_slice"), f"{spec.name}: domain on (x1, x2), others at the cell of x0",
-            ).name)
-        jobdir.write_example_run(out_dir, {"controlled": run.as_dict(), "free": free.as_dict()})
+    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why.
+    figures = [] if out_dir is None else draw_figures(network, controller, loop, out_dir)
 
     return {
         "domain_states": main.domain_states,
@@ -126,4 +115,59 @@ def run_synthesis(
         "closed_loop": loop.summary(),
         "figures": figures,
         "stage_seconds": seconds,
+        "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
+                                       loop.initial_states, has_safe=spec.specification.safe is not None),
     }
+
+
+#: What to try when no controller exists on the abstraction (the finer the abstraction, the larger the domain).
+EMPTY_DOMAIN = ("the winning domain is empty: no controller exists on this abstraction; try a finer grid (eta), "
+                "more samples, the 'hull' growth bound or a larger {regions}")
+
+
+def synthesis_warnings(
+    kind: str, main_key: str, domain_states: dict[str, int], initial_states: list[dict[str, Any]], *,
+    has_safe: bool = False,
+) -> list[str]:
+    """What a user should know about a synthesis that ran: an empty winning domain, a reach-and-stay fixed point
+    other than the saved one that found a domain, initial states outside the domain.
+
+    Parameters
+    ----------
+    kind : str
+        The specification's kind.
+    main_key : str
+        The result the controller was made of (a key of ``domain_states``).
+    domain_states : dict of str to int
+        Winning states by fixed point.
+    initial_states : list of dict
+        :attr:`~pipelines.verification.closed_loop.ClosedLoop.initial_states` (``x0``, ``in_domain``), in the
+        order of ``options.initial_states``.
+    has_safe : bool
+        Whether the specification restricts runs to a safe set (then that set is one to enlarge).
+
+    Returns
+    -------
+    list of str
+        One line each; empty if there is nothing to say.
+    """
+    out = []
+    if domain_states[main_key] == 0:
+        regions = {"safe": "safe set", "reach": "target", "reach_avoid": "target or a smaller avoid set",
+                   "reach_and_stay": "target"}[kind]
+        if has_safe and kind != "safe":
+            regions += " or safe set"
+        line = EMPTY_DOMAIN.format(regions=regions)
+        others = {k: n for k, n in domain_states.items() if k != main_key and n > 0}
+        if others:
+            best = max(others, key=others.__getitem__)
+            line += (f"; the {best} fixed point found {others[best]:,} winning states: set options.controller: "
+                     f"{best} to use it")
+        out.append(line)
+    outside = [(i, rec["x0"]) for i, rec in enumerate(initial_states) if not rec["in_domain"]]
+    if outside:
+        named = ", ".join(f"options.initial_states[{i}] = {x0}" for i, x0 in outside[:10])
+        more = f" and {len(outside) - 10} more" if len(outside) > 10 else ""
+        out.append(f"{len(outside)} of {len(initial_states)} initial states lie outside the winning domain, so no "
+                   f"controller run starts from them and nothing is guaranteed there: {named}{more}")
+    return out

@@ -7,7 +7,7 @@
     DIR/interconnection.json, .npz   the interconnection abstraction (:func:`save_interconnection`)
     DIR/controller.dddmp, .json      the controller (:mod:`pipelines.controller`); controller_<fixed point>.* for
                                      the other reach-and-stay fixed point
-    DIR/trajectory.png, domain_slice.png, closed_loop_example.json    the figures and the run they show
+    DIR/trajectory.png, phase_plane.png, closed_loop_example.json   the figures and the runs they show
     DIR/report.json                  written last, atomically: a report means the job's files are complete
     DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
 
@@ -125,7 +125,7 @@ def _writable(directory: Path) -> None:
 def _job_files(out: Path) -> list[Path]:
     """The job files (other than the relation store) in ``out``, report.json first."""
     named = [out / n for n in (REPORT, SPEC, AUDIT, INTERCONNECTION_META, INTERCONNECTION_ARRAYS, EXAMPLE_RUN,
-                               "trajectory.png", "domain_slice.png")]
+                               "trajectory.png", "phase_plane.png", "domain_slice.png")]
     named += sorted(p for ext in ("dddmp", "json", "zip") for p in out.glob(f"{CONTROLLER}*.{ext}"))
     return [p for p in dict.fromkeys(named) if p.is_file()]
 
@@ -206,7 +206,7 @@ def relations_url(out_dir: str | os.PathLike[str]) -> str:
 
 
 def figure(out_dir: str | os.PathLike[str], name: str) -> Path:
-    """The path of figure ``name`` (``trajectory``, ``domain_slice``)."""
+    """The path of figure ``name`` (``trajectory``, ``phase_plane``; ``domain_slice`` in jobs of older versions)."""
     return Path(out_dir) / f"{name}.png"
 
 

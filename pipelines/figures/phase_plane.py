@@ -1,0 +1,215 @@
+"""The phase plane of two state coordinates: the winning domain cell by cell, the spec's regions as boxes, and
+closed-loop runs on top.
+
+Cells are drawn with their true extent, ``point ± eta/2`` from the grid's points (an image whose pixels are
+the cells), so a run that touches an obstacle's cell is seen to touch it. With more than two coordinates the
+domain is the slice through one cell (that of the initial state) in the others, said in the title: a
+projection would need an existential over every other coordinate, which the controller answers only cell by
+cell.
+"""
+
+from __future__ import annotations
+
+import textwrap
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, Rectangle
+
+from pipelines.errors import SpecError
+from pipelines.figures.setting import CHOICES, REGION_NAMES, FigureSetting
+from pipelines.grid import UniformGrid
+from pipelines.verification.closed_loop import Run
+
+#: Most cells of a slice the domain is drawn for (the controller answers cell by cell).
+MAX_SLICE_CELLS = 250_000
+
+DOMAIN_COLOR = "#c6dbef"
+REGION_STYLE: dict[str, dict] = {
+    "target": {"facecolor": (0.17, 0.63, 0.17, 0.22), "edgecolor": "darkgreen", "linewidth": 1.8, "label": "target"},
+    "safe": {"fill": False, "edgecolor": "navy", "linestyle": "--", "linewidth": 1.8, "label": "safe set"},
+    "avoid": {"facecolor": (0.84, 0.15, 0.16, 0.25), "edgecolor": "darkred", "hatch": "///", "linewidth": 1.2,
+              "label": "obstacle (avoid)"},
+}
+
+
+def check_axes(axes: Sequence[int], n: int) -> tuple[int, int]:
+    """Two distinct state coordinates of an ``n``-dimensional system (0-based).
+
+    Raises
+    ------
+    SpecError
+        Naming the coordinates there are.
+    """
+    if n < 2:
+        raise SpecError(f"a phase plane needs two state coordinates; this system has {n}")
+    if len(axes) != 2:
+        raise SpecError(f"axes {list(axes)}: give two state coordinates, e.g. 0,1")
+    i, j = (int(a) for a in axes)
+    if not (0 <= i < n and 0 <= j < n) or i == j:
+        raise SpecError(f"axes {i},{j}: give two different state coordinates from 0 to {n - 1} (0 is x1)")
+    return i, j
+
+
+def cell_edges(grid: UniformGrid, axis: int) -> np.ndarray:
+    """The boundaries of the cells along ``axis``, shape (shape[axis] + 1,): ``point ± eta/2``."""
+    p = grid.axis_points(axis)
+    return np.append(p - grid.eta[axis] / 2, p[-1] + grid.eta[axis] / 2)
+
+
+def base_cell(grid: UniformGrid, x0: np.ndarray | None) -> tuple[np.ndarray, str]:
+    """The cell a slice passes through: that of ``x0`` when it is on the grid, else the grid's middle cell;
+    and how the caption says it."""
+    if x0 is not None:
+        idx, inside = grid.cell_of(np.asarray(x0, dtype=float)[None, :])
+        if inside[0]:
+            return idx[0], "the cell of x0"
+    return np.asarray(grid.shape) // 2, "the grid's middle cell (x0 is off the grid)"
+
+
+def slice_mask(in_domain: Callable[[np.ndarray], np.ndarray], grid: UniformGrid, i: int, j: int,
+               base: np.ndarray) -> np.ndarray:
+    """Whether each cell of the slice through ``base`` on coordinates ``(i, j)`` is in the domain,
+    shape (shape[i], shape[j])."""
+    ki, kj = grid.shape[i], grid.shape[j]
+    idx = np.repeat(np.asarray(base, dtype=np.int64)[None, :], ki * kj, axis=0)
+    ii, jj = np.meshgrid(np.arange(ki), np.arange(kj), indexing="ij")
+    idx[:, i] = ii.ravel()
+    idx[:, j] = jj.ravel()
+    return np.asarray(in_domain(idx), dtype=bool).reshape(ki, kj)
+
+
+def _meets_slice(lb: np.ndarray, ub: np.ndarray, grid: UniformGrid, base: np.ndarray, i: int, j: int) -> bool:
+    """Whether a box meets the slice's cell in every coordinate but ``i`` and ``j``."""
+    others = np.array([k for k in range(grid.dim) if k not in (i, j)], dtype=np.int64)
+    if others.size == 0:
+        return True
+    c = grid.points(base[None, :])[0][others]
+    half = grid.eta_array[others] / 2
+    return bool(np.all((lb[others] <= c + half) & (ub[others] >= c - half)))
+
+
+def phase_plane(
+    setting: FigureSetting,
+    in_domain: Callable[[np.ndarray], np.ndarray] | None,
+    runs: Sequence[tuple[str, np.ndarray, Run]],
+    *,
+    axes: Sequence[int] = (0, 1),
+) -> Figure:
+    """The phase plane of two state coordinates.
+
+    Parameters
+    ----------
+    setting : FigureSetting
+    in_domain : callable or None
+        Composed cell indices, shape (B, n), to bool (B,) (:meth:`Controller.in_domain`); ``None``: no domain.
+    runs : sequence of (origin, x0, Run)
+        Closed-loop runs to draw; ``origin`` is ``"initial"`` (a spec's initial state) or ``"random"``.
+    axes : (int, int)
+        The coordinates, 0-based.
+
+    Returns
+    -------
+    Figure
+        Artists carry ``gid``s: ``domain`` (the image of the domain, one pixel per cell), ``target:k``,
+        ``safe:k``, ``avoid:k`` (the boxes), ``state_set``, ``run:r``, ``start:r`` and ``end:r``.
+    """
+    grid = setting.grid
+    i, j = check_axes(axes, grid.dim)
+    ei, ej = cell_edges(grid, i), cell_edges(grid, j)
+    window = (ei[0], ei[-1], ej[0], ej[-1])
+    fig = Figure(figsize=(7.8, 6.0))
+    ax = fig.subplots()
+    handles: list = []
+    lines = [setting.initial_state_line()]
+
+    base, where = base_cell(grid, setting.x0)
+    sliced = grid.dim > 2
+    cells = grid.shape[i] * grid.shape[j]
+    scope = f"slice through {where}, the other coordinates at its centre" if sliced else "whole state space"
+    if in_domain is None:
+        lines.append("no controller: no domain drawn")
+    elif cells > MAX_SLICE_CELLS:
+        lines.append(f"domain not drawn: {cells:,} cells on this plane (at most {MAX_SLICE_CELLS:,})")
+    else:
+        mask = slice_mask(in_domain, grid, i, j, base)
+        ax.imshow(mask.T.astype(np.int8), origin="lower", extent=window, interpolation="nearest", aspect="auto",
+                  cmap=ListedColormap([(1, 1, 1, 0), DOMAIN_COLOR]), vmin=0, vmax=1, gid="domain", zorder=0)
+        label = f"winning domain ({int(mask.sum()):,} of {mask.size:,} cells)"
+        handles.append(Patch(facecolor=DOMAIN_COLOR, edgecolor="none", label=label))
+        lines.append(f"domain: {scope}")
+
+    box = Rectangle((grid.lb[i], grid.lb[j]), grid.ub[i] - grid.lb[i], grid.ub[j] - grid.lb[j], fill=False,
+                    edgecolor="grey", linestyle=":", linewidth=1.0, gid="state_set", label="state set X", zorder=1)
+    ax.add_patch(box)
+    handles.append(box)
+    for key in REGION_NAMES:
+        drawn = 0
+        for k, (lb, ub) in enumerate(setting.regions.get(key, [])):
+            if sliced and not _meets_slice(lb, ub, grid, base, i, j):
+                continue
+            x_lo, x_hi = max(lb[i], window[0]), min(ub[i], window[1])
+            y_lo, y_hi = max(lb[j], window[2]), min(ub[j], window[3])
+            if x_lo > x_hi or y_lo > y_hi:
+                continue
+            style = dict(REGION_STYLE[key])
+            label = style.pop("label")
+            if len(setting.regions[key]) > 8:  # many boxes (a consensus region): thin, so the union reads as one
+                style["linewidth"] = 0.6
+            rect = Rectangle((x_lo, y_lo), x_hi - x_lo, y_hi - y_lo, gid=f"{key}:{k}", zorder=2,
+                             label=label if drawn == 0 else "_nolegend_", **style)
+            ax.add_patch(rect)
+            if drawn == 0:
+                handles.append(rect)
+            drawn += 1
+        if key in setting.regions and drawn == 0:
+            lines.append(f"{key}: no box meets this {'slice' if sliced else 'plane'}")
+    lines += setting.notes
+
+    handles += _draw_runs(ax, runs, i, j)
+    if setting.x0 is not None and not setting.x0_in_domain:
+        handles += ax.plot([setting.x0[i]], [setting.x0[j]], "x", color="crimson", markersize=10, mew=2.5,
+                           label="x0 (not in the domain)", gid="x0_outside", zorder=6)
+    n_init = sum(1 for origin, _, _ in runs if origin == "initial")
+    lines.append(f"runs: {n_init} from x0, {len(runs) - n_init} from random domain states"
+                 f"{', projected on this plane' if sliced else ''}; inputs: {CHOICES.get(setting.choice, setting.choice)}")
+
+    ax.set_xlim(window[0], window[1])
+    ax.set_ylim(window[2], window[3])
+    ri, rj = window[1] - window[0], window[3] - window[2]
+    if max(ri, rj) <= 3 * min(ri, rj):  # comparable ranges: distances read the same on both axes
+        ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel(setting.state_names[i])
+    ax.set_ylabel(setting.state_names[j])
+    ax.set_title("\n".join(textwrap.fill(t, 95) for t in lines), fontsize=8, loc="left")
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    return fig
+
+
+def _draw_runs(ax, runs: Sequence[tuple[str, np.ndarray, Run]], i: int, j: int) -> list:
+    """The runs' paths with their start and end marked; returns one legend handle per kind of mark."""
+    handles: dict[str, object] = {}
+    for r, (origin, _x0, run) in enumerate(runs):
+        xs, ys = run.states[:, i], run.states[:, j]
+        first = origin == "initial"
+        label = "closed loop from x0" if first else "closed loop from random domain states"
+        (line,) = ax.plot(xs, ys, "-", color="black" if first else "tab:orange", linewidth=2.0 if first else 1.1,
+                          alpha=1.0 if first else 0.85, gid=f"run:{r}", zorder=4 if first else 3,
+                          label=label if label not in handles else "_nolegend_")
+        handles.setdefault(label, line)
+        ax.plot([xs[0]], [ys[0]], "o", markerfacecolor="white", markeredgecolor="black", markersize=6,
+                gid=f"start:{r}", zorder=5)
+        bad = run.violation is not None
+        ax.plot([xs[-1]], [ys[-1]], "X" if bad else "s", color="crimson" if bad else "black",
+                markersize=8 if bad else 5, gid=f"end:{r}", zorder=5)
+        if bad:
+            handles.setdefault("end: violation", Line2D([], [], linestyle="none", marker="X", color="crimson",
+                                                        markersize=8, label="end: violation"))
+    if runs:
+        handles["start"] = Line2D([], [], linestyle="none", marker="o", markerfacecolor="white",
+                                  markeredgecolor="black", label="start")
+        handles["end"] = Line2D([], [], linestyle="none", marker="s", color="black", markersize=5, label="end")
+    return list(handles.values())
