@@ -1,16 +1,21 @@
 """The ``compabs`` command.
 
-``compabs run SPEC --out DIR`` runs a job's stages with a progress bar each and writes ``DIR/report.json``
-and the relation arrays; ``compabs validate SPEC`` runs the checks that need no black-box evaluation
-(:mod:`pipelines.spec.validate`), which ``run`` runs first too. ``compabs schema`` prints the spec's JSON Schema.
+``compabs run SPEC --out DIR`` runs a job's stages with a progress bar each (on stderr), writes ``DIR/report.json``
+and the relation arrays, controller and figures, and prints a summary for people on stdout (:func:`summary_lines`:
+states, relations, domain, closed loop, audit, times, the files) or, with ``--json``, the report itself; each of
+the report's ``warnings`` (an empty winning domain, initial states outside it) is a ``warning: ...`` line on
+stderr. ``compabs validate SPEC`` runs the checks that need no black-box evaluation (:mod:`pipelines.spec.validate`),
+which ``run`` runs first too. ``compabs schema`` prints the spec's JSON Schema; ``compabs --version`` prints
+``compabs VERSION``.
 
 Every failure ends in one line ``error: ...`` on stderr and exit status 2, never a traceback: a bad argument,
 a spec that cannot be read or is invalid, a directory that cannot be written or holds another spec's job, a
 black box's NaN, a damaged store, even an internal error (``COMPABS_DEBUG=1`` prints its traceback too). Exit
-status 3 is a violation the audit or the closed loop found, 130 an interrupt. Nothing from the spec is executed
-except whitelisted expressions (and ``module:function`` names, which the local command line allows).
+status 3 is a violation the audit or the closed loop found, 4 an empty winning domain when ``run`` was given
+``--fail-on-empty-domain`` (for scripts and CI; without it an empty domain is a warning, status 0), 130 an
+interrupt. Nothing from the spec is executed except whitelisted expressions (and ``module:function`` names,
+which the local command line allows).
 """
-
 from __future__ import annotations
 
 import argparse
@@ -19,6 +24,9 @@ import json
 import math
 import os
 import sys
+import textwrap
+import threading
+import time
 import traceback
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -29,6 +37,7 @@ import numpy as np
 from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
 from service.settings import local_caps
+from workers import jobdir
 from workers.jobdir import json_default as _json_default
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
@@ -36,32 +45,68 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
 
 
 class _Bars:
-    """One tqdm progress bar per stage, fed by ``progress(stage, done, total, message)`` events."""
+    """One tqdm progress bar per stage, fed by ``progress(stage, done, total, message)`` events (thread-safe).
+
+    Stages follow one another, except the audit, which runs beside synthesis and the closed loop (its events come
+    from another thread, :mod:`workers.processes.audit_beside`): a new stage closes the bars before it, but not an
+    unfinished audit's. A stage whose total grows with its count (``total == done + 1`` after a change of total,
+    e.g. synthesis counting fixed-point iterations, whose number nobody knows in advance) shows the count of
+    iterations without a percentage, until its last event (``done >= total``) makes the count reached its total.
+    """
+
+    #: Stages that run beside the others.
+    BESIDE = frozenset({"audit"})
 
     def __init__(self, enabled: bool) -> None:
         self._enabled = enabled
         self._bars: dict = {}
+        self._totals: dict[str, int] = {}
+        self._open_ended: set[str] = set()
+        self._lock = threading.Lock()
 
     def __call__(self, stage: str, done: int, total: int, message: str) -> None:
         if not self._enabled:
             return
+        with self._lock:
+            self._update(stage, done, total, message)
+
+    def _update(self, stage: str, done: int, total: int, message: str) -> None:
         from tqdm import tqdm
 
         bar = self._bars.get(stage)
         if bar is None:
-            for other in self._bars.values():
-                other.close()
+            for other, old in self._bars.items():
+                if other not in self.BESIDE or (old.total is not None and old.n >= old.total):
+                    old.close()
             bar = self._bars[stage] = tqdm(total=total, desc=f"{stage:>15}", unit="task", leave=True, file=sys.stderr)
-        bar.total = total
-        bar.n = done
+        if done >= total and bar.total is not None and bar.n >= bar.total:
+            # A complete bar's closing event (the audit's "1/1" after its transitions) keeps its counts.
+            bar.set_postfix_str(message[:60], refresh=True)
+            return
+        previous = self._totals.get(stage)
+        self._totals[stage] = total
+        if previous is not None and total != previous and 0 < done == total - 1:
+            self._open_ended.add(stage)
+            bar.unit = "it"
+        bar.unit_scale = total >= 10_000  # 4.20M/4.20M, not 4200000/4200000
+        if stage not in self._open_ended:
+            bar.total, bar.n = total, done
+        elif done >= total:  # its last event: the count reached is its total
+            bar.n = max(bar.n, done)
+            bar.total = bar.n
+        else:
+            bar.total, bar.n = None, done
         bar.set_postfix_str(message[:60], refresh=False)
         bar.refresh()
 
     def close(self) -> None:
-        for bar in self._bars.values():
-            bar.close()
+        with self._lock:
+            for bar in self._bars.values():
+                bar.close()
 
 
+#: Exit status of ``compabs run --fail-on-empty-domain`` when no controller exists (an empty winning domain).
+EMPTY_DOMAIN_STATUS = 4
 #: Environment variable that makes an internal error print its traceback and keeps the workers' task-error logs.
 DEBUG_ENV = "COMPABS_DEBUG"
 #: Log levels of the embedded cluster's worker processes (Dask's ``logging`` setting, handed to them through
@@ -124,8 +169,11 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    """The ``run`` subcommand: the job, then its summary (or ``--json`` its report) on stdout, its warnings on
+    stderr, and the exit status (module docstring)."""
     from workers.job import run_job
 
+    t0 = time.perf_counter()
     spec = _load(args)  # run_job validates it (pipelines.spec.validate) before creating --out or a cluster
     bars = _Bars(not args.quiet)
     try:
@@ -137,15 +185,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             )
     finally:
         bars.close()
-    keys = ("abstract_states", "region_states", "domain_states", "domain_states_by_fixed_point", "stage_seconds")
-    summary = {k: report[k] for k in keys if k in report}
-    summary["audit"] = {k: report["audit"][k] for k in ("transitions_checked", "violations")}
-    if "runner" in report:
-        r = report["runner"]
-        summary["runner"] = {k: r.get(k) for k in ("scheduler", "workers", "dashboard", "chunks_computed", "chunks_reused")}
-    if "closed_loop" in report:
-        summary["closed_loop"] = {k: report["closed_loop"][k] for k in ("runs", "violations")}
-    print(json.dumps(summary, indent=2, default=_json_default))
+    if args.json:
+        print(json.dumps(report, indent=2, default=_json_default))  # as report.json (workers.jobdir.write_report)
+    else:
+        print("\n".join(summary_lines(report, Path(args.out), time.perf_counter() - t0)))
+    for warning in report.get("warnings", []):
+        print(f"warning: {one_line(warning)}", file=sys.stderr)
     if report["audit"]["violations"]:
         print("error: the audit found transitions missing from the abstraction (a soundness bug)", file=sys.stderr)
         return 3
@@ -153,14 +198,168 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: closed-loop runs violated the specification: {report['closed_loop']['first_violation']}",
               file=sys.stderr)
         return 3
+    if args.fail_on_empty_domain and report.get("domain_states") == 0:
+        return _fail("the winning domain is empty (--fail-on-empty-domain)", EMPTY_DOMAIN_STATUS)
     return 0
+
+
+# ====================================================================================== the run's summary
+#: Width of the summary's labels; its lines wrap at :data:`SUMMARY_WIDTH` columns.
+LABEL = 14
+SUMMARY_WIDTH = 100
+
+
+def seconds_text(seconds: float) -> str:
+    """A duration for people: ``"<1 ms"``, ``"0.455 s"``, ``"12.3 s"`` (3 significant digits below a minute),
+    ``"2 min 05 s"``, ``"1 h 02 min"``."""
+    if seconds < 1e-3:
+        return "<1 ms"
+    if seconds < 59.95:
+        return f"{seconds:.3g} s"
+    if seconds < 3600:
+        minutes, rest = divmod(round(seconds), 60)
+        return f"{minutes} min {rest:02d} s"
+    hours, rest = divmod(round(seconds / 60), 60)
+    return f"{hours} h {rest:02d} min"
+
+
+def share_text(part: float, whole: float) -> str:
+    """``part`` of ``whole`` in percent, 3 significant digits (``"57.8%"``; ``"<0.01%"`` for a sliver)."""
+    if whole <= 0:
+        return "-"
+    percent = 100 * part / whole
+    if 0 < percent < 0.01:
+        return "<0.01%"
+    return f"{percent:.3g}%"
+
+
+def _line(label: str, *parts: str) -> str:
+    """One labelled line of the summary, ``parts`` joined by commas and wrapped between parts only (a number is
+    never parted from its unit)."""
+    glued = ", ".join(part.replace(" ", NBSP) for part in parts)
+    text = textwrap.fill(glued, SUMMARY_WIDTH, initial_indent=f"  {label:<{LABEL}}", subsequent_indent=" " * (LABEL + 2),
+                         break_on_hyphens=False, break_long_words=False)
+    return text.replace(NBSP, " ")
+
+
+#: Joins the words of one part of a summary line: textwrap breaks lines at ASCII whitespace only.
+NBSP = "\u00a0"
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n:,} {noun}{'' if n == 1 else 's'}"
+
+
+def _subsystem_parts(info: dict) -> list[str]:
+    """The relation of one distinct subsystem: its (x, u, w) triples, its transitions and successor cells per
+    triple under the growth bound it was computed with, its blocking share."""
+    bound = info.get("growth_bound")
+    means, counts = info.get("mean_successors") or {}, info.get("non_blocking") or {}
+    if bound not in means:
+        bound = next(iter(means), None)
+    parts = [_count(int(info.get("triples", 0)), "(x, u, w) triple")]
+    mean = means.get(bound)
+    if mean is not None:
+        parts.append(f"{_count(round(mean * counts.get(bound, 0)), 'transition')} ({mean:.3g} successors each, {bound})")
+    if info.get("blocking_fraction") is not None:
+        parts.append(f"{share_text(info['blocking_fraction'], 1)} blocking")
+    return parts
+
+
+def _runner_parts(runner: dict) -> list[str]:
+    if runner.get("in_process"):
+        where = "in this process"
+    else:
+        where = f"on {_count(int(runner.get('workers') or 0), 'worker')}"
+        if runner.get("scheduler") and not runner.get("embedded"):
+            where += f" of {runner['scheduler']}"
+    return [f"{runner.get('chunks_computed', 0):,} computed", f"{runner.get('chunks_reused', 0):,} reused", where]
+
+
+def _file_lines(report: dict, out: Path) -> list[str]:
+    """The job's files: report, relations, controller (its header; a layered controller's DDDMP files lie beside
+    it), figures."""
+    lines = [_line("report", str(out / jobdir.REPORT)), _line("relations", str(out / jobdir.RELATIONS))]
+    files = list(report.get("controller", {}).get("files", []))
+    headers = [f for f in files if f.endswith(".json")]
+    if headers:
+        others = len(files) - len(headers)
+        more = f" (and {_count(others, 'BDD file')} beside it)" if others else ""
+        lines.append(_line("controller", *(str(out / f) for f in headers[:-1]), str(out / headers[-1]) + more))
+    elif files:
+        lines.append(_line("controller", *(str(out / f) for f in files)))
+    if report.get("figures"):
+        lines.append(_line("figures", *(str(out / f) for f in report["figures"])))
+    return lines
+
+
+def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -> list[str]:
+    """The summary ``compabs run`` prints: what the job found and where its files are, for people.
+
+    Parameters
+    ----------
+    report : dict
+        The job's report (:func:`workers.job.run_job`).
+    out : Path
+        The job directory, as given (``--out``): the files are named under it.
+    total_seconds : float, optional
+        The command's wall time (the stages' sum overstates it: the audit runs beside synthesis).
+
+    Returns
+    -------
+    list of str
+        One line each (wrapped at :data:`SUMMARY_WIDTH` columns); no Dask dashboard (it closed with the command's
+        cluster).
+    """
+    from workers.stages import STAGES
+
+    states = int(report["abstract_states"])
+    lines = [f"{report['name']}: {_count(states, 'abstract state')}, {report.get('subsystem_count', '?')} subsystems"]
+    for info in report.get("subsystems", []):
+        members = info.get("members") or [info["name"]]
+        label = info["name"] + (f" ×{len(members)}" if len(members) > 1 else "")
+        lines.append(_line(label, *_subsystem_parts(info)))
+    for name, region in (report.get("regions") or {}).items():
+        lines.append(_line(name, f"{_count(region['states'], 'state')} ({share_text(region['states'], states)})"))
+    if "domain_states" in report:
+        domain = int(report["domain_states"])
+        parts = [f"{_count(domain, 'state')} ({share_text(domain, states)} of the states)"]
+        fixed = report.get("controller", {}).get("fixed_point")
+        others = {k: n for k, n in (report.get("domain_states_by_fixed_point") or {}).items() if k != fixed}
+        if fixed and others:
+            parts.append(f"{fixed} fixed point (" + "; ".join(f"{k}: {n:,}" for k, n in others.items()) + ")")
+        lines.append(_line("domain", *parts))
+    else:
+        lines.append(_line("domain", "not synthesized"))
+    loop = report.get("closed_loop")
+    if loop is not None:
+        parts = [_count(loop["runs"], "run"), _count(loop["violations"], "violation")]
+        initial = loop.get("initial_states") or []
+        if initial:
+            inside = sum(bool(rec.get("in_domain")) for rec in initial)
+            parts.append(f"{inside} of {len(initial)} initial states in the domain")
+        lines.append(_line("closed loop", *parts))
+    audit = report.get("audit", {})
+    if audit.get("transitions_checked"):
+        parts = [_count(audit["transitions_checked"], "transition"), _count(audit["violations"], "violation")]
+        lines.append(_line("audit", *parts, *(["beside synthesis"] if audit.get("beside_synthesis") else [])))
+    else:
+        lines.append(_line("audit", "not run"))
+    if "runner" in report:
+        lines.append(_line("chunks", *_runner_parts(report["runner"])))
+    if total_seconds is not None:
+        lines.append(_line("time", seconds_text(total_seconds)))
+    seconds = report.get("stage_seconds", {})
+    order = [s for s in STAGES if s in seconds] + [s for s in seconds if s not in STAGES]
+    lines.append(_line("stages", *(f"{s.replace('_', ' ')} {seconds_text(seconds[s])}" for s in order)))
+    return lines + _file_lines(report, out)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.controller import load_controller
     from pipelines.network import build_network
     from pipelines.spec.model import parse_spec
-    from pipelines.spec.regions import spec_regions
+    from pipelines.spec.regions import closed_loop_regions, spec_regions
     from pipelines.verification.closed_loop import simulate
 
     controller = load_controller(args.dir)
@@ -175,7 +374,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     regions = spec_regions(spec, network)
     run = simulate(network, None if args.free else controller, x0, args.steps,
                    np.random.default_rng(args.seed), spec.specification.kind,
-                   target=regions.get("target") or regions.get("safe"), avoid=regions.get("avoid"), choose=args.choose)
+                   **closed_loop_regions(spec, network, regions), choose=args.choose)
     print(json.dumps(run.as_dict()))
     return 0 if run.violation is None or args.free else 4
 
@@ -185,6 +384,17 @@ def cmd_schema(args: argparse.Namespace) -> int:
 
     print(json.dumps(json_schema(), indent=2))
     return 0
+
+
+def package_version() -> str:
+    """compabs's version from its installed package metadata (``"unknown"`` when run from a checkout that was
+    never installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("compabs")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 class Parser(argparse.ArgumentParser):
@@ -197,6 +407,7 @@ class Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="compabs", description="Data-driven compositional abstractions and controllers.")
+    p.add_argument("--version", action="version", version=f"compabs {package_version()}")
     # (Subcommands are Parsers too; the cast is for the subcommand modules' add_parser(sub), typed for argparse's.)
     sub = cast("argparse._SubParsersAction[argparse.ArgumentParser]", p.add_subparsers(dest="command", required=True))
     v = sub.add_parser("validate", help="check a job spec without running it (no black-box evaluation)")
@@ -217,6 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(1 to 256)")
     r.add_argument("--in-process", action="store_true", help="no cluster: run the per-cell stage in this process")
     r.add_argument("--overwrite", action="store_true", help="if --out holds relations of another spec, delete them")
+    r.add_argument("--json", action="store_true", help="print the report (as report.json) instead of the summary")
+    r.add_argument("--fail-on-empty-domain", action="store_true",
+                   help=f"exit with status {EMPTY_DOMAIN_STATUS} when the winning domain is empty (no controller)")
     r.set_defaults(func=cmd_run)
     m = sub.add_parser("simulate", help="run the concrete system under a saved controller; prints JSON")
     m.add_argument("dir", help="output directory of 'compabs run'")
@@ -229,8 +443,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("schema", help="print the JSON Schema of job specs")
     s.set_defaults(func=cmd_schema)
     from service.audit_cmd import add_parser as add_audit_parser
+    from service.export_cmd import add_parser as add_export_parser
+    from service.figures_cmd import add_parser as add_figures_parser
 
     add_audit_parser(sub)
+    add_figures_parser(sub)
+    add_export_parser(sub)
     from service.serve import add_credentials_parser
     from service.serve import add_parser as add_serve_parser
 

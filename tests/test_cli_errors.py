@@ -329,7 +329,7 @@ def test_overwrite_replaces_another_specs_job(job, tmp_path, capsys):
 
 def test_the_same_spec_resumes_into_its_directory(finished_job, job, capsys):
     spec, _ = finished_job
-    code, out, err = run_cli(capsys, "run", spec, "--out", job, "--quiet", "--in-process", "--no-synthesis")
+    code, out, err = run_cli(capsys, "run", spec, "--out", job, "--quiet", "--in-process", "--no-synthesis", "--json")
     assert code == 0, err
     assert json.loads(out)["runner"]["chunks_reused"] >= 1
 

@@ -183,7 +183,10 @@ def run_abstraction(
         if audit_beside:
             from workers.processes.audit_beside import BackgroundAudit
 
-            pending = BackgroundAudit(network, relations, ia, spec.options.audit_transitions, rng)
+            # The child reports each part it finishes; the relay thread calls progress (the service's callback
+            # writes under the job store's lock, so it may be called from that thread).
+            pending = BackgroundAudit(network, relations, ia, spec.options.audit_transitions, rng,
+                                      progress=lambda done, total, part: progress("audit", done, total, part))
             audit_report = {"transitions_checked": 0, "violations": 0, "pending": True}
             progress("audit", 0, 1, "running in a child process beside synthesis")
         else:
