@@ -164,11 +164,14 @@ def test_worker_killed_in_every_runner_stage(tmp_path, client, reference, capsys
                 f"the cluster did not get back to two workers within 240 s of killing {killed[-1:]}")
             time.sleep(0.2)
 
+    lock = threading.Lock()  # the audit's relay thread reports its parts while this thread reports synthesis
+
     def progress(stage: str, done: int, total: int, message: str) -> None:
-        if stage in stages and stage not in {s for s, _ in killed}:
-            victim = two_live_workers()[len(killed) % 2]
-            os.kill(victim, signal.SIGKILL)
-            killed.append((stage, victim))
+        with lock:
+            if stage in stages and stage not in {s for s, _ in killed}:
+                victim = two_live_workers()[len(killed) % 2]
+                os.kill(victim, signal.SIGKILL)
+                killed.append((stage, victim))
 
     out = tmp_path / "job"
     report = run_job(spec, out, client=client, progress=progress)

@@ -16,10 +16,19 @@ import math
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from pipelines.errors import SpecError
 from pipelines.spec.loader import load_yaml
@@ -82,6 +91,29 @@ class LipschitzSpec(_Model):
         return v
 
 
+def _check_read_literals(text: str) -> str:
+    """A ``reads`` expression computes an index: its numbers are integer literals of at most 9 digits (``1e999``,
+    ``nan`` or a 100-digit number is refused here, before anything is built; names are checked with the
+    parameters by :func:`pipelines.network.build_network`)."""
+    import ast
+
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError:
+        raise ValueError(f"reads entry {text!r} is not an expression") from None
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and not (type(node.value) is int and abs(node.value) < 10**9):
+            raise ValueError(f"reads entry {text!r}: {node.value!r} is not an integer of at most 9 digits (an index "
+                             "expression uses integers, the copy index i and integer parameters)")
+        if isinstance(node, ast.Name) and node.id in ("nan", "inf"):
+            raise ValueError(f"reads entry {text!r}: {node.id} is not an index")
+    return text
+
+
+#: A ``reads`` entry given as an expression (checked per entry, so an error names ``reads.K``).
+ReadExpression = Annotated[str, AfterValidator(_check_read_literals)]
+
+
 class SubsystemSpec(_Model):
     """One subsystem ``Xi_i``, or ``replicate`` identical copies of it.
 
@@ -94,7 +126,7 @@ class SubsystemSpec(_Model):
     replicate: int | str = Field(default=1, description="number of copies, or the name of an integer parameter")
     state: GridSpec
     input: GridSpec
-    reads: list[int | str] = Field(
+    reads: list[int | ReadExpression] = Field(
         default_factory=list,
         description="the internal variables w_j it reads, in order: indices, or integer expressions in the copy "
         "index i and the parameters (\"(i + 1) % N\"), evaluated per copy",
