@@ -52,6 +52,8 @@ def run_synthesis(
     """
     spec = abstraction.spec
     opts = spec.options
+    if out_dir is not None:  # CUDD's DDDMP writer aborts the process on a missing directory
+        os.makedirs(out_dir, exist_ok=True)
     kind = spec.specification.kind
     network = abstraction.network
     t0 = time.perf_counter()
