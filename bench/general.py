@@ -31,6 +31,8 @@ SCOTS: dict[str, dict[str, Any]] = {
     },
     "rooms": None,  # a compositional benchmark: no SCOTS run of it
 }
+#: The examples whose subsystems are n-dimensional (2-D and 3-D): issue 22's per-cell target is about them.
+N_D_EXAMPLES = ("dcdc", "vehicle")
 #: Issue 22's targets ("Done when") for the general case.
 GENERAL_TARGETS = {"dcdc_seconds": 60.0, "dcdc_domain_vs_scots": 0.95, "audit_transitions": 10**6, "floor": 3.0,
                    "closed_loop_runs": 100}
@@ -76,7 +78,9 @@ def bench_general(args, *, run_child, case_record, examples, worker_environ) -> 
             "error": "; ".join(f"{r['case']}: {r['error']}" for r in rows if r.get("error")) or None,
             "runs": rows, "peak_rss_mb": max((r["peak_rss_mb"] for r in rows), default=None),
             "others_cores": max((r["others_cores"] for r in rows), default=None),
-            "ratio": max((r["floor"]["ratio"] or 0.0 for r in rows), default=None)}
+            # Issue 22's criterion is about the n-D examples; the rooms' subsystems are scalar (their row is printed).
+            "ratio": max((r["floor"]["ratio"] or 0.0 for r in rows if r["case"].split()[-1] in N_D_EXAMPLES),
+                         default=None)}
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
@@ -122,5 +126,5 @@ def general_targets(c: dict, put) -> None:
         put("vehicle closed-loop runs (violations)", loop.get("runs"), ">= 100, 0 violations",
             (loop.get("runs") or 0) >= GENERAL_TARGETS["closed_loop_runs"] and loop.get("violations") == 0)
     worst = c.get("ratio")
-    put("general per-cell / floor (worst)", worst, f"<= {GENERAL_TARGETS['floor']}",
+    put("per-cell / floor (worst of the 2-D, 3-D)", worst, f"<= {GENERAL_TARGETS['floor']}",
         worst is not None and worst <= GENERAL_TARGETS["floor"])
