@@ -208,8 +208,7 @@ def run_abstraction(
         "interconnection": ia.describe(),
         "audit": audit_report,
     }
-    target = regions.get("target") or regions.get("safe")
-    return Abstraction(spec, network, relations, ia, target, report, pending_audit=pending)
+    return Abstraction(spec, network, relations, ia, report, pending_audit=pending)
 
 
 def _executor(spec: JobSpec, network: Network, store: RelationStore, *, client: Any, scheduler: str | None,

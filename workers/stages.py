@@ -14,7 +14,6 @@ from typing import Any
 from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.network import Network
 from pipelines.spec.model import JobSpec
-from pipelines.spec.regions import AbstractRegion
 
 Progress = Callable[[str, int, int, str], None]
 
@@ -54,7 +53,6 @@ class Abstraction:
     network: Network
     relations: dict[str, SubsystemRelation]  # by subsystem key
     interconnection: Any
-    target: AbstractRegion | None
     report: dict[str, Any] = field(default_factory=dict)
     pending_audit: Any = field(default=None, repr=False)  # a BackgroundAudit until finish_audit
 

@@ -45,9 +45,7 @@ def _work(sub: Subsystem) -> tuple[float, float, float, bool]:
     S = int(np.prod(counts))
     scalar = n == 1 and len(counts) - n <= 1
     triple = TRIPLE_WORK.get(n, TRIPLE_WORK[3] + TRIPLE_WORK_PER_DIM * (n - 3))
-    # An ODE's black box integrates: 4 right-hand-side evaluations per RK4 sub-step (pipelines.integrators).
-    steps = 1 if sub.spec.ode is None else 4 * sub.spec.substeps
-    base = (S + 1) * steps + SAMPLE_WORK * S * n + triple
+    base = (S + 1) * sub.spec.rhs_evaluations + SAMPLE_WORK * S * n + triple
     if scalar:
         return base, PAIR_WORK * Sx * Sx / 2, SCALAR_PAIR_WORK * Sx * Sx / 4, True
     return base, PAIR_WORK * n * Sx * (Sx + 1) / 2, LP_WORK * n * Sx, False

@@ -61,7 +61,7 @@ from typing import Any
 from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS, default_chunk_cells
 from pipelines.errors import SpecError
 from pipelines.network import Network, Subsystem
-from pipelines.spec.model import JobSpec, SubsystemSpec
+from pipelines.spec.model import JobSpec
 from pipelines.verification.audit import composition_transitions
 
 #: Steps of a closed-loop run when ``closed_loop_steps`` is automatic, at the least (``2 * iterations + 30``).
@@ -202,11 +202,6 @@ def spec_costs(spec: JobSpec) -> list[Cost]:
     return costs
 
 
-def rhs_evaluations(s: SubsystemSpec) -> int:
-    """Evaluations of the user's function per sampled step: 1 for a map, ``4 x substeps`` for an ODE (RK4)."""
-    return 1 if s.ode is None else 4 * s.substeps
-
-
 def _index(spec: JobSpec, sub: Subsystem) -> int:
     """The index in ``spec.subsystems`` of the entry ``sub`` was built from."""
     for i, s in enumerate(spec.subsystems):
@@ -239,10 +234,10 @@ def _cell_costs(spec: JobSpec, groups: list[Subsystem], task_points: int) -> lis
             f"{sub.input_grid.size} inputs x {sub.n_w_cells} internal cells)",
             _says("coarsen its grids (larger eta, smaller boxes)"), own_cap=spec.options.max_cells,
         ))
-    parts = sorted(((s.triples * s.spec.samples * rhs_evaluations(s.spec), s) for s in groups), key=lambda t: -t[0])
+    parts = sorted(((s.triples * s.spec.samples * s.spec.rhs_evaluations, s) for s in groups), key=lambda t: -t[0])
     total = sum(v for v, _ in parts)
     shown = "; ".join(f"'{s.name}': {s.triples} triples x {s.spec.samples} samples (subsystems[{_index(spec, s)}]"
-                      f".samples)" + (f" x {rhs_evaluations(s.spec)} right-hand-side evaluations per sampled step"
+                      f".samples)" + (f" x {s.spec.rhs_evaluations} right-hand-side evaluations per sampled step"
                                       if s.spec.ode is not None else "") for _, s in parts[:3])
     top = parts[0][1]
     costs.append(Cost(

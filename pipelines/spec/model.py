@@ -188,6 +188,12 @@ class SubsystemSpec(_Model):
         assert text is not None  # one of them is (checked above)
         return text
 
+    @property
+    def rhs_evaluations(self) -> int:
+        """Evaluations of the user's function per sampled step: 1 for a map, ``4 x substeps`` for an ODE (one per
+        Runge-Kutta 4 stage, :mod:`pipelines.integrators`); what the cost models multiply samples by."""
+        return 1 if self.ode is None else 4 * self.substeps
+
 
 class InterconnectionSpec(_Model):
     """The interconnection ``M`` (Section 4.2): sampled, learned by lasso, decomposed, certified."""
