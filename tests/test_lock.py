@@ -1,8 +1,10 @@
-"""The lock file the Docker image installs from (``requirements.lock``) is in sync with pyproject.toml, and the
-image is reproducible: its base pinned by digest, its packages installed from the lock with hashes.
+"""The lock files are in sync with pyproject.toml: ``requirements.lock`` (the Docker image installs it) pins
+``[project].dependencies``, ``requirements-test.lock`` (CI, ``.ci/run``, installs it) pins those and the ``test``
+extra at the same versions; both with hashes. The image is reproducible: its base pinned by digest, its packages
+installed from the lock with hashes.
 
-After a change of ``[project].dependencies``, regenerate the lock with the command at its top (uv, Python 3.11,
-linux x86_64, hashes).
+After a change of the dependencies, regenerate both with the commands at their tops (uv, Python 3.11, linux
+x86_64, hashes; the test lock constrained by the runtime lock), the runtime lock first.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from .conftest import ROOT
 tomllib = pytest.importorskip("tomllib")
 
 LOCK = ROOT / "requirements.lock"
+TEST_LOCK = ROOT / "requirements-test.lock"
 #: The environment the lock is for (the image's): markers of pyproject's dependencies are evaluated in it.
 TARGET = {"python_version": "3.11", "python_full_version": "3.11.13", "sys_platform": "linux",
           "platform_system": "Linux", "platform_machine": "x86_64", "os_name": "posix",
@@ -62,26 +65,54 @@ def pyproject() -> dict:
     return tomllib.loads((ROOT / "pyproject.toml").read_text())
 
 
-def _dependencies(pyproject: dict) -> list[Requirement]:
-    reqs = [Requirement(d) for d in pyproject["project"]["dependencies"]]
+@pytest.fixture(scope="module")
+def test_lock() -> dict[str, dict]:
+    return parse_lock(TEST_LOCK.read_text())
+
+
+def _dependencies(pyproject: dict, extra: bool = False) -> list[Requirement]:
+    specs = pyproject["project"]["dependencies"] + (pyproject["project"]["optional-dependencies"]["test"]
+                                                    if extra else [])
+    reqs = [Requirement(d) for d in specs]
     return [r for r in reqs if r.marker is None or r.marker.evaluate(TARGET)]
 
 
-def test_every_dependency_is_pinned_in_the_lock_within_its_specifier(lock, pyproject):
-    for req in _dependencies(pyproject):
+@pytest.mark.parametrize("extra", [False, True], ids=["runtime", "test"])
+def test_each_lock_pins_every_dependency_within_its_specifier(lock, test_lock, pyproject, extra):
+    pins = test_lock if extra else lock
+    for req in _dependencies(pyproject, extra):
         name = canonicalize_name(req.name)
-        assert name in lock, f"{req} of pyproject.toml is not in requirements.lock: regenerate it"
-        version = Version(lock[name]["version"])
+        assert name in pins, f"{req} of pyproject.toml is not in the lock: regenerate it"
+        version = Version(pins[name]["version"])
         assert req.specifier.contains(version, prereleases=True), (
-            f"requirements.lock pins {name}=={version}, outside pyproject.toml's {req}: regenerate it")
+            f"the lock pins {name}=={version}, outside pyproject.toml's {req}: regenerate it")
+    assert all(pin["hashes"] for pin in pins.values()), [n for n, p in pins.items() if not p["hashes"]]
 
 
-def test_the_lock_pins_no_top_level_package_pyproject_lacks(lock, pyproject):
+def test_ci_tests_the_versions_the_image_runs(lock, test_lock):
+    """Every package of the image's lock is in the test lock at the same version (CI tests what ships)."""
+    assert set(lock) <= set(test_lock), sorted(set(lock) - set(test_lock))
+    differ = {n: (lock[n]["version"], test_lock[n]["version"]) for n in lock
+              if lock[n]["version"] != test_lock[n]["version"]}
+    assert not differ, f"requirements-test.lock differs from requirements.lock (regenerate it): {differ}"
+
+
+def test_ci_installs_from_the_test_lock():
+    text = (ROOT / ".ci" / "run").read_text()
+    assert re.search(r"pip install [^\n]*--require-hashes -r requirements-test\.lock", text)
+    installs = re.findall(r"pip install ([^\n]*)", text)
+    # nothing resolved outside the lock: every other install is pip itself or compabs without its dependencies
+    assert all("--require-hashes" in i or "--no-deps" in i or i.strip().endswith("pip") for i in installs), installs
+
+
+@pytest.mark.parametrize("extra", [False, True], ids=["runtime", "test"])
+def test_the_lock_pins_no_top_level_package_pyproject_lacks(lock, test_lock, pyproject, extra):
     """A dependency dropped from pyproject.toml leaves the lock too (uv marks top-level pins ``via compabs``)."""
-    declared = {canonicalize_name(r.name) for r in _dependencies(pyproject)}
-    top_level = {name for name, pin in lock.items() if any(v.startswith("compabs") for v in pin["via"])}
+    pins = test_lock if extra else lock
+    declared = {canonicalize_name(r.name) for r in _dependencies(pyproject, extra)}
+    top_level = {name for name, pin in pins.items() if any(v.startswith("compabs") for v in pin["via"])}
     assert top_level == declared, (sorted(top_level - declared), sorted(declared - top_level))
-    orphans = [name for name, pin in lock.items() if not pin["via"]]
+    orphans = [name for name, pin in pins.items() if not pin["via"]]
     assert not orphans, f"pins nothing requires: {orphans}"
 
 
