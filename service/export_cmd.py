@@ -57,6 +57,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     export = export_controller(ctrl, form=form, rule=args.rule)
     default = Path(args.dir) / f"{_name(args)}_export"
     out = Path(args.out) if args.out else default
+    out.parent.mkdir(parents=True, exist_ok=True)  # --out into a directory that does not exist yet
     if args.format == "json":
         files = [write_json(export, out if args.out else out.with_suffix(".json"))]
     elif args.format == "csv":

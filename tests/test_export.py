@@ -249,5 +249,6 @@ def test_export_import_and_control_commands(jobs, tmp_path, capsys):
     assert (tmp_path / "e.csv").read_text().startswith("x1,x2,u1,u2\n")
     with pytest.raises(ExportError, match="CSV limit"):
         run(["export", d, "--format", "csv", "--max-rows", "10", "--out", str(tmp_path / "f.csv")])
-    assert run(["export", d, "--format", "c", "--controller", "reach_safe", "--out", str(tmp_path / "ctl")]) == 0
-    assert (tmp_path / "ctl.c").exists() and (tmp_path / "ctl.h").exists()
+    new_dir = tmp_path / "new" / "dir"  # --out into a directory that does not exist yet
+    assert run(["export", d, "--format", "c", "--controller", "reach_safe", "--out", str(new_dir / "ctl")]) == 0
+    assert (new_dir / "ctl.c").exists() and (new_dir / "ctl.h").exists()

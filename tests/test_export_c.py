@@ -1,5 +1,6 @@
 """The C export compiles (``cc -std=c99 -Wall -Werror -O2``) and answers as the tool does: on every domain cell
-(centres, random points, cell corners), on every other cell (0) and outside the box (0)."""
+(centres, random points, cell corners), on every other cell (0) and outside the box (0); for the ten tanks
+(2.2e11 domain cells) on a million domain cells drawn uniformly from the export's BDD."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import pytest
 
 from pipelines.controller import Controller, load_controller
 from pipelines.export.c import write_c
-from pipelines.export.emit import Export, domain_cells, export_controller
+from pipelines.export.emit import Export, domain_cells, domain_count, export_controller, sample_domain_cells
+from pipelines.export.table import BDDTable, quantize
 
 from .test_export import cases, jobs  # noqa: F401 - the module-scoped fixture
 
@@ -128,3 +130,106 @@ def test_consensus_n4_c_export_on_every_domain_cell(tmp_path):
     rng = np.random.default_rng(4)
     for r in rng.choice(cells.shape[0], 200, replace=False):
         assert np.any(np.all(ctrl.inputs(X[r]) == U[r], axis=1))
+
+
+def test_domain_sampling_is_uniform_over_the_domain(jobs):  # noqa: F811
+    """``sample_domain_cells`` draws only domain cells, every one of them, each about equally often (a chi-square
+    bound six standard deviations wide), and counts the domain exactly from the table alone."""
+    rng = np.random.default_rng(12)
+    for name, ctrl in cases(jobs):
+        export = export_controller(ctrl, form="bdd")
+        g = export.state_grid
+        cells = domain_cells(export.bdd, g)
+        D = cells.shape[0]
+        assert domain_count(export.bdd) == D == export.sizes["domain_states"] > 0, name
+        per_cell = 200
+        draws = sample_domain_cells(export.bdd, g, per_cell * D, rng)
+        counts = np.bincount(g.ravel(draws), minlength=g.size)
+        in_domain = np.zeros(g.size, dtype=bool)
+        in_domain[g.ravel(cells)] = True
+        assert np.all(counts[~in_domain] == 0) and np.all(counts[in_domain] > 0), name
+        chi2 = float(((counts[in_domain] - per_cell) ** 2).sum() / per_cell)
+        assert chi2 < (D - 1) + 6 * np.sqrt(2 * (D - 1)), (name, chi2, D)
+    empty = BDDTable(np.zeros((0, 2), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                     np.zeros(1, dtype=np.int64), 1, np.zeros(0, dtype=np.int64))
+    assert domain_count(empty) == 0 and sample_domain_cells(empty, g, 5, rng).shape == (0, g.dim)
+
+
+def uniform_in_cells(g, cells: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A state drawn uniformly in each cell's part of the box, shape (B, n)."""
+    lo, hi = g.clipped_cells(cells)
+    return lo + rng.random(lo.shape) * (hi - lo)
+
+
+def outside_the_box(g, size: int, rng: np.random.Generator) -> np.ndarray:
+    """States with at least one coordinate outside the box: far, just outside (the next double beyond an edge),
+    infinite or NaN."""
+    lb, ub = np.asarray(g.lb), np.asarray(g.ub)
+    X = rng.uniform(lb, ub, size=(size, g.dim))
+    rows = np.arange(size)
+    axis = rng.integers(0, g.dim, size)
+    low = rng.random(size) < 0.5
+    far = np.where(low, lb[axis] - rng.exponential(20.0, size), ub[axis] + rng.exponential(20.0, size))
+    near = np.where(low, np.nextafter(lb[axis], -np.inf), np.nextafter(ub[axis], np.inf))
+    special = np.array([np.nan, np.inf, -np.inf])[rng.integers(0, 3, size)]
+    kind = rng.integers(0, 8, size)  # 6 in 8 far, 1 in 8 just outside, 1 in 8 special
+    X[rows, axis] = np.where(kind < 6, far, np.where(kind == 6, near, special))
+    return X
+
+
+@pytest.mark.slow
+def test_tanks_c_export_on_a_million_sampled_domain_cells(tmp_path):
+    """The ten tanks (examples/tanks.yaml, Reach(Safe): 217,735,106,888 domain cells of 41^10, 1.6e-5 of the grid;
+    the exact tree is not built above 2^21 grid cells, so the export is the BDD). The C agrees bit for bit with the
+    export's tables on 10^6 domain cells drawn uniformly from the domain (a state drawn uniformly in each), its
+    input is one the BDD controller allows on 300 of them, and it says "no input" (u untouched) on 10^5 states of
+    the box outside the domain, on about 9 * 10^4 states in cells next to domain cells but outside the domain, and
+    on 10^5 states outside the box (far, the next double beyond an edge, infinite, NaN)."""
+    from .conftest import EXAMPLES
+    from .test_export import make_job
+
+    job = make_job(EXAMPLES / "tanks.yaml", tmp_path / "job")
+    ctrl = load_controller(job, "controller_reach_safe")
+    assert isinstance(ctrl, Controller)
+    export = export_controller(ctrl)
+    assert export.form == "bdd" and export.tree is None and export.sizes["tree_nodes"] is None
+    assert export.sizes["domain_states"] == domain_count(export.bdd) == 217_735_106_888
+    exe = compile_driver(export, tmp_path / "c")
+    g, m = export.state_grid, sum(ig.dim for ig in export.input_grids)
+    table = export.controller()
+    rng = np.random.default_rng(25)
+
+    # in the domain: 10^6 cells drawn uniformly, a state drawn uniformly in each
+    cells = sample_domain_cells(export.bdd, g, 1_000_000, rng)
+    X = uniform_in_cells(g, cells, rng)
+    idx, in_box = quantize(g, X)
+    assert in_box.all() and np.array_equal(idx, cells)
+    U, ok = run_c(exe, X, m)
+    want, want_ok = table.input_many(X)
+    assert ok.all() and want_ok.all()
+    np.testing.assert_array_equal(U.view(np.int64), want.view(np.int64))  # bit for bit
+    assert ctrl.in_domain(cells[:5000]).all()
+    for r in rng.choice(cells.shape[0], 300, replace=False):
+        assert np.any(np.all(ctrl.inputs(X[r]) == U[r], axis=1)), X[r]
+
+    # in the box, outside the domain: uniform in the box, and in cells one step from a sampled domain cell
+    # (a tenth of those are outside); kept where the tables say "outside", which the BDD controller confirms
+    uniform = rng.uniform(np.asarray(g.lb), np.asarray(g.ub), size=(100_100, g.dim))
+    moved = cells.copy()
+    moved[np.arange(moved.shape[0]), rng.integers(0, g.dim, moved.shape[0])] += rng.choice([-1, 1], moved.shape[0])
+    moved = moved[np.all((moved >= 0) & (moved < np.asarray(g.shape)), axis=1)]
+    parts = []
+    for Y in (uniform, uniform_in_cells(g, moved, rng)):
+        idx, in_box = quantize(g, Y)
+        assert in_box.all()
+        _, inside = table.codes(idx)
+        assert not ctrl.in_domain(idx[~inside]).any()
+        parts.append(Y[~inside])
+    assert parts[0].shape[0] >= 100_000 and parts[1].shape[0] >= 50_000, [p.shape for p in parts]
+    X = np.concatenate(parts)
+    # outside the box
+    X = np.concatenate([X, outside_the_box(g, 100_000, rng)])
+    U, ok = run_c(exe, X, m)
+    _, want_ok = table.input_many(X)
+    assert not ok.any() and not want_ok.any()
+    assert np.all(U == -1e300)  # u untouched

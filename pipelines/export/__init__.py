@@ -5,7 +5,8 @@
   :meth:`~pipelines.controller.Controller.cells`, and :class:`~.table.ExportedController` (the JSON read back).
 * :mod:`.determinize` — one input per domain state, by a documented rule, as a BDD; its node table.
 * :mod:`.tree` — an exact axis-aligned decision tree over the cell indices (greedy, CART-like).
-* :mod:`.emit` — the export (the smaller of the two forms) as JSON and CSV.
+* :mod:`.emit` — the export (the smaller of the two forms) as JSON and CSV; its domain's cells listed, counted and
+  sampled uniformly from the BDD table.
 * :mod:`.c` — the export as a C99 header and source (``compabs_control``).
 
 This ``__init__`` imports nothing: :mod:`pipelines.controller` imports :mod:`.table`, and :mod:`.determinize`

@@ -127,9 +127,12 @@ def c_sources(export: Export, name: str = "compabs_controller") -> tuple[str, st
     n, m = g.dim, sum(ig.dim for ig in export.input_grids)
     guard = "".join(ch if ch.isalnum() else "_" for ch in name).upper() + "_H"
     s = export.sizes
+    tree = ("no tree (not built: the grid is above the exact tree's cell limit, --form bdd was asked, or it "
+            "could not beat the BDD)" if s["tree_nodes"] is None
+            else f"tree {s['tree_nodes']} nodes ({s['tree_bytes']} bytes)")
     about = (f"compabs controller export: {export.meta.get('kind')} ({export.meta.get('fixed_point')}), rule "
              f"{export.rule}, form {export.form}; {s['domain_states']} domain cells, BDD {s['bdd_nodes']} nodes "
-             f"({s['bdd_bytes']} bytes), tree {s['tree_nodes']} nodes ({s['tree_bytes']} bytes).")
+             f"({s['bdd_bytes']} bytes), {tree}.")
     header = (f"/* {about} */\n#ifndef {guard}\n#define {guard}\n\n#define COMPABS_STATE_DIM {n}\n"
               f"#define COMPABS_INPUT_DIM {m}\n\n"
               "/* Writes the chosen input u[0 .. COMPABS_INPUT_DIM-1] and returns 1 when x[0 .. COMPABS_STATE_DIM-1]\n"

@@ -29,6 +29,8 @@ from pipelines.grid import UniformGrid
 
 #: ``format`` of a JSON export.
 EXPORT_FORMAT = "compabs-controller/1"
+#: Cells :meth:`BDDTable.evaluate` walks at once.
+EVAL_BLOCK = 1 << 17
 
 
 class ExportError(CompabsError):
@@ -98,22 +100,33 @@ class BDDTable:
     def evaluate(self, idx: np.ndarray) -> np.ndarray:
         """Every root at cells ``idx``, shape (B, n) -> bool (B, 1 + outputs): domain, then the input bits.
 
-        One step per level for all cells and roots at once (at most ``V`` steps).
+        All walks (one per cell and root) go down together, level by level: at level ``v`` only the walks whose
+        node tests ``v`` move (children sit below their parent), so the work is the walks' lengths, not
+        ``V`` steps for every walk (10 tanks: 60 levels, a million cells and 11 roots in about 2 s instead of
+        38). Rows are taken in blocks of :data:`EVAL_BLOCK` cells to bound the memory.
         """
         idx = np.asarray(idx, dtype=np.int64)
         roots = np.concatenate([[self.domain], self.outputs]).astype(np.int64)
-        e = np.broadcast_to(roots, (idx.shape[0], roots.size)).copy()
-        rows = np.arange(idx.shape[0])[:, None]
-        for _ in range(self.bits.shape[0] + 1):
-            node = e >> 1
-            active = node != 0
-            if not active.any():
-                break
-            v = self.var[node]
-            bit = (idx[rows, self.bits[v, 0]] >> self.bits[v, 1]) & 1
-            nxt = np.where(bit == 1, self.high[node], self.low[node]) ^ (e & 1)
-            e = np.where(active, nxt, e)
-        return (e & 1) == 0
+        V, R = self.bits.shape[0], roots.size
+        level_of = self.var.astype(np.int32)
+        level_of[0] = V  # the constant: below every level
+        out = np.empty((idx.shape[0], R), dtype=bool)
+        for start in range(0, idx.shape[0], EVAL_BLOCK):
+            block = idx[start:start + EVAL_BLOCK]
+            e = np.tile(roots, block.shape[0])  # walk r of row b at b * R + r
+            level = level_of[e >> 1]
+            for v, (coord, shift) in enumerate(self.bits.tolist()):
+                at = np.flatnonzero(level == v)
+                if at.size == 0:
+                    continue
+                here = e[at]
+                node = here >> 1
+                bit = (block[at // R, coord] >> shift) & 1
+                nxt = np.where(bit == 1, self.high[node], self.low[node]) ^ (here & 1)
+                e[at] = nxt
+                level[at] = level_of[nxt >> 1]
+            out[start:start + block.shape[0]] = ((e & 1) == 0).reshape(-1, R)
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         return {"bits": self.bits.tolist(), "var": self.var.tolist(), "low": self.low.tolist(),
