@@ -1,9 +1,10 @@
 """The control stages of a job: synthesis, the controller's files, the closed loop and the figures.
 
 Called by the orchestrator (:func:`workers.job.run_job`) after the abstraction stages. Synthesis runs in this
-process (one CUDD manager per process); with ``options.synthesis_processes`` above one, the partitioned
-``∃u.CPre`` runs in helper processes (:mod:`workers.processes.partitioned_cpre`), which are this module's to
-start and stop.
+process (one CUDD manager per process); once one step of a fixed point takes ``options.synthesis_parallel_after``
+seconds, the partitioned ``∃u.CPre`` runs on the job's Dask workers (:mod:`workers.dask_cpre`) when the job has a
+cluster, else in helper processes (:mod:`workers.processes.partitioned_cpre`) when
+``options.synthesis_processes`` allows more than one (:func:`partitioning`).
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ from typing import Any
 import numpy as np
 
 from pipelines.controller import controller_of
+from pipelines.errors import SpecError
 from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.synthesis.synthesize import synthesize
 from pipelines.verification.closed_loop import run_closed_loop
 from workers import jobdir
+from workers.dask_cpre import on_cluster, parts_for
 from workers.figures import draw_figures
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 from workers.stages import Abstraction, Progress, no_progress
@@ -30,6 +33,7 @@ def run_synthesis(
     *,
     progress: Progress = no_progress,
     runs: int | None = None,
+    client: Any = None,
 ) -> dict[str, Any]:
     """Synthesize, save the controller, run the closed loop and draw the figures (METHOD §5-6).
 
@@ -40,6 +44,9 @@ def run_synthesis(
         The job directory to write the controller files, figures and example run into (none if ``None``).
     runs : int, optional
         Closed-loop runs from random domain states (default: ``options.closed_loop_runs``).
+    client : distributed.Client, optional
+        The job's Dask client, open for the whole call: the fixed points' parts run on its workers
+        (:func:`partitioning`).
 
     Returns
     -------
@@ -67,8 +74,7 @@ def run_synthesis(
 
     cpre, results, syn_report = synthesize(
         network, abstraction.relations, abstraction.interconnection, spec.specification,
-        reach_and_stay_methods=tuple(opts.fixed_points), processes=opts.synthesis_processes,
-        partitioned=PartitionedPredecessors, progress=iteration,
+        reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, **partitioning(opts, client),
     )
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
@@ -120,6 +126,27 @@ def run_synthesis(
         "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
                                        loop.initial_states, has_safe=spec.specification.safe is not None),
     }
+
+
+def partitioning(options: Any, client: Any = None) -> dict[str, Any]:
+    """How the fixed points' ``∃u.CPre`` is split (:func:`~pipelines.synthesis.synthesize.synthesize`'s
+    ``processes``, ``partitioned``, ``auto_parts``, ``parallel_after``), from the job's options and its client.
+
+    ``synthesis_on``: ``cluster`` needs a client (a job run in process has none: a :class:`SpecError` says so);
+    ``auto`` uses the client when there is one. On the cluster ``synthesis_processes: 'auto'`` is one part per
+    worker thread (:func:`workers.dask_cpre.parts_for`), an int that many parts, and ``1`` one process.
+    """
+    where = options.synthesis_on
+    if where == "cluster" and client is None:
+        raise SpecError("options.synthesis_on is 'cluster' but this job has no Dask cluster (it runs in process): "
+                        "run it on a cluster or set synthesis_on to 'auto' or 'processes'")
+    out: dict[str, Any] = {"processes": options.synthesis_processes,
+                           "parallel_after": options.synthesis_parallel_after}
+    if client is not None and where in ("auto", "cluster"):
+        out.update(partitioned=on_cluster(client), auto_parts=parts_for(client))
+    else:
+        out["partitioned"] = PartitionedPredecessors
+    return out
 
 
 #: What to try when no controller exists on the abstraction (the finer the abstraction, the larger the domain).

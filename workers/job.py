@@ -239,6 +239,7 @@ def abstract_job(
     overwrite: bool = False,
     audit_beside: bool = False,
     caps: Caps | None = None,
+    keep_cluster: bool = False,
 ) -> tuple[Abstraction, dict[str, Any]]:
     """The abstraction stages of a job whose relations go into its directory's store (resumable).
 
@@ -248,7 +249,9 @@ def abstract_job(
     else an embedded cluster of ``workers`` processes), or in this process (``in_process``).
 
     Returns the abstraction and the report's ``runner`` section (``scheduler``, ``workers``, ``dashboard``,
-    ``embedded``, ``store``, chunk counts, ``task_compute_seconds``).
+    ``embedded``, ``store``, chunk counts, ``task_compute_seconds``). With ``keep_cluster`` the abstraction's
+    ``client`` is the cluster's client, left open for synthesis: the caller must call
+    :meth:`Abstraction.close_cluster` (a cluster this call started closes then).
 
     Before anything else the spec is validated (:func:`pipelines.spec.validate.validate_spec`, with ``caps`` for
     the cost model) and a local directory claimed (:func:`workers.jobdir.claim`: created if needed, writable, not
@@ -274,6 +277,7 @@ def abstract_job(
         store = RelationStore.open(jobdir.relations_url(out_dir), spec, network, overwrite=overwrite)
         executor, conn = _executor(spec, network, store, client=client, scheduler=scheduler, workers=workers,
                                    in_process=in_process)
+        kept = False
         try:
             result = run_abstraction(spec, executor=executor, progress=progress, allowed_modules=allowed_modules,
                                      audit=audit, audit_beside=audit_beside, validated=validated)
@@ -290,8 +294,11 @@ def abstract_job(
             except BaseException:
                 result.cancel_audit()
                 raise
+            if keep_cluster and not in_process:
+                result.client = client if conn is None else conn.client
+                result.cluster, kept = conn, True
         finally:
-            if conn is not None:
+            if conn is not None and not kept:
                 conn.close()
     except BaseException:
         if created is not None:  # a directory this run made and stored nothing in is not left behind
@@ -359,19 +366,22 @@ def run_job(
     # The spec is validated and the directory claimed (created) first, in abstract_job. With synthesis to run,
     # the audit runs beside it in a child process: it needs nothing synthesis makes, and its violations set the
     # job's status at the end either way.
+    # The cluster stays up through synthesis: the fixed points' parts run on its workers (workers.dask_cpre).
     result, runner = abstract_job(spec, Path(out_dir), client=client, scheduler=scheduler, workers=workers,
                                   in_process=in_process, progress=progress, allowed_modules=allowed_modules,
-                                  audit=audit, overwrite=overwrite, audit_beside=synthesize, caps=caps)
+                                  audit=audit, overwrite=overwrite, audit_beside=synthesize, caps=caps,
+                                  keep_cluster=synthesize)
     out = Path(out_dir)
     result.report["runner"] = runner
     try:
         if synthesize:
-            extra = run_synthesis(result, out, progress=progress)
+            extra = run_synthesis(result, out, progress=progress, client=result.client)
             result.report["stage_seconds"].update(extra.pop("stage_seconds"))
             result.report.update(extra)
         result.finish_audit(progress)
     finally:
         result.cancel_audit()  # an error or a cancellation: stop the child (nothing when finished)
+        result.close_cluster()
     try:
         jobdir.write_spec(out, spec)
         jobdir.write_report(out, result.report)  # last: a report on disk means the job's files are complete

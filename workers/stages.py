@@ -55,6 +55,15 @@ class Abstraction:
     interconnection: Any
     report: dict[str, Any] = field(default_factory=dict)
     pending_audit: Any = field(default=None, repr=False)  # a BackgroundAudit until finish_audit
+    client: Any = field(default=None, repr=False)  # the job's Dask client, kept open for synthesis
+    cluster: Any = field(default=None, repr=False)  # the Connection to close after synthesis, if this job opened it
+
+    def close_cluster(self) -> None:
+        """Close the cluster connection kept for synthesis (``abstract_job(keep_cluster=True)``), if this job
+        opened it; a caller's client stays open (idempotent)."""
+        conn, self.cluster, self.client = self.cluster, None, None
+        if conn is not None:
+            conn.close()
 
     def finish_audit(self, progress: Progress = no_progress) -> None:
         """Wait for an audit started beside synthesis (``run_abstraction(audit_beside=True)``) and put its report

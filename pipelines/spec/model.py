@@ -310,6 +310,18 @@ class OptionsSpec(_Model):
         "them; results are identical): 'auto' = the CPUs this process may use, at most 4; 1 = one process. Not "
         "part of the spec's hash",
     )
+    synthesis_on: Literal["auto", "cluster", "processes"] = Field(
+        default="auto",
+        description="where the parts of the synthesis fixed points run: 'cluster' = the job's Dask workers (a job "
+        "run in process has none), 'processes' = helper processes on this machine, 'auto' = the cluster when the "
+        "job has one. With the cluster, synthesis_processes 'auto' is one part per worker thread and an int the "
+        "number of parts. Results are identical. Not part of the spec's hash",
+    )
+    synthesis_parallel_after: float = Field(
+        default=1.0, ge=0, le=1e6,
+        description="seconds one fixed-point step must take in one process before the parts start (starting them "
+        "costs about a second; small games never need them). Not part of the spec's hash",
+    )
 
     @field_validator("synthesis_processes")
     @classmethod
@@ -532,7 +544,7 @@ def spec_hash(spec: JobSpec) -> str:
 
     # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
     # timed out must resume.
-    timing_only = {"options": {"task_timeout", "synthesis_processes"}}
+    timing_only = {"options": {"task_timeout", "synthesis_processes", "synthesis_on", "synthesis_parallel_after"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 

@@ -258,6 +258,9 @@ class ControllablePredecessor:
         ``partitioned(cpre, processes)`` -> :class:`Partitioned`: how to run :meth:`predecessors` in parts
         (``workers.processes.partitioned_cpre.PartitionedPredecessors`` runs them in helper processes).
         Without it every call runs in this process, whatever ``processes`` says.
+    auto_parts : int, optional
+        What ``processes='auto'`` means for the shared CPre when the parts do not run on this machine's CPUs
+        (the job's Dask cluster: :func:`workers.dask_cpre.parts_for`); default :func:`resolve_processes`.
 
     Attributes
     ----------
@@ -282,6 +285,7 @@ class ControllablePredecessor:
         processes: int | str = 1,
         parallel_after: float = 1.0,
         partitioned: PartitionedFactory | None = None,
+        auto_parts: int | None = None,
     ) -> None:
         if isinstance(processes, int) and processes < 1:
             raise ValueError(f"processes must be at least 1, got {processes}")
@@ -312,7 +316,12 @@ class ControllablePredecessor:
         elif method == "per_subsystem" and not separable:
             raise ValueError("per_subsystem CPre needs every internal variable read by at most one subsystem")
         self.method = method
-        self.processes = 1 if processes == "auto" and method == "per_subsystem" else resolve_processes(processes)
+        if processes == "auto" and method == "per_subsystem":
+            self.processes = 1
+        elif processes == "auto" and auto_parts is not None:
+            self.processes = max(1, int(auto_parts))
+        else:
+            self.processes = resolve_processes(processes)
         self.u_bits = model.u_bits
         self.M: Function | None = None
         self.w_bits: list[str] = []
@@ -340,6 +349,7 @@ class ControllablePredecessor:
         processes: int | str = 1,
         parallel_after: float = 1.0,
         partitioned: PartitionedFactory | None = None,
+        auto_parts: int | None = None,
     ) -> ControllablePredecessor:
         """Encode an abstraction (its network, subsystem relations and interconnection) and prepare its CPre.
 
@@ -353,7 +363,7 @@ class ControllablePredecessor:
         T, NB = subsystem_relations(model, relations, share=share)
         parts = interconnection_parts(model, interconnection.nodes)
         return cls(model, T, NB, parts, method, chain_order, processes=processes, parallel_after=parallel_after,
-                   partitioned=partitioned)
+                   partitioned=partitioned, auto_parts=auto_parts)
 
     def _prepare_per_subsystem(self) -> None:
         m, bdd = self.model, self.bdd
@@ -489,7 +499,8 @@ class ControllablePredecessor:
         p = self._pool if self._pool is not None else self._last_pool
         if p is None:
             return {}
-        out: dict[str, Any] = {"processes": len(p.cuts) + 1, "calls": p.calls, "digits": list(p.digits),
+        out: dict[str, Any] = {"on": getattr(p, "on", "processes"), "processes": len(p.cuts) + 1,
+                               "calls": p.calls, "digits": list(p.digits),
                                "cuts": [list(c) for c in p.cut_cells],
                                "last_seconds": [round(s, 3) for s in p.seconds]}
         if self._pool_error is not None:

@@ -48,6 +48,8 @@ def synthesize(
     controller_form: str = "auto",
     processes: int | str = 1,
     partitioned: PartitionedFactory | None = None,
+    auto_parts: int | None = None,
+    parallel_after: float = 1.0,
     progress: IterationProgress | None = None,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
@@ -71,7 +73,11 @@ def synthesize(
         only with ``partitioned``, and stop before this returns.
     partitioned : callable, optional
         ``partitioned(cpre, processes)``: the partitioned ``∃u.CPre`` (e.g.
-        ``workers.processes.partitioned_cpre.PartitionedPredecessors``); ``None``: one process.
+        ``workers.processes.partitioned_cpre.PartitionedPredecessors``, or ``workers.dask_cpre.on_cluster(client)``
+        for the job's Dask workers); ``None``: one process.
+    auto_parts, parallel_after
+        What ``processes='auto'`` means when the parts run elsewhere, and how long one step must take in one
+        process before the parts start (:class:`~.cpre.ControllablePredecessor`).
     progress : callable, optional
         ``progress(iteration, message)``, once per iteration of every fixed point, inner ones included
         (:data:`~.fixed_points.IterationProgress`); the BDDs are built before the first call.
@@ -90,7 +96,8 @@ def synthesize(
     t0 = time.perf_counter()
     cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=order, method=method,
                                                 max_memory=max_memory, chain_order=chain_order, processes=processes,
-                                                partitioned=partitioned)
+                                                partitioned=partitioned, auto_parts=auto_parts,
+                                                parallel_after=parallel_after)
     build = time.perf_counter() - t0
     m = cpre.model
     grid = network.composed_state_grid()

@@ -1,0 +1,133 @@
+"""The ``synthesis`` case of ``bench/run.py`` (issue 24): the consensus fixed point on the job's Dask workers.
+
+Consensus (``examples/consensus.yaml``, shared ``w``, Reach(Safe)) is abstracted once in this process, then its
+synthesis runs in every mode on the same abstraction: in one process (the baseline), in helper processes of this
+machine (:mod:`workers.processes.partitioned_cpre`), and on an embedded Dask cluster of 1, 2, 4, ... workers up to
+the cores present (:mod:`workers.dask_cpre`). Each row gives the wall seconds, the speed-up over one process, the
+parts' summed seconds of the largest call against that call in one process (what cutting costs), and whether the
+domain is the one process's (it must be: every mode is exact).
+
+    python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+#: Issue 24's targets: 2 workers against one process on a 2-core machine; 16 workers on a 16-core one.
+TARGETS = {2: 1.8, 16: 8.0}
+
+
+def default_workers(cores: int) -> list[int]:
+    """1, 2, 4, ... up to the cores present (and the cores themselves)."""
+    out, k = [], 1
+    while k <= cores:
+        out.append(k)
+        k *= 2
+    if out[-1] != cores:
+        out.append(cores)
+    return out
+
+
+def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: bool = False) -> dict[str, Any]:
+    import yaml
+
+    from pipelines.spec.model import parse_spec
+    from pipelines.synthesis.synthesize import synthesize
+    from workers.cluster import connect
+    from workers.dask_cpre import on_cluster, parts_for
+    from workers.job import run_abstraction
+    from workers.processes.partitioned_cpre import PartitionedPredecessors
+
+    data = yaml.safe_load((ROOT / "examples" / "consensus.yaml").read_text())
+    data["parameters"]["N"] = N
+    data["options"]["initial_states"] = []
+    spec = parse_spec(yaml.safe_dump(data))
+    t0 = time.perf_counter()
+    a = run_abstraction(spec, audit=False)
+    abstraction_seconds = time.perf_counter() - t0
+
+    def say(msg: str) -> None:
+        if not quiet:
+            print(msg, flush=True)
+
+    def run(mode: str, **kw: Any) -> dict[str, Any]:
+        t = time.perf_counter()
+        game, results, report = synthesize(a.network, a.relations, a.interconnection, spec.specification,
+                                           reach_and_stay_methods=("reach_safe",), **kw)
+        wall = time.perf_counter() - t
+        parallel = dict(report.get("parallel") or {})
+        game.close()
+        row = {"mode": mode, "wall": round(wall, 2), "domain_states": results["reach_safe"].domain_states,
+               "iterations": results["reach_safe"].iterations, "parallel": parallel}
+        say(f"  {mode:<28} {wall:8.1f} s  domain {row['domain_states']:,}")
+        return row
+
+    say(f"consensus N = {N}: abstraction {abstraction_seconds:.1f} s; synthesis in every mode")
+    rows = [run("one process", processes=1)]
+    base = rows[0]
+    if processes > 1:
+        rows.append(run(f"{processes} helper processes", processes=processes, partitioned=PartitionedPredecessors))
+    for k in workers:
+        conn = connect(None, k)
+        try:
+            client = conn.client
+            rows.append(run(f"cluster, {k} worker{'s' if k > 1 else ''}", processes="auto",
+                            partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker)))
+            rows[-1]["workers"] = k
+        finally:
+            conn.close()
+    for r in rows:
+        r["speedup"] = round(base["wall"] / r["wall"], 2) if r["wall"] else None
+        r["same_domain"] = r["domain_states"] == base["domain_states"]
+    return {"N": N, "cores": os.cpu_count(), "per_worker": per_worker, "abstraction_seconds": round(abstraction_seconds, 2),
+            "rows": rows, "targets": TARGETS}
+
+
+def lines(rec: dict[str, Any]) -> list[str]:
+    """The case's table, with each target's verdict."""
+    out = [f"  synthesis: consensus N = {rec['N']} (Reach(Safe)), {rec['cores']} cores, "
+           f"{rec['per_worker']} part(s) per worker"]
+    out.append(f"    {'mode':<28} {'wall s':>8} {'speed-up':>9}  {'parts':>5}  {'calls':>5}  same domain")
+    for r in rec["rows"]:
+        p = r["parallel"]
+        out.append(f"    {r['mode']:<28} {r['wall']:8.1f} {r['speedup']:9.2f}  {p.get('processes', 1):>5}  "
+                   f"{p.get('calls', 0):>5}  {'yes' if r['same_domain'] else 'NO'}")
+    for k, target in rec["targets"].items():
+        row = next((r for r in rec["rows"] if r.get("workers") == k), None)
+        if row is not None:
+            met = row["speedup"] >= target
+            out.append(f"    target: {k} workers >= {target}x one process: {row['speedup']:.2f}x "
+                       f"({'met' if met else 'NOT met'})")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--N", type=int, default=8, help="agents (default 8, the paper's case)")
+    p.add_argument("--workers", default=None, help="comma-separated worker counts (default 1, 2, 4, ... up to the cores)")
+    p.add_argument("--per-worker", type=int, default=1, help="parts per worker (workers.dask_cpre.PARTS_PER_WORKER)")
+    p.add_argument("--processes", type=int, default=2, help="helper processes for the local mode (1: skip it)")
+    p.add_argument("--json", default=None, help="write the results here")
+    args = p.parse_args(argv)
+    cores = os.cpu_count() or 1
+    workers = [int(w) for w in args.workers.split(",")] if args.workers else default_workers(cores)
+    rec = measure(args.N, workers, args.per_worker, args.processes)
+    print("\n".join(lines(rec)))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rec, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,180 @@
+"""Synthesis on the job's Dask cluster (workers/dask_cpre.py): a real two-worker cluster, exact results, the same
+domains as in one process and in helper processes, and a clear fallback when the cluster fails."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from pipelines.errors import SpecError
+from pipelines.spec.model import parse_spec
+from pipelines.symbolic.relations import state_set
+from pipelines.synthesis.cpre import PartitionFailed
+from pipelines.synthesis.fixed_points import cobuchi, reach, reach_safe, safe
+from pipelines.synthesis.synthesize import synthesize
+from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
+from workers.control import partitioning
+from workers.dask_cpre import DaskPartFailed, DaskPredecessors, on_cluster, parts_for
+from workers.job import run_abstraction, run_job
+from workers.processes.partitioned_cpre import PartitionedPredecessors
+
+from .conftest import EXAMPLES
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+def test_parts_on_the_cluster_equal_the_explicit_predecessors(client, shared):
+    """More parts than workers, at every cut the balancing could choose: ``∃u.CPre(Z)`` exactly, whole, ``within``
+    a set and on ``outside``."""
+    rng = np.random.default_rng(5100 + shared)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, "shared_top" if shared else "interleaved")
+    m = game.model
+    pool = DaskPredecessors(game, 5, client=client)
+    try:
+        assert pool.parts == min(5, pool.cells) and pool.cells == math.prod(m.sizes[d] for d in pool.digits)
+        for k in range(4):
+            if k and pool.cells > pool.parts:
+                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
+            Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
+            bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
+            want = ex.cpre(Z).any(axis=1)
+            np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
+            np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
+            got = states_vector(m, pool(bZ, outside=bO), ex)
+            np.testing.assert_array_equal(got & Out, want & Out)
+        assert pool.calls == 12 and len(pool.seconds) == pool.parts
+    finally:
+        pool.close()
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
+    """One process, helper processes and the cluster (two and five parts): the same safe, reach and co-Büchi
+    domains, on one model, so the BDDs themselves are compared."""
+    rng = np.random.default_rng(91 + shared)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, "shared_top" if shared else "interleaved")
+    S, T, phi = (state_set(game.model, np.array(ex.states)[v]) for v in
+                 (random_set(rng, ex, 0.8), random_set(rng, ex, 0.2), random_set(rng, ex, 0.6)))
+    modes = {"one process": (1, None), "processes": (2, PartitionedPredecessors),
+             "cluster, 2 parts": (2, on_cluster(client)), "cluster, 5 parts": (5, on_cluster(client))}
+    domains = {}
+    for name, (parts, factory) in modes.items():
+        game.processes, game.parallel_after, game.partitioned = parts, 0.0, factory
+        try:
+            domains[name] = [safe(game, S, layered=True).domain, reach(game, T, layered=True).domain,
+                             cobuchi(game, phi).domain]
+            if factory is not None:
+                assert game.parallel["calls"] > 0, name
+                assert game.parallel["on"] == ("processes" if factory is PartitionedPredecessors else "cluster")
+        finally:
+            game.close()
+            game._last_pool = None
+    first = domains.pop("one process")
+    assert states_vector(game.model, first[0], ex).any()  # a game worth comparing
+    for name, got in domains.items():
+        assert got == first, name
+
+
+def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here():
+    """The cluster goes away between calls: the part fails as a PartitionFailed naming the cluster, and the
+    fixed point answers in this process, exactly."""
+    from workers.cluster import connect
+
+    rng = np.random.default_rng(17)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    Z = state_set(game.model, np.array(ex.states)[random_set(rng, ex, 0.6)])
+    want = game.predecessors(Z)
+    conn = connect(None, 1)
+    try:
+        pool = DaskPredecessors(game, 2, client=conn.client)
+        assert pool(Z) == want
+    finally:
+        conn.close()
+    with pytest.raises(DaskPartFailed, match="Dask") as info:
+        pool(Z)
+    assert isinstance(info.value, PartitionFailed)
+    # through the game: the failure is reported and the later calls run here
+    game._pool, game.processes = pool, 2
+    assert game.predecessors(Z) == want
+    assert "Dask" in game.parallel["stopped"] and game.processes == 1
+    assert game.predecessors(Z) == want
+
+
+def _consensus(N: int, **options) -> str:
+    data = yaml.safe_load((EXAMPLES / "consensus.yaml").read_text())
+    data["parameters"]["N"] = N
+    data["options"].update({"initial_states": [[15.0] * N], "audit_transitions": 0, "closed_loop_runs": 20,
+                            **options})
+    return yaml.safe_dump(data)
+
+
+@pytest.mark.slow
+def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
+    """Consensus N = 4 (shared ``w``, Reach(Safe)): the same domain BDD on the cluster (two and three parts per
+    worker) as in one process; the parts ran on the workers."""
+    spec = parse_spec(_consensus(4))
+    a = run_abstraction(spec, audit=False)
+    one, results, _ = synthesize(a.network, a.relations, a.interconnection, spec.specification,
+                                 reach_and_stay_methods=("reach_safe",), processes=1)
+    want = results["reach_safe"].domain_states
+    assert want == 191_493  # tests/test_pinned_numbers.py
+    for per_worker in (1, 3):
+        game, got, report = synthesize(a.network, a.relations, a.interconnection, spec.specification,
+                                       reach_and_stay_methods=("reach_safe",), processes="auto",
+                                       partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker),
+                                       parallel_after=0.0)
+        try:
+            assert got["reach_safe"].domain_states == want
+            assert report["parallel"]["on"] == "cluster" and report["parallel"]["processes"] == 2 * per_worker
+            assert report["parallel"]["calls"] > 0
+        finally:
+            game.close()
+
+
+@pytest.mark.slow
+def test_a_job_synthesizes_on_its_cluster(tmp_path, client):
+    """``run_job`` on a cluster keeps it for synthesis: the report says the parts ran there, and the domain is the
+    one process's."""
+    spec = parse_spec(_consensus(4, synthesis_parallel_after=0.0, fixed_points=["reach_safe"],
+                                 controller="reach_safe"))
+    report = run_job(spec, tmp_path / "job", client=client)
+    assert report["domain_states"] == 191_493
+    assert report["synthesis"]["parallel"]["on"] == "cluster"
+    assert report["synthesis"]["parallel"]["calls"] > 0
+    assert client.status == "running"  # a caller's client stays open
+
+
+def test_where_synthesis_runs_follows_the_options(client):
+    spec = parse_spec(_consensus(3))
+    assert partitioning(spec.options)["partitioned"] is PartitionedPredecessors
+    on = partitioning(spec.options, client)
+    assert on["auto_parts"] == parts_for(client) == 2 and on["partitioned"] is not PartitionedPredecessors
+    spec = parse_spec(_consensus(3, synthesis_on="processes"))
+    assert partitioning(spec.options, client)["partitioned"] is PartitionedPredecessors
+    spec = parse_spec(_consensus(3, synthesis_on="cluster"))
+    with pytest.raises(SpecError, match="synthesis_on is 'cluster' but this job has no Dask cluster"):
+        partitioning(spec.options)
+
+
+def test_reach_safe_on_the_cluster_of_a_shared_game(client):
+    """The fixed point the consensus case runs, on a random shared-``w`` game, with more parts than workers."""
+    rng = np.random.default_rng(23)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    phi = state_set(game.model, np.array(ex.states)[random_set(rng, ex, 0.7)])
+    want = reach_safe(game, phi, layered=True).domain
+    game.processes, game.parallel_after, game.partitioned = 4, 0.0, on_cluster(client)
+    try:
+        assert reach_safe(game, phi, layered=True).domain == want
+        assert game.parallel["calls"] > 0
+    finally:
+        game.close()

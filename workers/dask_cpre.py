@@ -1,0 +1,317 @@
+"""``∃u.CPre(Z)`` in parts on the job's Dask workers (issue 24: synthesis uses the cluster the job already has).
+
+:class:`DaskPredecessors` is a ``partitioned`` factory for :class:`~pipelines.synthesis.cpre.ControllablePredecessor`
+like :class:`workers.processes.partitioned_cpre.PartitionedPredecessors`, with the parts run as Dask tasks:
+
+* **The problem lives on the workers.** The chain, the admissible pairs and (shared ``w``) ``M̂`` travel once per
+  problem as DDDMP bytes, scattered to every worker; a worker's first part of a problem loads them into a CUDD
+  manager of its own and keeps them (:data:`_HELD`, per worker process) for the later calls, so a call sends
+  only ``Z`` (and ``outside``), once per worker, and gets back each part's result as DDDMP bytes.
+* **More parts than workers.** A call is cut into ``parts`` lexicographic ranges of the top two current-state
+  digits (:mod:`pipelines.synthesis.partition`: exact, the union of the parts is the whole), several per worker;
+  Dask hands each worker the next part as it frees up, so an expensive part no longer holds the others back. The
+  cuts move after every call towards equal measured work (:func:`~pipelines.synthesis.partition.update_density`).
+* **The same answer in every mode.** Each part is ``part ∧ ∃u.CPre(Z)`` computed by
+  :func:`~pipelines.synthesis.cpre.predecessors_of`, the function the one-process and helper-process modes run.
+
+This process computes nothing while the parts run: CUDD holds the GIL for a whole operation, and the thread
+that waits for the workers' answers must keep moving. A part that fails (its worker died more often than Dask
+retries, or the cluster went away) is a :class:`DaskPartFailed`, after which the CPre goes on in this process;
+CUDD out of memory in a part is a :class:`~pipelines.symbolic.model.BDDMemoryError`, raised to the caller.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+import time
+import uuid
+import weakref
+from collections import OrderedDict
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from pipelines.symbolic.files import header, model_from_header
+from pipelines.symbolic.model import BDDMemoryError, Function, SymbolicModel
+from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, Within, predecessors_of
+from pipelines.synthesis.partition import (
+    damped_cuts,
+    equal_work_cuts,
+    lexicographic_part,
+    split_digits,
+    update_density,
+)
+
+log = logging.getLogger(__name__)
+
+PARTS_PER_WORKER = 1
+"""Parts of one call per worker thread. More parts than workers would let Dask even out unequal parts, but each
+cut loses sub-results the parts share: on consensus N = 6 the parts of one call summed to 2.5x more work with three
+parts per worker than with one, while the cuts moved after every call (:func:`update_density`) kept two parts
+within 10 % of each other."""
+
+HELD_PROBLEMS = 2
+"""Problems a worker keeps loaded (a safety loop's ``within`` problem and the plain one alternate in
+Reach(Safe)); older ones are dropped with their CUDD manager when no other problem of theirs is held."""
+
+
+class DaskPartFailed(PartitionFailed):
+    """A part of ``∃u.CPre`` failed on the cluster (the message says why); the CPre goes on in one process."""
+
+
+# ====================================================================================== the worker's side
+#: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
+_HELD: OrderedDict[str, tuple] = OrderedDict()
+
+
+def _load(model: SymbolicModel, blob: bytes) -> Function:
+    """A BDD from DDDMP bytes (``dd`` reads DDDMP from files only)."""
+    fd, path = tempfile.mkstemp(suffix=".dddmp", prefix="compabs-part-")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(blob)
+        (root,) = model.bdd.load(path)
+        return root
+    finally:
+        os.unlink(path)
+
+
+def _dump(model: SymbolicModel, f: Function) -> bytes:
+    fd, path = tempfile.mkstemp(suffix=".dddmp", prefix="compabs-part-")
+    os.close(fd)
+    try:
+        model.bdd.dump(path, [f])
+        with open(path, "rb") as fh:
+            return fh.read()
+    finally:
+        os.unlink(path)
+
+
+def _problem(key: str, problem: dict[str, Any]) -> tuple:
+    held = _HELD.get(key)
+    if held is not None:
+        _HELD.move_to_end(key)
+        return held
+    # A model is shared by the problems of one CPre (same header): a new manager per problem would reload the
+    # variables and leave the older problems' nodes in another manager.
+    model = next((h[0] for h in _HELD.values() if h[6] == problem["model"]), None)
+    if model is None:
+        model = model_from_header(problem["header"], problem["max_memory"])
+    with model.guard("loading the CPre's relations on a worker"):
+        roots = [_load(model, b) for b in problem["roots"]]
+    n = len(problem["xn"])
+    chain = list(zip(roots[:n], problem["xn"]))
+    M = roots[n + 1] if len(roots) > n + 1 else None
+    held = (model, chain, roots[n], M, problem["u_bits"], problem["w_bits"], problem["model"])
+    _HELD[key] = held
+    while len(_HELD) > HELD_PROBLEMS:
+        _HELD.popitem(last=False)
+    return held
+
+
+def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+                      start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
+    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as DDDMP bytes, and the
+    seconds it took (the problem's loading not counted: it happens once per worker)."""
+    model, chain, admissible, M, u_bits, w_bits, _ = _problem(key, problem)
+    t0 = time.perf_counter()
+    with model.guard("computing a part of CPre on a Dask worker"):
+        z = _load(model, Z)
+        out = None if outside is None else _load(model, outside)
+        P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out,
+                            lexicographic_part(model, digits, start, end))
+        blob = _dump(model, P)
+    del z, out, P
+    return blob, time.perf_counter() - t0
+
+
+def forget(model_key: str) -> int:
+    """Drop every problem of one CPre this worker holds (run on every worker when the CPre closes)."""
+    keys = [k for k, h in _HELD.items() if h[6] == model_key]
+    for k in keys:
+        del _HELD[k]
+    return len(keys)
+
+
+# ====================================================================================== the caller's side
+def _forget_everywhere(client: Any, model_key: str) -> None:
+    try:
+        client.run(forget, model_key)
+    except Exception:  # the cluster is gone: so are the workers' copies
+        pass
+
+
+class DaskPredecessors:
+    """``∃u.CPre(Z)`` of a :class:`.ControllablePredecessor` in ``parts`` parts on the workers of ``client``.
+
+    Parameters
+    ----------
+    cpre : ControllablePredecessor
+    parts : int
+        Parts per call (>= 2), run as Dask tasks (:data:`PARTS_PER_WORKER` per worker is what
+        :func:`parts_for` gives).
+    client : distributed.Client
+        The job's client (its workers import ``workers.dask_cpre``, as they import ``workers.tasks``).
+    retries : int
+        Dask retries of a part that raised (a worker's death is retried by Dask itself).
+
+    Call it like :meth:`.ControllablePredecessor.predecessors`; :meth:`close` drops the workers' copies.
+    """
+
+    on = "cluster"
+
+    def __init__(self, cpre: ControllablePredecessor, parts: int, *, client: Any, retries: int = 1) -> None:
+        if parts < 2:
+            raise ValueError(f"DaskPredecessors needs at least 2 parts, got {parts}")
+        m = cpre.model
+        self._cpre = weakref.ref(cpre)  # the CPre holds this object (no cycle through CUDD objects)
+        self.client = client
+        self.retries = retries
+        self.digits = split_digits(m)
+        self.shape = tuple(int(m.sizes[d]) for d in self.digits)
+        self.cells = math.prod(self.shape)
+        self.parts = min(parts, self.cells)
+        self._density = np.ones(self.cells)
+        self._cuts = equal_work_cuts(self._density, self.parts)
+        self._seconds: list[float] = []
+        self._calls = 0
+        self._model_key = uuid.uuid4().hex
+        self._header = header(m)
+        self._max_memory = m.max_memory
+        self._problem: Any = None  # the Within (or "all") the workers hold
+        self._problem_key = ""
+        self._problem_future: Any = None
+        self._finalizer = weakref.finalize(self, _forget_everywhere, client, self._model_key)
+
+    @property
+    def cpre(self) -> ControllablePredecessor:
+        cpre = self._cpre()
+        if cpre is None:
+            raise RuntimeError("the ControllablePredecessor of this DaskPredecessors is gone")
+        return cpre
+
+    @property
+    def cuts(self) -> list[int]:
+        return list(self._cuts)
+
+    @property
+    def cut_cells(self) -> list[tuple[int, ...]]:
+        return [tuple(int(c) for c in np.unravel_index(k, self.shape)) for k in self._cuts]
+
+    @property
+    def seconds(self) -> list[float]:
+        """Seconds each part took on its worker in the last call, in part order."""
+        return list(self._seconds)
+
+    @property
+    def calls(self) -> int:
+        return self._calls
+
+    def bounds(self) -> list[tuple[int, int]]:
+        edges = [0, *self._cuts, self.cells]
+        return [(a, b - 1) for a, b in zip(edges, edges[1:])]
+
+    def _starts(self) -> list[tuple[int, ...] | None]:
+        return [(0,) * len(self.shape), *self.cut_cells, None]
+
+    def _scatter(self, data: Any) -> Any:
+        """One future for ``data``, on every worker. In a list: ``scatter`` of a dict would scatter each value
+        under its dict key as the Dask key, and a later problem's values would be read as the first one's."""
+        (future,) = self.client.scatter([data], broadcast=True, hash=False)
+        return future
+
+    def _send_problem(self, within: Within | None) -> None:
+        key = "all" if within is None else within
+        if self._problem is key:
+            return
+        g = self.cpre
+        chain, admissible = (g.chain, g.admissible) if within is None else within
+        roots = [rel for rel, _ in chain] + [admissible] + ([] if g.M is None else [g.M])
+        with g.model.guard("writing the CPre's relations for the Dask workers"):
+            blobs = [_dump(g.model, f) for f in roots]
+        problem = {"model": self._model_key, "header": self._header, "max_memory": self._max_memory,
+                   "roots": blobs, "xn": [list(xn) for _, xn in chain], "u_bits": list(g.u_bits),
+                   "w_bits": list(g.w_bits)}
+        # Once to every worker: each part's task then finds it in its worker's memory.
+        self._problem_future = self._scatter(problem)
+        self._problem_key = f"{self._model_key}-{uuid.uuid4().hex}"
+        self._problem = key
+
+    def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None) -> Function:
+        try:
+            return self._call(Z, outside, within)
+        except BDDMemoryError:
+            raise
+        except PartitionFailed:
+            raise
+        except Exception as exc:  # the cluster failed us: the CPre goes on in one process
+            raise DaskPartFailed(f"a part of CPre failed on the Dask cluster: {type(exc).__name__}: {exc}") from None
+
+    def _call(self, Z: Function, outside: Function | None, within: Within | None) -> Function:
+        from distributed import as_completed
+
+        g, m = self.cpre, self.cpre.model
+        t_start = time.perf_counter()
+        self._send_problem(within)
+        with m.guard("writing a set for the Dask workers"):
+            z = self._scatter(_dump(m, Z))
+            o = None if outside is None else self._scatter(_dump(m, outside))
+        bounds, starts = self.bounds(), self._starts()
+        futures = []
+        for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
+            assert start is not None
+            futures.append(self.client.submit(
+                predecessors_part, self._problem_key, self._problem_future, z, o, list(self.digits), list(start),
+                None if end is None else list(end), pure=False, retries=self.retries,
+                key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
+        index = {f.key: k for k, f in enumerate(futures)}
+        seconds = [0.0] * len(futures)
+        result = g.bdd.false
+        try:
+            for fut in as_completed(futures):
+                if fut.status == "error":
+                    exc = fut.exception()
+                    if isinstance(exc, BDDMemoryError):
+                        raise BDDMemoryError(f"a synthesis part on a Dask worker: {exc}")
+                    raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
+                blob, s = fut.result()
+                with m.guard("reading a Dask worker's part of CPre"):
+                    result |= _load(m, blob)
+                seconds[index[fut.key]] = s
+                fut.release()
+        finally:
+            for fut in futures:
+                fut.cancel()
+        self._seconds = seconds
+        self._calls += 1
+        self._density = update_density(self._density, bounds, seconds)
+        self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
+        log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s", len(seconds),
+                 [round(s, 2) for s in seconds], sum(seconds), time.perf_counter() - t_start)
+        return result
+
+    def close(self) -> None:
+        """Drop the workers' copies of the problem (idempotent)."""
+        self._finalizer()
+
+
+def parts_for(client: Any, per_worker: int = PARTS_PER_WORKER) -> int:
+    """Parts of a call on the cluster of ``client``: ``per_worker`` per worker thread, at least 2."""
+    return max(2, per_worker * sum(client.nthreads().values()))
+
+
+def on_cluster(client: Any, retries: int = 1):
+    """A ``partitioned`` factory (``factory(cpre, parts)``) running the parts on ``client``'s workers."""
+
+    def factory(cpre: ControllablePredecessor, parts: int) -> DaskPredecessors:
+        return DaskPredecessors(cpre, parts, client=client, retries=retries)
+
+    return factory
+
+
+__all__ = ["HELD_PROBLEMS", "PARTS_PER_WORKER", "DaskPartFailed", "DaskPredecessors", "forget", "on_cluster",
+           "parts_for", "predecessors_part"]
