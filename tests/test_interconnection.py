@@ -170,9 +170,37 @@ def test_max_certify_coarse_and_global_is_sound(cap):
     res = ia.details["certify_resolution"]["w0"]
     assert res["source"] == "uniform partition"
     assert res["cells"] <= cap and res["cells"] == (6 ** 6 if cap == 50_000 else 1)
-    # MDec: six inputs, sigma 4 -> z0 = x0..x3, z1 = x4..x5, w0 = z0 + z1.
-    assert [n.inputs for n in ia.nodes] == [("x0", "x1", "x2", "x3"), ("x4", "x5"), ("z0", "z1")]
+    if cap == 50_000:
+        # MDec: six inputs, sigma 4 -> z0 = x0..x3, z1 = x4..x5, w0 = z0 + z1.
+        assert [n.inputs for n in ia.nodes] == [("x0", "x1", "x2", "x3"), ("x4", "x5"), ("z0", "z1")]
+        assert ia.details["whole_box_outputs"] == []
+    else:
+        # On one cell eps covers the whole internal box: one node without inputs, the relation of the tree.
+        assert [n.inputs for n in ia.nodes] == [()] and ia.details["whole_box_outputs"] == [0]
+        assert_tree_allows_every_cell(net, ia, 0)
     assert violations(net, ia, 100_000, seed=13) == 0
+
+
+def assert_tree_allows_every_cell(net: Network, ia: InterconnectionAbstraction, j: int) -> None:
+    """The MDec tree of output ``j`` (built as if the whole-box shortcut were not there) allows every cell of
+    ``w_j`` for every combination of its inputs: the box node is the same relation."""
+    from pipelines.interconnection.grids import axis_grid
+    from pipelines.interconnection.nodes import intermediate_grid, linear_node
+
+    grid = net.composed_state_grid()
+    z_grids: dict = {}
+    for plan in mdec(ia.M_bar, ia.supports, ia.details["sigma"]):
+        if plan.target != j:
+            continue
+        in_grids = [axis_grid(grid, int(v[1:])) if v.startswith("x") else z_grids[v] for v in plan.inputs]
+        if plan.is_final:
+            node = linear_node(plan, net.internal_grids[j], in_grids, ia.offsets[j], ia.error_bounds[j])
+            assert node.lo.size > 1 and (node.lo == 0).all() and (node.hi == net.internal_grids[j].size - 1).all()
+            box = ia.final_node(j)
+            assert int(box.lo) == 0 and int(box.hi) == net.internal_grids[j].size - 1
+            return
+        z_grids[plan.output] = intermediate_grid(plan, [(g.lb[0], g.ub[0]) for g in in_grids], 1.0)
+    raise AssertionError(f"no final node for w{j}")
 
 
 def test_direct_is_tighter_than_certify_on_the_tanks(tanks_direct, tanks_certify):

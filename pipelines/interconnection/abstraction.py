@@ -7,6 +7,13 @@ supports by the dependence test and refit; decompose ``M̄`` by MDec (Algorithm 
 intermediate variables and the node relations in topological order (:mod:`~pipelines.interconnection.nodes`).
 An output whose support exceeds ``sigma`` in ``direct`` mode falls back to ``certify`` + MDec (recorded per
 output in ``output_modes``).
+
+Beyond the paper: the training and support-check counts grow with the number of coordinates
+(:func:`~pipelines.interconnection.sampling.training_count`, :func:`~pipelines.interconnection.sampling.check_count`);
+the joint support check adds the coordinates the one-at-a-time test missed
+(:func:`~pipelines.interconnection.learning.complete_support`); and an output whose certified range covers its
+internal box everywhere gets one node without inputs, the relation its tree would be
+(:func:`~pipelines.interconnection.nodes.covers_box`; listed in ``details["whole_box_outputs"]``).
 """
 
 from __future__ import annotations
@@ -20,11 +27,11 @@ from pipelines.errors import LipschitzError, SpecError
 from pipelines.grid import UniformGrid
 from pipelines.interconnection.certification import MAX_CERTIFY_CELLS, check_lipschitz, eps_certify, eps_linear
 from pipelines.interconnection.grids import axis_grid
-from pipelines.interconnection.learning import dependence, lasso_row, refit, support_of, validate_support
+from pipelines.interconnection.learning import complete_support, dependence, lasso_row, refit, support_of
 from pipelines.interconnection.mdec import mdec
-from pipelines.interconnection.nodes import direct_node, intermediate_grid, linear_node
+from pipelines.interconnection.nodes import box_node, covers_box, direct_node, intermediate_grid, linear_node
 from pipelines.interconnection.relation import InterconnectionAbstraction, NodeRelation
-from pipelines.interconnection.sampling import Sampler
+from pipelines.interconnection.sampling import Sampler, check_count, training_count
 from pipelines.network import Network
 
 __all__ = ["abstract_interconnection", "empty_interconnection", "Progress"]
@@ -100,10 +107,12 @@ def abstract_interconnection(
     n, p = sample.lb.size, sample.w_lb.size
     xmax = float(np.maximum(np.abs(sample.lb), np.abs(sample.ub)).max())
     steps = 4 + p
-    report("interconnection", 0, steps, f"sampling the map ({ic.samples} states)")
+    # Counts that grow with the n coordinates the map may read; the spec's are minimums (sampling.py).
+    n_train, n_check = training_count(ic.samples, n), check_count(ic.holdout, n)
+    report("interconnection", 0, steps, f"sampling the map ({n_train} states)")
 
     # 1. Samples and lasso (Eq. (lasso)), one row at a time.
-    X = sample.uniform(ic.samples, rng)
+    X = sample.uniform(n_train, rng)
     Y = sample(X)
     fits = [lasso_row(X, Y[:, j], ic.alpha) for j in range(p)]
     lasso_supports = [support_of(coef) for coef, _ in fits]
@@ -116,11 +125,14 @@ def abstract_interconnection(
     dep = dependence(sample, ic.holdout, rng)
     supports = [tuple(i for i in range(n) if dep[i, j]) for j in range(p)]
     added = [sorted(set(supports[j]) - set(lasso_supports[j])) for j in range(p)]
+    # The joint check, completing a support the one-at-a-time test left short (learning.complete_support).
+    checked = [complete_support(sample, j, supports[j], dep, n_check, rng) for j in range(p)]
+    supports = [c[0] for c in checked]
+    moved = [c[1] for c in checked]
     M_bar = np.zeros((p, n))
     offsets = np.zeros(p)
     for j in range(p):
         M_bar[j], offsets[j] = refit(X, Y[:, j], supports[j])
-    moved = [validate_support(sample, j, supports[j], dep, ic.holdout, rng) for j in range(p)]
     if mode in ("certify", "direct"):  # only where eps relies on L_M
         assert L is not None  # both modes need it (checked above)
         check_lipschitz(sample, L, ic.holdout, rng)
@@ -143,7 +155,7 @@ def abstract_interconnection(
         res = np.abs(Y_hold[:, j] - (X_hold @ M_bar[j] + offsets[j]))
         residuals.append(float(res.max(initial=0.0)))
         if mode == "linear":
-            eps[j], _ = eps_linear(j, M_bar[j], offsets[j], X_hold, Y_hold, xmax, len(supports[j]), ic.samples)
+            eps[j], _ = eps_linear(j, M_bar[j], offsets[j], X_hold, Y_hold, xmax, len(supports[j]), n_train)
             output_modes.append("linear")
         elif is_direct[j]:
             assert L is not None
@@ -163,9 +175,13 @@ def abstract_interconnection(
             output_modes.append("certify")
         report("interconnection", 3 + j, steps, f"w{j}: {output_modes[-1]}, eps = {eps[j]:.4g}")
 
-    # 4-5. Grids of the intermediate variables and the node relations, in topological order.
+    # 4-5. Grids of the intermediate variables and the node relations, in topological order. An output whose
+    # certified range covers its internal box at every state is that box: one node without inputs, the same
+    # relation as its MDec tree (nodes.covers_box), without building the tree.
     grid = network.composed_state_grid()
     x_grids = [axis_grid(grid, i) for i in range(n)]
+    whole_box = [j for j in range(p) if j not in direct_nodes and supports[j]
+                 and covers_box(network.internal_grids[j], M_bar[j], offsets[j], eps[j], sample.lb, sample.ub)]
     z_grids: dict[str, UniformGrid] = {}
     nodes: list[NodeRelation] = []
     for plan in plans:
@@ -173,6 +189,10 @@ def abstract_interconnection(
         if j in direct_nodes:
             if plan.is_final:
                 nodes.append(direct_nodes[j])
+            continue
+        if j in whole_box:
+            if plan.is_final:
+                nodes.append(box_node(plan.output, network.internal_grids[j], eps[j]))
             continue
         in_grids = [x_grids[int(v[1:])] if v.startswith("x") else z_grids[v] for v in plan.inputs]
         if plan.is_final:
@@ -187,6 +207,10 @@ def abstract_interconnection(
         "alpha": [a for _, a in fits],
         "lasso_supports": [list(s) for s in lasso_supports],
         "support_added_by_dependence_test": added,
+        "support_added_by_joint_check": [c[2] for c in checked],
+        "samples_used": {"training": n_train, "joint_check": n_check, "dependence": ic.holdout,
+                         "holdout": ic.holdout},
+        "whole_box_outputs": whole_box,
         "support_change": moved,
         "holdout_residual": residuals,
         "certify_resolution": resolution,

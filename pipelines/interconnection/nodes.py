@@ -4,6 +4,13 @@
 * :func:`intermediate_grid`: an intermediate ``z`` lives on a covering grid of the interval range of its partial
   sum (MDec uses partial sums, see :mod:`pipelines.interconnection.mdec`), spacing ``intermediate_eta``
   (default: the spacing of its output's grid).
+* :func:`covers_box` and :func:`box_node`: an output whose certified range ``M̄_j x + b_j ± eps_j`` covers its
+  whole internal box at every state of the state box allows every cell whatever the state, and so does every
+  node tree MDec would build for it (below). It is then one node without inputs. This is what ``max(x)`` of
+  many coordinates gets: any affine ``M̄_j`` leaves ``eps_j >= 16 (n - 1) / n`` on ``[0, 32]^n`` (the error at
+  ``0``, at ``32 e_i`` and at ``32 · 1`` cannot all be smaller), and ``certify`` on one cell (``n >= 22``)
+  adds ``L_M`` times the half-width, 16, on top; building the tree would cost 33^4 entries per leaf for no
+  information.
 * :func:`direct_node` (``direct`` mode, beyond the paper): an output whose support has at most ``sigma``
   coordinates gets one node built straight from the black box, like a static subsystem (METHOD §2 ``hull``):
   per support cell, ``M_j`` is sampled on a sub-grid of ``samples_per_cell`` points (sub-cell spacing ``h``)
@@ -30,7 +37,8 @@ from pipelines.interconnection.mdec import NodePlan
 from pipelines.interconnection.relation import NodeRelation
 from pipelines.interconnection.sampling import Sampler
 
-__all__ = ["linear_node", "direct_node", "intermediate_grid", "MAX_NODE_ENTRIES", "DIRECT_ROWS"]
+__all__ = ["linear_node", "direct_node", "intermediate_grid", "covers_box", "box_node", "MAX_NODE_ENTRIES",
+           "DIRECT_ROWS"]
 
 #: Largest number of entries of one node relation (product of its input grid sizes).
 MAX_NODE_ENTRIES = 50_000_000
@@ -80,6 +88,32 @@ def linear_node(
     return NodeRelation(
         plan.output, output_grid, plan.inputs, tuple(input_grids), tuple(plan.weights), lo, hi,
         float(eps) if plan.is_final else 0.0,
+    )
+
+
+def covers_box(
+    output_grid: UniformGrid, row: np.ndarray, intercept: float, eps: float, lb: np.ndarray, ub: np.ndarray
+) -> bool:
+    """Whether ``[M̄_j x + b_j - eps_j, M̄_j x + b_j + eps_j]`` holds the output's box for every ``x`` in ``[lb, ub]``.
+
+    Then the MDec tree of the output allows every cell of its grid at every state: for any combination of
+    intermediate cells, its final node's interval reaches below the smallest and above the largest value of
+    ``M̄_j x + b_j`` over the box widened by ``eps_j`` (each ``z`` cell meets the range of its partial sum), so
+    it meets every cell, and the grid's cells are those meeting the box. :func:`box_node` is then the same
+    relation. (Where rounding decides the comparison, the box node allows at least what the tree allows:
+    never less, so never unsound.)
+    """
+    row = np.asarray(row, dtype=float)
+    low = float(intercept + np.minimum(row * lb, row * ub).sum())
+    high = float(intercept + np.maximum(row * lb, row * ub).sum())
+    return low + eps >= output_grid.ub[0] and high - eps <= output_grid.lb[0]
+
+
+def box_node(output: str, output_grid: UniformGrid, eps: float) -> NodeRelation:
+    """A final node without inputs that allows every cell of its grid (see :func:`covers_box`)."""
+    return NodeRelation(
+        output, output_grid, (), (), (), np.array(0, dtype=np.int32), np.array(output_grid.size - 1, dtype=np.int32),
+        float(eps),
     )
 
 

@@ -5,6 +5,24 @@ value it returns is checked to lie in its declared internal box: node relations 
 grids, which is sound for ``w_j`` only because the box holds every value of ``M_j`` (Definition intercon); a
 map value outside the box is a :class:`SpecError`. :meth:`Sampler.column` evaluates one output alone where the
 map's text allows it.
+
+Sample counts that grow with the map (beyond the paper)
+-------------------------------------------------------
+The paper fixes ``N_I`` (200 in Sec. 5.1) whatever the number of coordinates. That cannot identify a map that
+reads more coordinates than it has samples: at N = 512 the least-squares refit of 512 coefficients from 200
+samples is underdetermined, and the joint support check (all coordinates outside the support redrawn at once)
+sees a dependence on one coordinate of ``max(x)`` only when that coordinate becomes the largest, about
+``2 / n`` of the draws. So the spec's counts are minimums and two counts grow with the ``n`` coordinates the map
+may read (the support is not known before the fit, and it can be all of them):
+
+* :func:`training_count`: ``N_I = max(samples, 2 (n + 1))``. ``n + 1`` samples determine ``n`` coefficients and
+  an intercept (the paper's ``dim(U) dim(X)`` for a linear map); twice that leaves as many residual degrees of
+  freedom, so the least-squares refit on the support is overdetermined rather than an interpolation.
+* :func:`check_count`: the joint support check draws ``max(holdout, 8 n)`` states, so that a coordinate that
+  matters on a fraction ``c / n`` of the box is seen with probability ``1 - exp(-8 c)`` whatever ``n``.
+
+Both equal the spec's counts while ``n`` is small (``N_I = 200`` up to ``n = 99``, ``holdout = 1000`` up to
+``n = 125``), so the random streams and results of the small cases are unchanged.
 """
 
 from __future__ import annotations
@@ -19,10 +37,25 @@ from pipelines.errors import SpecError
 from pipelines.network import Network
 from pipelines.spec.model import is_module_function
 
-__all__ = ["Sampler", "EVAL_ROWS"]
+__all__ = ["Sampler", "EVAL_ROWS", "TRAINING_PER_COEFFICIENT", "CHECK_PER_COORDINATE", "training_count",
+           "check_count"]
 
 #: Points per call of the black box (bounds memory: a call holds ``(rows, n)`` and ``(rows, p)`` floats).
 EVAL_ROWS = 400_000
+#: Training samples per coefficient to identify (``n`` coefficients and an intercept): see the module docstring.
+TRAINING_PER_COEFFICIENT = 2
+#: States of the joint support check per coordinate the map may read: see the module docstring.
+CHECK_PER_COORDINATE = 8
+
+
+def training_count(samples: int, n: int) -> int:
+    """``N_I`` for lasso and the refit: the spec's ``samples``, at least ``2 (n + 1)`` (module docstring)."""
+    return max(int(samples), TRAINING_PER_COEFFICIENT * (int(n) + 1))
+
+
+def check_count(holdout: int, n: int) -> int:
+    """States of the joint support check: the spec's ``holdout``, at least ``8 n`` (module docstring)."""
+    return max(int(holdout), CHECK_PER_COORDINATE * int(n))
 
 
 class Sampler:
