@@ -498,3 +498,33 @@ def test_layered_controllers_equal_explicit_ones_cell_for_cell(seed, shared, tmp
         back = load_controller(tmp_path, name)
         assert isinstance(back, LayeredController)
         np.testing.assert_array_equal(layered_matrix(back, ex), want, err_msg=f"{name} after save/load")
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_greedy_schedule_is_the_greedy_rule(seed):
+    """The incremental greedy order (:func:`schedule`) is the rule's order computed from its definition
+    (``_greedy_plain``), on random chains shaped like a CPre's: each relation reads a few current-state and
+    shared bits and owns its next-state bits."""
+    from dd.cudd import BDD
+
+    from pipelines.synthesis.cpre import _greedy_plain, schedule
+
+    rng = np.random.default_rng(900 + seed)
+    bdd = BDD()
+    n_rel = int(rng.integers(2, 40))
+    current = [f"x{k}" for k in range(int(rng.integers(3, 30)))]
+    nxt = [[f"xn{k}_{b}" for b in range(int(rng.integers(1, 4)))] for k in range(n_rel)]
+    bdd.declare(*current, *itertools.chain.from_iterable(nxt))
+    chain = []
+    for k in range(n_rel):
+        reads = rng.choice(current, size=int(rng.integers(1, min(6, len(current)) + 1)), replace=False)
+        rel = bdd.true
+        for v in [*reads, *nxt[k]]:
+            rel &= bdd.var(str(v))
+        chain.append((rel, nxt[k]))
+    start = set(itertools.chain.from_iterable(nxt))
+    supports = [set(bdd.support(r)) for r, _ in chain]
+    want = _greedy_plain(chain, supports, [set(x) for _, x in chain], set(start))
+    got = schedule(chain, start, bdd, "greedy")
+    assert [x for _, x in got] == [x for _, x in want]
+    del chain, got, want

@@ -218,14 +218,46 @@ def schedule(chain: Sequence[tuple[Function, list[str]]], start: set[str], bdd: 
         return list(chain)
     if how == "widest_last":
         return [chain[k] for k in sorted(range(len(chain)), key=lambda k: len(supports[k]))]
-    left = list(range(len(chain)))
+    quantified = [set(xn) for _, xn in chain]
+    disjoint = sum(len(q) for q in quantified) == len(set().union(*quantified))
+    if not disjoint or not all(q <= set(start) for q in quantified):  # not a CPre's chain: the plain form
+        return _greedy_plain(chain, supports, quantified, set(start))
+    # Each relation's next-state bits are in ``running`` until it is picked, so the cost
+    # |(running ∪ S_k) \ X_k| is |running| + |S_k \ running| - |X_k|, and only |S_k \ running| changes, by the
+    # variables each pick adds or removes: kept per relation through an index from variable to relations. The
+    # plain form recomputed every union at every step, ~N^3: 5.7 s of 7.4 s of the set-up at N = 512.
     running = set(start)
+    fresh = [len(s - running) for s in supports]  # |S_k \ running|
+    readers: dict[Any, list[int]] = {}
+    for k, s in enumerate(supports):
+        for v in s:
+            readers.setdefault(v, []).append(k)
+    left = set(range(len(chain)))
     out = []
     while left:
-        cost = {k: (len((running | supports[k]) - set(chain[k][1])), len(supports[k]), k) for k in left}
+        k = min(left, key=lambda j: (fresh[j] - len(quantified[j]), len(supports[j]), j))
+        left.remove(k)
+        for v in supports[k] - running:
+            for j in readers[v]:
+                fresh[j] -= 1
+        for v in quantified[k]:
+            for j in readers.get(v, ()):
+                fresh[j] += 1
+        running = (running | supports[k]) - quantified[k]
+        out.append(chain[k])
+    return out
+
+
+def _greedy_plain(chain: Sequence[tuple[Function, list[str]]], supports: list[set], quantified: list[set],
+                  running: set) -> Chain:
+    """The greedy order by its definition (for chains whose next-state bits are not all in ``start``)."""
+    left = list(range(len(chain)))
+    out = []
+    while left:
+        cost = {k: (len((running | supports[k]) - quantified[k]), len(supports[k]), k) for k in left}
         k = min(left, key=cost.__getitem__)
         left.remove(k)
-        running = (running | supports[k]) - set(chain[k][1])
+        running = (running | supports[k]) - quantified[k]
         out.append(chain[k])
     return out
 
