@@ -4,8 +4,9 @@ from a finished job directory (``compabs figures DIR``) without recomputing the 
 The drawn runs start where the job's closed loop started (every initial state of the spec in the domain, and
 the first :data:`FIGURE_RUNS` random domain states) and choose the *first* admissible input at each step, so
 a figure is the same every time it is drawn; any admissible input meets the specification (Theorem 4.2), so
-the figure shows a run the guarantee covers. The starts are kept in ``closed_loop_example.json`` with the run
-drawn, and a redraw runs the concrete system again from them.
+the figure shows a run the guarantee covers. The time plot draws the run from the spec's first initial state
+when it is in the domain, else the longest of the random runs drawn. The starts are kept in
+``closed_loop_example.json`` with the run drawn, and a redraw runs the concrete system again from them.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +23,7 @@ import numpy as np
 from pipelines.controller import Controller, load_controller
 from pipelines.errors import CompabsError
 from pipelines.figures import figure_setting, phase_plane, save_figure, time_plot
+from pipelines.figures.domain import plane_mask
 from pipelines.figures.phase_plane import check_axes
 from pipelines.network import Network, build_network
 from pipelines.spec.model import JobSpec, parse_spec
@@ -61,7 +64,9 @@ def _draw(network: Network, controller: Controller, starts: Sequence[Start], ste
     setting = figure_setting(network, initial_states, CHOICE)
     paths = []
     if drawn:
-        origin, x0, run = drawn[0]
+        # The time plot: the run from the spec's x0, else the longest of those drawn (the first may take no step).
+        first = 0 if drawn[0][0] == "initial" else max(range(len(drawn)), key=lambda r: drawn[r][2].inputs.shape[0])
+        origin, x0, run = drawn[first]
         horizon = run.inputs.shape[0] or steps
         free = simulate(network, None, x0, horizon, rng, kind, target, avoid, safe=safe)
         fig = time_plot(setting, run, origin=origin, free=free, steps=horizon)
@@ -71,7 +76,7 @@ def _draw(network: Network, controller: Controller, starts: Sequence[Start], ste
             "choose": CHOICE, "steps": steps, "starts": [{"origin": o, "x0": x.tolist()} for o, x in chosen],
         })
     if network.state_dim >= 2:
-        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes)
+        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes, plane=partial(plane_mask, controller))
         paths.append(save_figure(fig, jobdir.figure(out_dir, "phase_plane")))
     return paths
 

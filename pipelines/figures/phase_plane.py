@@ -5,7 +5,13 @@ Cells are drawn with their true extent, ``point ± eta/2`` from the grid's point
 the cells), so a run that touches an obstacle's cell is seen to touch it. With more than two coordinates the
 domain is the slice through one cell (that of the initial state) in the others, said in the title: a
 projection would need an existential over every other coordinate, which the controller answers only cell by
-cell.
+cell. The slice passes through the cell of the initial state when it is in the domain, else through the start
+of the first run drawn (a domain state), so that the slice meets the domain.
+
+The domain is read off the domain BDD in one pass where the caller gives ``plane`` (:func:`.domain.plane_mask`),
+else asked cell by cell. A plane with more than :data:`MAX_IMAGE_SIDE` cells along a side is drawn in blocks of
+cells (:func:`.domain.block_levels`): a block is drawn as domain only where every cell of it is, and in a fainter
+colour where only some are.
 """
 
 from __future__ import annotations
@@ -20,14 +26,20 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
 from pipelines.errors import SpecError
-from pipelines.figures.setting import CHOICES, REGION_NAMES, FigureSetting
+from pipelines.figures.domain import MAX_PLANE_CELLS, block_factors, block_levels
+from pipelines.figures.setting import CHOICES, REGION_NAMES, FigureSetting, vector
 from pipelines.grid import UniformGrid
 from pipelines.verification.closed_loop import Run
 
-#: Most cells of a slice the domain is drawn for (the controller answers cell by cell).
+#: Most cells of a slice the domain is drawn for when it is asked cell by cell (no ``plane``); with ``plane``, up
+#: to :data:`~.domain.MAX_PLANE_CELLS`.
 MAX_SLICE_CELLS = 250_000
+#: Most cells along a side drawn one pixel per cell; beyond, blocks of cells (about as many as the axes' pixels).
+MAX_IMAGE_SIDE = 400
 
 DOMAIN_COLOR = "#c6dbef"
+#: Blocks of cells of which some, not all, are in the domain (drawn only for a plane drawn in blocks).
+PARTLY_COLOR = "#dadaeb"
 REGION_STYLE: dict[str, dict] = {
     "target": {"facecolor": (0.17, 0.63, 0.17, 0.22), "edgecolor": "darkgreen", "linewidth": 1.8, "label": "target"},
     "safe": {"fill": False, "edgecolor": "navy", "linestyle": "--", "linewidth": 1.8, "label": "safe set"},
@@ -60,14 +72,28 @@ def cell_edges(grid: UniformGrid, axis: int) -> np.ndarray:
     return np.append(p - grid.eta[axis] / 2, p[-1] + grid.eta[axis] / 2)
 
 
-def base_cell(grid: UniformGrid, x0: np.ndarray | None) -> tuple[np.ndarray, str]:
-    """The cell a slice passes through: that of ``x0`` when it is on the grid, else the grid's middle cell;
-    and how the caption says it."""
-    if x0 is not None:
-        idx, inside = grid.cell_of(np.asarray(x0, dtype=float)[None, :])
-        if inside[0]:
-            return idx[0], "the cell of x0"
-    return np.asarray(grid.shape) // 2, "the grid's middle cell (x0 is off the grid)"
+def base_cell(grid: UniformGrid, x0: np.ndarray | None, runs: Sequence[tuple[str, np.ndarray, Run]] = (),
+              x0_in_domain: bool | None = True) -> tuple[np.ndarray, str]:
+    """The cell a slice passes through, and how the caption says it: that of ``x0`` when it is on the grid and in
+    the controller's domain; else that where the first drawn run starts (a state of the domain, so the slice meets
+    it); else that of ``x0`` when it is on the grid; else the grid's middle cell."""
+
+    def cell(x: np.ndarray) -> np.ndarray | None:
+        idx, inside = grid.cell_of(np.asarray(x, dtype=float)[None, :])
+        return idx[0] if inside[0] else None
+
+    at_x0 = None if x0 is None else cell(x0)
+    if at_x0 is not None and x0_in_domain:
+        return at_x0, "the cell of x0"
+    why = ("no initial state in the spec" if x0 is None
+           else "x0 is not in the domain" if at_x0 is not None else "x0 is off the grid")
+    for _, start, _ in runs:
+        at = cell(start)
+        if at is not None:
+            return at, f"the cell where the first drawn run starts, {vector(start)} ({why})"
+    if at_x0 is not None:
+        return at_x0, "the cell of x0"
+    return np.asarray(grid.shape) // 2, f"the grid's middle cell ({why})"
 
 
 def slice_mask(in_domain: Callable[[np.ndarray], np.ndarray], grid: UniformGrid, i: int, j: int,
@@ -98,6 +124,7 @@ def phase_plane(
     runs: Sequence[tuple[str, np.ndarray, Run]],
     *,
     axes: Sequence[int] = (0, 1),
+    plane: Callable[[np.ndarray, int, int], np.ndarray] | None = None,
 ) -> Figure:
     """The phase plane of two state coordinates.
 
@@ -110,12 +137,16 @@ def phase_plane(
         Closed-loop runs to draw; ``origin`` is ``"initial"`` (a spec's initial state) or ``"random"``.
     axes : (int, int)
         The coordinates, 0-based.
+    plane : callable, optional
+        ``plane(base, i, j)``: the domain on the plane of ``(i, j)`` through cell ``base`` in one call, shape
+        (shape[i], shape[j]) (:func:`.domain.plane_mask` of the controller); used instead of ``in_domain``.
 
     Returns
     -------
     Figure
-        Artists carry ``gid``s: ``domain`` (the image of the domain, one pixel per cell), ``target:k``,
-        ``safe:k``, ``avoid:k`` (the boxes), ``state_set``, ``run:r``, ``start:r`` and ``end:r``.
+        Artists carry ``gid``s: ``domain`` (the image of the domain, one pixel per cell, or per block of cells:
+        then its values are those of :func:`.domain.block_levels`), ``target:k``, ``safe:k``, ``avoid:k`` (the
+        boxes), ``state_set``, ``run:r``, ``start:r`` and ``end:r``.
     """
     grid = setting.grid
     i, j = check_axes(axes, grid.dim)
@@ -126,20 +157,40 @@ def phase_plane(
     handles: list = []
     lines = [setting.initial_state_line()]
 
-    base, where = base_cell(grid, setting.x0)
+    base, where = base_cell(grid, setting.x0, runs, setting.x0_in_domain)
     sliced = grid.dim > 2
     cells = grid.shape[i] * grid.shape[j]
     scope = f"slice through {where}, the other coordinates at its centre" if sliced else "whole state space"
-    if in_domain is None:
+    cap = MAX_SLICE_CELLS if plane is None else MAX_PLANE_CELLS
+    if in_domain is None and plane is None:
         lines.append("no controller: no domain drawn")
-    elif cells > MAX_SLICE_CELLS:
-        lines.append(f"domain not drawn: {cells:,} cells on this plane (at most {MAX_SLICE_CELLS:,})")
+    elif cells > cap:
+        lines.append(f"domain not drawn: {cells:,} cells on this plane (at most {cap:,})")
     else:
-        mask = slice_mask(in_domain, grid, i, j, base)
-        ax.imshow(mask.T.astype(np.int8), origin="lower", extent=window, interpolation="nearest", aspect="auto",
-                  cmap=ListedColormap([(1, 1, 1, 0), DOMAIN_COLOR]), vmin=0, vmax=1, gid="domain", zorder=0)
+        if plane is not None:
+            mask = np.asarray(plane(base, i, j), dtype=bool)
+        else:
+            assert in_domain is not None
+            mask = slice_mask(in_domain, grid, i, j, base)
         label = f"winning domain ({int(mask.sum()):,} of {mask.size:,} cells)"
-        handles.append(Patch(facecolor=DOMAIN_COLOR, edgecolor="none", label=label))
+        factors = block_factors(mask.shape, MAX_IMAGE_SIDE)
+        if factors == (1, 1):
+            image = mask.astype(np.int8)
+            extent = window
+            colors = [(1, 1, 1, 0), DOMAIN_COLOR]
+            handles.append(Patch(facecolor=DOMAIN_COLOR, edgecolor="none", label=label))
+        else:
+            image = block_levels(mask, factors)
+            # The last block of an axis may reach past the grid; the axes' limits cut it at the grid's edge.
+            extent = (ei[0], ei[0] + image.shape[0] * factors[0] * grid.eta[i],
+                      ej[0], ej[0] + image.shape[1] * factors[1] * grid.eta[j])
+            colors = [(1, 1, 1, 0), PARTLY_COLOR, DOMAIN_COLOR]
+            handles.append(Patch(facecolor=DOMAIN_COLOR, edgecolor="none",
+                                 label=f"{label}:\nblocks of {factors[0]} x {factors[1]} cells wholly in it"))
+            handles.append(Patch(facecolor=PARTLY_COLOR, edgecolor="none", label="blocks partly in it"))
+            scope += f"; drawn in blocks of {factors[0]} x {factors[1]} cells ({cells:,} cells on this plane)"
+        ax.imshow(image.T, origin="lower", extent=extent, interpolation="nearest", aspect="auto",
+                  cmap=ListedColormap(colors), vmin=0, vmax=len(colors) - 1, gid="domain", zorder=0)
         lines.append(f"domain: {scope}")
 
     box = Rectangle((grid.lb[i], grid.lb[j]), grid.ub[i] - grid.lb[i], grid.ub[j] - grid.lb[j], fill=False,
@@ -171,11 +222,18 @@ def phase_plane(
 
     handles += _draw_runs(ax, runs, i, j)
     if setting.x0 is not None and not setting.x0_in_domain:
+        # On a slice elsewhere, x0 is drawn where it projects: maybe over domain cells of the slice.
+        x0_cell, on_grid = grid.cell_of(np.asarray(setting.x0, dtype=float)[None, :])
+        others = [k for k in range(grid.dim) if k not in (i, j)]
+        away = sliced and not (on_grid[0] and np.array_equal(x0_cell[0][others], np.asarray(base)[others]))
         handles += ax.plot([setting.x0[i]], [setting.x0[j]], "x", color="crimson", markersize=10, mew=2.5,
-                           label="x0 (not in the domain)", gid="x0_outside", zorder=6)
+                           label="x0 (not in the domain)" + ("\nprojected: off this slice" if away else ""),
+                           gid="x0_outside", zorder=6)
     n_init = sum(1 for origin, _, _ in runs if origin == "initial")
-    lines.append(f"runs: {n_init} from x0, {len(runs) - n_init} from random domain states"
-                 f"{', projected on this plane' if sliced else ''}; inputs: {CHOICES.get(setting.choice, setting.choice)}")
+    from_x0 = f"{n_init} from x0, " if setting.x0 is not None else ""
+    projected = ", projected on this plane" if sliced else ""
+    lines.append(f"runs: {from_x0}{len(runs) - n_init} from random domain states{projected}; "
+                 f"inputs: {CHOICES.get(setting.choice, setting.choice)}")
 
     ax.set_xlim(window[0], window[1])
     ax.set_ylim(window[2], window[3])

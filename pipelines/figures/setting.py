@@ -28,6 +28,37 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
 #: A concrete box over the composed state: ``(lb, ub)``, each shape (n,).
 Box = tuple[np.ndarray, np.ndarray]
 
+
+@dataclass(frozen=True)
+class Consensus:
+    """A consensus region ``OR_k AND_i |x_i - phi_k| <= radius``, ``phi_k = first + k * step``, ``k < count``
+    (the centres :func:`pipelines.spec.regions.abstract_region` abstracts)."""
+
+    first: float
+    step: float
+    count: int
+    radius: float
+
+    def centres(self, states: np.ndarray) -> np.ndarray:
+        """Per state, shape (B, n), a centre ``phi`` whose box ``[phi - r, phi + r]^n`` holds it (the one nearest
+        the middle of its coordinates' range), NaN where none does; shape (B,)."""
+        X = np.atleast_2d(np.asarray(states, dtype=float))
+        lo, hi = X.max(axis=1) - self.radius, X.min(axis=1) + self.radius  # phi must lie in [lo, hi]
+        tol = 1e-9 * max(1.0, abs(self.first) + abs(self.step) * self.count)
+        with np.errstate(invalid="ignore"):
+            k_lo = np.maximum(np.ceil((lo - self.first - tol) / self.step), 0)
+            k_hi = np.minimum(np.floor((hi - self.first + tol) / self.step), self.count - 1)
+            mid = np.rint(((lo + hi) / 2 - self.first) / self.step)
+        k = np.clip(mid, k_lo, k_hi)
+        phi = self.first + k * self.step
+        ok = (k_lo <= k_hi) & np.all(np.abs(X - phi[:, None]) <= self.radius + tol, axis=1)
+        return np.where(ok, phi, np.nan)
+
+    def describe(self) -> str:
+        last = self.first + (self.count - 1) * self.step
+        centres = f"{self.first:g}, {self.first + self.step:g}, ..., {last:g}"
+        return f"|x_i - phi| <= {self.radius:g} for every i, phi = {centres}"
+
 #: Most boxes one region may have to be drawn (a consensus region of many centres is described, not drawn).
 MAX_DRAWN_BOXES = 500
 
@@ -56,16 +87,22 @@ def concrete_boxes(region: Region, n: int) -> tuple[list[Box], str | None]:
         boxes.append((lb, ub))
     note = None
     if region.consensus is not None:
-        first, last, step = region.consensus.centers
-        r = region.consensus.radius
-        # The count of pipelines.spec.regions.abstract_region, so the drawn boxes are the abstracted ones.
-        count = int(math.floor((last - first) / step * (1 + 1e-12))) + 1
-        if count > MAX_DRAWN_BOXES:
-            note = f"consensus region of {count} boxes |x_i - phi| <= {r:g}: not drawn"
+        c = consensus_of(region)
+        if c.count > MAX_DRAWN_BOXES:
+            note = f"consensus region of {c.count} boxes |x_i - phi| <= {c.radius:g}: not drawn"
         else:
-            phi = first + step * np.arange(count)
-            boxes += [(np.full(n, c - r), np.full(n, c + r)) for c in phi]
+            phi = c.first + c.step * np.arange(c.count)
+            boxes += [(np.full(n, p - c.radius), np.full(n, p + c.radius)) for p in phi]
     return boxes, note
+
+
+def consensus_of(region: Region) -> Consensus:
+    """The :class:`Consensus` of a region with a ``consensus`` part."""
+    assert region.consensus is not None
+    first, last, step = region.consensus.centers
+    # The count of pipelines.spec.regions.abstract_region, so the drawn boxes are the abstracted ones.
+    count = int(math.floor((last - first) / step * (1 + 1e-12))) + 1
+    return Consensus(float(first), float(step), count, float(region.consensus.radius))
 
 
 def _names(network: Network) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -122,6 +159,9 @@ class FigureSetting:
     bands : dict of str to list of Box
         The boxes the spec lists for each region (without a consensus region's): what the time plot draws as
         each coordinate's band.
+    consensus : dict of str to Consensus
+        The consensus part of each region that has one: the time plot draws, at each step, the box of it that
+        holds the state.
     notes : list of str
         What is not drawn, and why.
     x0 : ndarray or None
@@ -139,6 +179,7 @@ class FigureSetting:
     input_names: tuple[str, ...]
     regions: dict[str, list[Box]]
     bands: dict[str, list[Box]] = field(default_factory=dict)
+    consensus: dict[str, Consensus] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     x0: np.ndarray | None = None
     x0_in_domain: bool | None = None
@@ -169,6 +210,7 @@ def figure_setting(network: Network, initial_states: Sequence[dict], choice: str
     n = network.state_dim
     regions: dict[str, list[Box]] = {}
     bands: dict[str, list[Box]] = {}
+    consensus: dict[str, Consensus] = {}
     notes: list[str] = []
     for key in REGION_NAMES:
         region = getattr(spec.specification, key)
@@ -176,13 +218,15 @@ def figure_setting(network: Network, initial_states: Sequence[dict], choice: str
             boxes, note = concrete_boxes(region, n)
             regions[key] = boxes
             bands[key] = boxes[: len(region.boxes)]  # concrete_boxes lists the spec's own boxes first
+            if region.consensus is not None:
+                consensus[key] = consensus_of(region)
             if note:
                 notes.append(f"{key}: {note}")
     states, inputs = _names(network)
     first = initial_states[0] if initial_states else None
     return FigureSetting(
         name=spec.name, kind=spec.specification.kind, grid=network.composed_state_grid(), state_names=states,
-        input_names=inputs, regions=regions, bands=bands, notes=notes,
+        input_names=inputs, regions=regions, bands=bands, consensus=consensus, notes=notes,
         x0=None if first is None else np.asarray(first["x0"], dtype=float),
         x0_in_domain=None if first is None else bool(first["in_domain"]), choice=choice,
     )

@@ -2,8 +2,11 @@
 from the same state for comparison.
 
 Each state coordinate carries the band of every box of the target and of the safe set on that coordinate (for
-every specification kind that has one); inputs are drawn as the zero-order hold they are (``steps-post``),
-exactly as applied, and inputs that are 0 throughout the run are named in a note rather than drawn.
+every specification kind that has one); a consensus region (``|x_i - phi| <= r`` for every ``i``, for one of its
+centres ``phi``) has no fixed band, so at each step the box of it that holds the state is drawn, and none where
+no box does: the run is in the region exactly at the steps where every coordinate lies in a band. Inputs are
+drawn as the zero-order hold they are (``steps-post``), exactly as applied, and inputs that are 0 throughout the
+run are named in a note above their panel rather than drawn. Time steps are integers on the axis.
 """
 
 from __future__ import annotations
@@ -13,8 +16,10 @@ from collections.abc import Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+from matplotlib.ticker import MaxNLocator
 
-from pipelines.figures.setting import CHOICES, FigureSetting, short_message, vector
+from pipelines.figures.setting import CHOICES, Consensus, FigureSetting, short_message, vector
 from pipelines.verification.closed_loop import Run
 
 #: Up to this many state coordinates, each gets its own panel (and its own bands); beyond, one panel for all.
@@ -47,7 +52,7 @@ def _free_line(free: Run, steps: int) -> str:
     if k < steps:
         why = short_message(free.violation or "stopped")
         return f"dashed: from the same start with u = 0; it ends at k = {k}: {why}"
-    return f"dashed: from the same start with u = 0, over {k} steps"
+    return f"dashed: from the same start with u = 0, over {k} step{'' if k == 1 else 's'}"
 
 
 def time_plot(
@@ -76,7 +81,9 @@ def time_plot(
     -------
     Figure
         Artists carry ``gid``s: ``state:c`` and ``free:c`` (lines), ``target_band:c:k`` and ``safe_band:c:k``
-        (spans; ``c`` is ``all`` where one band holds for every coordinate), ``input:j`` (step lines).
+        (spans; ``c`` is ``all`` where one band holds for every coordinate), ``target_band:c:consensus:m`` and
+        ``safe_band:c:consensus:m`` (rectangles: the ``m``-th stretch of steps in one box of a consensus region),
+        ``input:j`` (step lines).
     """
     n = setting.grid.dim
     K = run.inputs.shape[0]
@@ -96,7 +103,7 @@ def time_plot(
                     alpha=0.7, gid=f"free:{c}", label="u = 0" if panels > 1 or c == 0 else "_nolegend_")
             if free.inputs.shape[0] < steps:
                 ax.plot([free.states.shape[0] - 1], [free.states[-1, c]], "x", color=colors[c], markersize=7)
-    notes = _bands(setting, list(axs[:panels]), colors)
+    notes = _bands(setting, list(axs[:panels]), colors, run.states)
 
     ax_u = axs[-1]
     k_inputs = np.arange(K + 1)
@@ -114,10 +121,12 @@ def time_plot(
         ax_u.text(0.01, 0.5, "no input applied (the run took no step)", transform=ax_u.transAxes, fontsize=8)
     elif zero:
         which = ", ".join(z.split(" ")[0] for z in zero) if len(zero) > 1 else zero[0]
-        ax_u.text(0.01, 0.04, textwrap.fill(f"{which}: 0 at every step", 110), transform=ax_u.transAxes,
+        # Above the panel, not over the inputs drawn at 0.
+        ax_u.text(0.0, 1.03, textwrap.fill(f"{which}: 0 at every step", 110), transform=ax_u.transAxes,
                   fontsize=7.5, color="dimgray", va="bottom")
     ax_u.set_ylabel("input")
     ax_u.set_xlabel("time step k")
+    ax_u.xaxis.set_major_locator(MaxNLocator(integer=True, steps=[1, 2, 5, 10]))  # shared by every panel
     for ax in axs:
         if ax.get_legend_handles_labels()[0]:
             ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7.5, frameon=False)
@@ -135,7 +144,7 @@ def time_plot(
     return fig
 
 
-def _bands(setting: FigureSetting, axs: Sequence, colors: list[str]) -> list[str]:
+def _bands(setting: FigureSetting, axs: Sequence, colors: list[str], states: np.ndarray) -> list[str]:
     """Draw each region's band per coordinate; returns notes for regions without one."""
     n = setting.grid.dim
     notes = []
@@ -143,8 +152,14 @@ def _bands(setting: FigureSetting, axs: Sequence, colors: list[str]) -> list[str
         if key not in setting.regions:
             continue
         boxes = setting.bands.get(key, [])
+        consensus = setting.consensus.get(key)
+        if consensus is not None:
+            _consensus_band(axs, states, consensus, key, color, alpha, name, per_coordinate=len(axs) == n)
+            notes.append(f"{name} band: at each step, the box of the consensus region ({consensus.describe()}) "
+                         "that holds the state; none where no box does")
         if not boxes:
-            notes.append(f"{name}: no box region, no band drawn")
+            if consensus is None:
+                notes.append(f"{name}: no box region, no band drawn")
             continue
         per = [_intervals(boxes, c) for c in range(n)]
         if len(axs) == n:  # one panel per coordinate
@@ -161,6 +176,35 @@ def _bands(setting: FigureSetting, axs: Sequence, colors: list[str]) -> list[str
                 for k, (lo, hi) in enumerate(per[c]):
                     axs[0].axhspan(lo, hi, color=colors[c], alpha=0.06, gid=f"{key}_band:{c}:{k}",
                                    label=f"{name} of each coordinate (its colour)" if c == k == 0 else "_nolegend_")
-        if len(boxes) < len(setting.regions[key]):
-            notes.append(f"{name}: its consensus part has no band per coordinate")
     return notes
+
+
+def consensus_stretches(states: np.ndarray, consensus: Consensus) -> list[tuple[int, int, float]]:
+    """The steps of a run grouped by the consensus box that holds the state: ``(first step, last step, phi)``
+    per stretch, in order; a box is kept while it holds the state (no flicker between overlapping boxes)."""
+    choice = consensus.centres(states)
+    out: list[tuple[int, int, float]] = []
+    phi = np.nan
+    for k, x in enumerate(np.atleast_2d(states)):
+        keep = not np.isnan(phi) and bool(np.all(np.abs(x - phi) <= consensus.radius))
+        if not keep:
+            phi = choice[k]
+            if np.isnan(phi):
+                continue
+        if out and out[-1][2] == phi and out[-1][1] == k - 1:
+            out[-1] = (out[-1][0], k, phi)
+        else:
+            out.append((k, k, float(phi)))
+    return out
+
+
+def _consensus_band(axs: Sequence, states: np.ndarray, consensus: Consensus, key: str, color: str, alpha: float,
+                    name: str, *, per_coordinate: bool) -> None:
+    """At each step, the band ``[phi - r, phi + r]`` of the consensus box holding the state (every panel)."""
+    r = consensus.radius
+    for c, ax in enumerate(axs):
+        where = c if per_coordinate else "all"
+        for m, (k0, k1, phi) in enumerate(consensus_stretches(states, consensus)):
+            ax.add_patch(Rectangle((k0 - 0.5, phi - r), k1 - k0 + 1, 2 * r, color=color, alpha=alpha, linewidth=0,
+                                   gid=f"{key}_band:{where}:consensus:{m}", zorder=0,
+                                   label=f"{name}: consensus box holding the state" if m == 0 else "_nolegend_"))
