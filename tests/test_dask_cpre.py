@@ -17,7 +17,7 @@ from pipelines.synthesis.fixed_points import cobuchi, reach, reach_safe, safe
 from pipelines.synthesis.synthesize import synthesize
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 from workers.control import partitioning
-from workers.dask_cpre import DaskPartFailed, DaskPredecessors, on_cluster, parts_for
+from workers.dask_cpre import DaskPartFailed, DaskPredecessors, cut_digits, on_cluster, parts_for
 from workers.job import run_abstraction, run_job
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 
@@ -79,6 +79,40 @@ def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
     assert states_vector(game.model, first[0], ex).any()  # a game worth comparing
     for name, got in domains.items():
         assert got == first, name
+
+
+@pytest.mark.parametrize("cut", ["w", "x"])
+def test_both_cuts_of_the_shared_cpre_are_exact(client, cut):
+    """The shared CPre cut along ``ŵ`` (parts are bad inputs, joined before ``∃u``) and along the states: the
+    explicit predecessors, whole, ``within`` a set and on ``outside``, at random cuts."""
+    rng = np.random.default_rng(7300 + (cut == "w"))
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    m = game.model
+    pool = DaskPredecessors(game, 3, client=client, cut=cut)
+    try:
+        assert pool.cut == cut and (pool.digits[0].startswith("w") == (cut == "w"))
+        for k in range(3):
+            if k and pool.cells > pool.parts:
+                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
+            Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
+            bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
+            want = ex.cpre(Z).any(axis=1)
+            np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
+            np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
+            got = states_vector(m, pool(bZ, outside=bO), ex)
+            np.testing.assert_array_equal(got & Out, want & Out)
+    finally:
+        pool.close()
+
+
+def test_the_w_cut_needs_a_shared_internal_variable():
+    game = build(random_net(np.random.default_rng(3), False), "interleaved")
+    assert game.M is None
+    with pytest.raises(ValueError, match="w cut needs the shared CPre"):
+        cut_digits(game, "w")
+    assert cut_digits(game)[0] == "x"
 
 
 def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here():
