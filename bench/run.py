@@ -46,6 +46,10 @@ Cases (``--cases``; default: all but ``consensus``):
     The field's standard benchmarks (``examples/dcdc.yaml``, ``vehicle.yaml``, ``rooms.yaml``) end to end as
     ``tanks`` is, their transitions and winning domains, and the per-cell stage against the floor, beside SCOTS's
     figures (:mod:`bench.general`).
+``synthesis`` (issue 24; only when named, never under ``--quick``)
+    Consensus synthesis (``--synthesis-N``, default 8) on one abstraction in every mode: one process, helper
+    processes, and an embedded Dask cluster of 1, 2, 4, ... workers up to the cores present, with the speed-up
+    over one process and whether each domain is the one process's (:mod:`bench.synthesis`, in a child process).
 
 Measurement: every case (every N, every worker count) runs in a fresh child process (``--child``), whose
 stage events are written to a JSON-lines file as they happen, so a case killed at its timeout still reports
@@ -1074,6 +1078,11 @@ def print_table(results: dict, out=sys.stdout) -> None:
         w("  general: the field's benchmarks beside SCOTS (examples/dcdc, vehicle, rooms)")
         for line in general_lines(results["cases"]["general"], _fmt):
             w(line)
+    if "synthesis" in results["cases"]:
+        from bench.synthesis import lines as synthesis_lines
+
+        for line in synthesis_lines(results["cases"]["synthesis"]):
+            w(line)
     for name in ("floor", "scp", "workers", "bdd"):
         c = results["cases"].get(name)
         if not c:
@@ -1156,7 +1165,26 @@ def targets(results: dict) -> dict[str, tuple]:
         from bench.general import general_targets
 
         general_targets(c["general"], put)
+    if "synthesis" in c:
+        for k, target in c["synthesis"].get("targets", {}).items():
+            row = next((r for r in c["synthesis"]["rows"] if r.get("workers") == int(k)), None)
+            if row is not None:
+                put(f"consensus synthesis, {k} Dask workers / one process", row["speedup"], f">= {target}",
+                    row["speedup"] >= target)
+        same = [r["same_domain"] for r in c["synthesis"]["rows"]]
+        put("synthesis modes give the one process's domain", all(same), "all", bool(same) and all(same))
     return out
+
+
+def bench_synthesis_case(args) -> dict:
+    """The ``synthesis`` case: :mod:`bench.synthesis` in a child process (it starts and stops its own clusters)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "synthesis.json"
+        proc = subprocess.run([sys.executable, str(ROOT / "bench" / "synthesis.py"), "--N", str(args.synthesis_N),
+                               "--json", str(out)], cwd=ROOT, timeout=args.consensus_timeout * 8)
+        if proc.returncode != 0 or not out.exists():
+            return {"case": "synthesis", "status": f"failed (exit {proc.returncode})", "rows": []}
+        return {"case": "synthesis", "status": "ok", **json.loads(out.read_text())}
 
 
 def headline_ratios(results: dict) -> dict[str, float | None]:
@@ -1210,8 +1238,8 @@ def meta(args) -> dict:
     }
 
 
-ALL_CASES = ("tanks", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general")
-DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general"))
+ALL_CASES = ("tanks", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general", "synthesis")
+DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general", "synthesis"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1220,7 +1248,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small sizes (under ~3 minutes); never the consensus case")
     p.add_argument("--json", metavar="OUT", help="write the results as JSON")
     p.add_argument("--cases", default=",".join(DEFAULT_CASES),
-                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus)")
+                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus, general and synthesis)")
     p.add_argument("--consensus-timeout", type=float, default=1800.0, metavar="S")
     p.add_argument("--tanks-timeout", type=float, default=1200.0, metavar="S")
     p.add_argument("--point-timeout", type=float, default=900.0, metavar="S",
@@ -1228,6 +1256,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mem-limit-gb", type=float, default=12.0, help="kill a case whose process tree exceeds this RSS")
     p.add_argument("--bisect", type=int, default=6, metavar="K", help="probes between the last N that worked and the "
                    "first that failed (scalability)")
+    p.add_argument("--synthesis-N", type=int, default=8, metavar="N", help="agents of the synthesis case's consensus")
     p.add_argument("--child", help=argparse.SUPPRESS)
     p.add_argument("--params", help=argparse.SUPPRESS)
     p.add_argument("--events", help=argparse.SUPPRESS)
@@ -1268,6 +1297,11 @@ def main(argv: list[str] | None = None) -> int:
                                 worker_environ=worker_environ)
             results["cases"]["general"] = rec
             _progress({**rec, "process_wall": sum(r["process_wall"] for r in rec["runs"])})
+        elif case == "synthesis":
+            if args.quick:
+                results["skipped"]["synthesis"] = "not run under --quick"
+                continue
+            results["cases"]["synthesis"] = bench_synthesis_case(args)
         else:
             rec = {"floor": bench_floor, "scp": bench_scp, "workers": bench_workers, "bdd": bench_bdd}[case](args)
             results["cases"][case] = rec
