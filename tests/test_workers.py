@@ -271,6 +271,17 @@ def test_embedded_cluster_runs_dasks_periodic_work_as_the_config_says(client):
     assert client.run_on_scheduler(_periodic_ms) == {"tick": tick, "monitor": monitor}
 
 
+def _worker_ttl(dask_scheduler) -> float | None:
+    return dask_scheduler.worker_ttl
+
+
+def test_embedded_scheduler_waits_for_workers_that_hold_the_gil(client):
+    """A worker running one CUDD operation sends no heartbeat until it returns (workers/dask_cpre.py's parts run
+    for minutes on the tanks at 1.25): the scheduler must not declare it dead after Dask's 5 minutes."""
+    ttl = client.run_on_scheduler(_worker_ttl)
+    assert ttl is not None and ttl >= 3600, ttl
+
+
 def test_image_installs_the_worker_config():
     from workers.cluster import DASK_CONFIG_FILE
 

@@ -61,9 +61,12 @@ DEFAULT_MEMORY_FRACTION = 0.75
 #: live ones, so that every lookup missed the processor's caches; with 1e5 the loop is about 20 % faster for the
 #: same result, and consensus's peak memory about a third.
 GC_LOOSE_UP_TO = 100_000
-#: Largest computed table (entries) CUDD may grow to. Unbounded, it grew to 8 M entries (256 MB) on the tanks; 2^20
-#: is as fast (smaller tables are slower).
-MAX_CACHE_ENTRIES = 1 << 20
+#: Largest computed table (entries, 32 bytes each) CUDD may grow to. CUDD grows it only while its hit rate is high and
+#: to at most 4x the unique table's slots, so a small job keeps a small table (the tanks at spacing 2.5: 2 M entries,
+#: with this cap or 2^20). The cap used to be 2^20: at spacing 1.25 (safety iterates of 1-5 M nodes) that table
+#: thrashed and one CPre took 215 s instead of 35 s (and_exists recomputed what it had forgotten); CUDD grew the
+#: table to 2^24 entries (512 MB) there and no further.
+MAX_CACHE_ENTRIES = 1 << 25
 
 
 class BDDMemoryError(CompabsError):

@@ -17,7 +17,7 @@ import numpy as np
 
 from pipelines.symbolic.model import Function, SymbolicModel
 
-#: The Shannon-tree keys are int64: at most this many input bits per relation.
+#: The Shannon-tree keys are int64: at most this many bits per key; :func:`tree` splits wider relations by digit.
 MAX_TREE_BITS = 62
 
 
@@ -91,9 +91,21 @@ def tree(
     -----
     Per bit, from the bottom level up, siblings are paired; one ``ite`` is made per distinct
     ``(low, high)`` pair of subtree ids, so Python work is proportional to the distinct subtrees.
+
+    Digits over more than :data:`MAX_TREE_BITS` bits in all (the ten tanks at spacing 1.25: 10 x 7 state bits)
+    are split: one tree over the other digits per code of the first digit, which become the leaves of a tree over
+    the first digit (the same function, since the cells with one code of the first digit are that code's subtree).
     """
     values = np.asarray(values, dtype=np.int64).reshape(len(leaf_ids), len(digits))
     leaf_ids = np.asarray(leaf_ids, dtype=np.int64)
+    if len(digits) > 1 and sum(len(model.bits[d]) for d in digits) > MAX_TREE_BITS:
+        codes, which = np.unique(values[:, 0], return_inverse=True)
+        which = which.reshape(-1)
+        order = np.argsort(which, kind="stable")
+        bounds = np.searchsorted(which[order], np.arange(codes.size + 1))
+        subtrees = [tree(model, digits[1:], values[order[a:b], 1:], leaf_ids[order[a:b]], leaves)
+                    for a, b in zip(bounds[:-1], bounds[1:])]
+        return tree(model, digits[:1], codes.reshape(-1, 1), np.arange(codes.size, dtype=np.int64), subtrees)
     funcs: list[Function] = [model.bdd.false]
     ident: dict[int, int] = {int(model.bdd.false): 0}
 
