@@ -22,6 +22,8 @@ Cases (``--cases``; default: all but ``consensus``):
     (``--quick``: over all points). Per N also the interconnection's error bound ``eps``, the ``w`` cells its
     final node admits on average (of 33) and the sample counts used (they grow with N). If an N fails (error, timeout, memory) the next ones are not run, and the
     gap between the last N that worked and the first that failed is bisected (``--bisect`` probes).
+    The same N then run with ``interconnection.error: max`` (``declared_max``: the map declared the maximum of
+    the states, abstracted exactly by a reduction tree; eps 0 and at most 3 admitted w cells at every N).
 ``floor`` (a)
     The per-cell stage (``abstract_cells`` over the default chunks of each distinct subsystem) against the
     floor: the compiled dynamics (``compile_expression``, no validation) evaluated on exactly the sample
@@ -254,6 +256,9 @@ def child_scalability(p: dict, emit: Callable[[dict], None]) -> None:
     from workers.job import run_abstraction
 
     spec = load_spec(EXAMPLES / "scalability.yaml", {"N": p["N"]})
+    if p.get("error") and spec.interconnection is not None and p["error"] != spec.interconnection.error:
+        # error: max declares w = max(x) (pipelines/interconnection/reduction.py): the exact tree, eps 0
+        spec = spec.model_copy(update={"interconnection": spec.interconnection.model_copy(update={"error": p["error"]})})
     clock = StageClock(emit)
     r = run_abstraction(spec, progress=clock, audit=False)
     ia = r.interconnection
@@ -835,13 +840,22 @@ def bench_end_to_end(name: str, spec: Path, args, timeout: float) -> dict:
 
 
 def bench_scalability(args) -> dict:
+    """The paper's series (``certify``, the example as written) with its targets, then the same N declared
+    ``error: max`` (exact reduction tree, eps 0) under ``declared_max``."""
+    rec = _scalability_series(args, "certify")
+    rec["declared_max"] = _scalability_series(args, "max")
+    return rec
+
+
+def _scalability_series(args, error: str) -> dict:
     Ns = [4, 8, 16] if args.quick else [4 * 2 ** k for k in range(9)]  # 4 ... 1024
     fit_from = 4 if args.quick else 16
     points: list[dict] = []
     failed = None
+    tag = "" if error == "certify" else f" error={error}"
     for N in Ns:
-        child = run_child("scalability", {"N": N}, args.point_timeout, args.mem_limit_gb * 1024)
-        pt = case_record(f"scalability N={N}", child, N=N)
+        child = run_child("scalability", {"N": N, "error": error}, args.point_timeout, args.mem_limit_gb * 1024)
+        pt = case_record(f"scalability N={N}{tag}", child, N=N)
         points.append(pt)
         _progress(pt)
         if pt["status"] != "ok":
@@ -856,8 +870,9 @@ def bench_scalability(args) -> dict:
             if hi - lo <= 1:
                 break
             mid = (lo + hi) // 2
-            child = run_child("scalability", {"N": mid}, args.point_timeout, args.mem_limit_gb * 1024)
-            pt = case_record(f"scalability N={mid} (probe)", child, N=mid)
+            child = run_child("scalability", {"N": mid, "error": error}, args.point_timeout,
+                              args.mem_limit_gb * 1024)
+            pt = case_record(f"scalability N={mid}{tag} (probe)", child, N=mid)
             probes.append(pt)
             _progress(pt)
             if pt["status"] == "ok":
@@ -884,7 +899,7 @@ def bench_scalability(args) -> dict:
                     for p in points + probes if p["status"] != "ok"), None)
     for p in points + probes:
         p["series"] = series(p)
-    _scalability_lines(points + probes, exponents, [p["N"] for p in fit_pts])
+    _scalability_lines(points + probes, exponents, [p["N"] for p in fit_pts], error)
     return {
         "case": "scalability",
         "status": "ok" if failed is None else "partial",
@@ -901,9 +916,9 @@ def bench_scalability(args) -> dict:
     }
 
 
-def _scalability_lines(rows: list[dict], exponents: dict, fit_N: list[int]) -> None:
+def _scalability_lines(rows: list[dict], exponents: dict, fit_N: list[int], error: str = "certify") -> None:
     """Per N: seconds, the interconnection's error bound and admitted w cells, the sample counts (stdout)."""
-    print("scalability per N: seconds (abstraction + composition), interconnection error bound eps, w cells its final "
+    print(f"scalability (interconnection.error: {error}) per N: seconds (abstraction + composition), interconnection error bound eps, w cells its final "
           "node admits on average (of 33), training / joint-check samples, coordinates the joint check added")
     for p in rows:
         ic = (p.get("details") or {}).get("interconnection") or {}
@@ -1072,6 +1087,17 @@ def print_table(results: dict, out=sys.stdout) -> None:
         ex = s["exponents"]
         w(f"  scalability exponent over N={s['fit_N']}: abstraction {_fmt(ex['abstraction'])}, composition "
           f"{_fmt(ex['composition'])}, total {_fmt(ex['total'])}" + (f"; breaks: {s['breaks']}" if s["breaks"] else ""))
+        for label, series in (("paper's certify", s), ("declared max", s.get("declared_max"))):
+            if not series:
+                continue
+            w(f"  scalability, {label}: N, eps, w cells admitted (of 33), seconds")
+            for p in series["points"]:
+                ic = (p.get("details") or {}).get("interconnection") or {}
+                w(f"    N={p['N']:<5} {p['status']:<8} eps {_fmt(ic.get('error_bound'))}  w cells "
+                  f"{_fmt(ic.get('final_node_mean_w_cells'))}  {_fmt((p.get('series') or {}).get('total'))} s")
+        dm = s.get("declared_max")
+        if dm:
+            w(f"  scalability, declared max: exponent over N={dm['fit_N']}: total {_fmt(dm['exponents']['total'])}")
     if "general" in results["cases"]:
         from bench.general import general_lines
 

@@ -67,6 +67,13 @@ def test_quick_benchmark(tmp_path):
     for key in ("abstraction", "composition", "total"):
         assert math.isfinite(res["exponents"][key])
     assert scal["paper"]["source"]
+    # the same N with the map declared max: exact (eps 0), at most 3 of the 33 w cells at any state
+    dm = scal["declared_max"]
+    assert dm["status"] == "ok", dm["error"]
+    assert [p["N"] for p in dm["points"]] == [4, 8, 16]
+    for p in dm["points"]:
+        ic = p["details"]["interconnection"]
+        assert ic["error_bound"] == 0.0 and ic["final_node_mean_w_cells"] <= 3
 
     # baselines: every child ran, every ratio finite and positive
     for name in ("floor", "scp", "workers", "bdd"):

@@ -30,6 +30,7 @@ from pipelines.interconnection.grids import axis_grid
 from pipelines.interconnection.learning import complete_support, dependence, lasso_row, refit, support_of
 from pipelines.interconnection.mdec import mdec
 from pipelines.interconnection.nodes import box_node, covers_box, direct_node, intermediate_grid, linear_node
+from pipelines.interconnection.reduction import REDUCTIONS, check_reduction, reduction_nodes
 from pipelines.interconnection.relation import InterconnectionAbstraction, NodeRelation
 from pipelines.interconnection.sampling import Sampler, check_count, training_count
 from pipelines.network import Network
@@ -141,7 +142,8 @@ def abstract_interconnection(
     # MDec (Algorithm 2) now, so that a sigma too small fails before the costly steps. A direct output gets
     # one node from the black box instead (an empty row here, replaced below).
     is_direct = [mode == "direct" and len(supports[j]) <= ic.sigma for j in range(p)]
-    plans = mdec(M_bar, [() if is_direct[j] else supports[j] for j in range(p)], ic.sigma)
+    is_reduction = mode in REDUCTIONS  # every output declared max (min) of what it reads: exact trees below
+    plans = mdec(M_bar, [() if is_direct[j] or is_reduction else supports[j] for j in range(p)], ic.sigma)
 
     # 3. Error bounds per output.
     X_hold = sample.uniform(ic.holdout, rng)
@@ -154,7 +156,11 @@ def abstract_interconnection(
     for j in range(p):
         res = np.abs(Y_hold[:, j] - (X_hold @ M_bar[j] + offsets[j]))
         residuals.append(float(res.max(initial=0.0)))
-        if mode == "linear":
+        if is_reduction:
+            check_reduction(mode, j, supports[j], X, Y)
+            check_reduction(mode, j, supports[j], X_hold, Y_hold)
+            output_modes.append(mode)  # eps stays 0: the node tree is exact (reduction.py)
+        elif mode == "linear":
             eps[j], _ = eps_linear(j, M_bar[j], offsets[j], X_hold, Y_hold, xmax, len(supports[j]), n_train)
             output_modes.append("linear")
         elif is_direct[j]:
@@ -180,12 +186,17 @@ def abstract_interconnection(
     # relation as its MDec tree (nodes.covers_box), without building the tree.
     grid = network.composed_state_grid()
     x_grids = [axis_grid(grid, i) for i in range(n)]
-    whole_box = [j for j in range(p) if j not in direct_nodes and supports[j]
+    whole_box = [j for j in range(p) if j not in direct_nodes and supports[j] and not is_reduction
                  and covers_box(network.internal_grids[j], M_bar[j], offsets[j], eps[j], sample.lb, sample.ub)]
     z_grids: dict[str, UniformGrid] = {}
     nodes: list[NodeRelation] = []
     for plan in plans:
         j = plan.target
+        if is_reduction:
+            tree, grids = reduction_nodes(mode, j, supports[j], x_grids, network.internal_grids[j], len(z_grids))
+            nodes.extend(tree)
+            z_grids.update(grids)
+            continue
         if j in direct_nodes:
             if plan.is_final:
                 nodes.append(direct_nodes[j])

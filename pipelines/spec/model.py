@@ -203,10 +203,11 @@ class InterconnectionSpec(_Model):
     samples: int = Field(default=100, ge=2, le=1_000_000, description="N_I, input-output samples for the lasso")
     alpha: float | Literal["cv"] = Field(default="cv", description="lasso penalty, or 'cv' for cross-validation")
     sigma: int = Field(default=4, ge=1, le=8, description="largest in-degree after MDec (Algorithm 2)")
-    error: Literal["linear", "certify", "direct"] = Field(
+    error: Literal["linear", "certify", "direct", "max", "min"] = Field(
         default="certify",
         description="linear: the map is declared linear; certify: Lipschitz margin on the support grid; "
-        "direct: abstract each output straight from the black box on its support",
+        "direct: abstract each output straight from the black box on its support; max / min: each output is "
+        "declared the largest / smallest of the coordinates it reads (checked on samples, abstracted exactly)",
     )
     lipschitz: float | None = Field(default=None, ge=0, description="L_M in the infinity norm (certify, direct)")
     intermediate_eta: float | None = Field(default=None, gt=0, description="spacing of intermediate variables z")

@@ -33,6 +33,7 @@ def header(model: SymbolicModel) -> dict[str, Any]:
         "w_sizes": list(model.w_sizes),
         "z_sizes": dict(model.z_sizes),
         "z_owner": dict(model.z_owner),
+        "z_below": dict(model.z_below),
         "grids": model.grids,
         "blocks": list(model.blocks),
     }
@@ -72,7 +73,8 @@ def model_from_header(head: Mapping[str, Any], max_memory: int | None = None) ->
         raise ValueError(f"not a {HEADER_FORMAT} header: {head.get('format')!r}")
     subs = [SubsystemLayout(**{**s, "state_shape": tuple(s["state_shape"]), "reads": tuple(s["reads"])})
             for s in head["subsystems"]]
-    model = SymbolicModel(subs, head["w_sizes"], head["z_sizes"], z_owner=head["z_owner"], order=head["order"],
+    model = SymbolicModel(subs, head["w_sizes"], head["z_sizes"], z_owner=head["z_owner"],
+                          z_below=head.get("z_below"), order=head["order"],
                           max_memory=max_memory, grids=head.get("grids"), blocks=head.get("blocks"))
     if model.variables != list(head["variables"]):
         raise ValueError("the header's variable order differs from the one this code declares")

@@ -40,6 +40,7 @@ from pipelines.symbolic.order import (
     ORDERS,
     SubsystemLayout,
     block_order,
+    blocks_below,
     dependency_arcs,
     reader_order,
     tree_owners,
@@ -102,6 +103,9 @@ class SymbolicModel:
         Cells of each intermediate variable's grid, in topological (node) order.
     z_owner : mapping of str to int, optional
         Output ``j`` whose tree each ``z`` belongs to (placement in the ``interleaved`` order).
+    z_below : mapping of str to sequence of int, optional
+        Intermediate variables placed below the blocks of these subsystems (reduction trees;
+        :func:`~.order.variable_order`).
     order : {'interleaved', 'shared_top'}
     max_memory : int, optional
         Bytes CUDD may use (default :func:`default_max_memory`); beyond it operations raise
@@ -121,6 +125,7 @@ class SymbolicModel:
         z_sizes: Mapping[str, int] | None = None,
         *,
         z_owner: Mapping[str, int] | None = None,
+        z_below: Mapping[str, Sequence[int]] | None = None,
         order: str = "interleaved",
         max_memory: int | None = None,
         grids: dict | None = None,
@@ -135,6 +140,7 @@ class SymbolicModel:
         self.w_sizes = tuple(int(k) for k in w_sizes)
         self.z_sizes = {str(k): int(v) for k, v in (z_sizes or {}).items()}
         self.z_owner = {str(k): int(v) for k, v in (z_owner or {}).items()}
+        self.z_below = {str(k): [int(b) for b in v] for k, v in (z_below or {}).items()}
         self.order = order
         self.grids = grids or {}
         self.max_memory = int(max_memory) if max_memory is not None else default_max_memory()
@@ -195,6 +201,8 @@ class SymbolicModel:
             [g.size for g in network.internal_grids],
             z_sizes,
             z_owner=tree_owners(nodes),
+            z_below=(blocks_below(nodes, layouts)
+                     if interconnection is not None and interconnection.mode in ("max", "min") else None),
             order=order,
             max_memory=max_memory,
             grids=grids,
@@ -216,7 +224,7 @@ class SymbolicModel:
     def _variable_order(self) -> list[str]:
         """Bit names in level order (top first): :func:`~.order.variable_order` of this model's digits."""
         return variable_order(self.order, self.subsystems, self.blocks, self.bits, len(self.w_sizes),
-                              list(self.z_sizes), self.z_owner)
+                              list(self.z_sizes), self.z_owner, self.z_below)
 
     def _declare(self, names: Sequence[str]) -> None:
         """Declare in level order: with reordering off a new variable goes to the bottom level."""

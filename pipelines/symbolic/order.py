@@ -198,6 +198,19 @@ def block_order(n: int, edges: set[tuple[int, int]]) -> list[int]:
     return best
 
 
+def blocks_below(nodes: Sequence[NodeRelation], subsystems: Sequence[SubsystemLayout]) -> dict[str, list[int]]:
+    """Per intermediate ``z``, the subsystems (positions) whose coordinates lie under it in its node tree."""
+    owner = {i: k for k, s in enumerate(subsystems) for i in s.coords}
+    under: dict[str, set[int]] = {}
+    for node in nodes:  # topological order
+        if node.output.startswith("z"):
+            got: set[int] = set()
+            for name in node.inputs:
+                got |= {owner[int(name[1:])]} if name.startswith("x") else under.get(name, set())
+            under[node.output] = got
+    return {z: sorted(v) for z, v in under.items() if v}
+
+
 def tree_owners(nodes: Sequence[NodeRelation]) -> dict[str, int]:
     """The output ``j`` whose MDec tree each intermediate ``z`` belongs to (follows the unique reader)."""
     reader = {name: node.output for node in nodes for name in node.inputs if name.startswith("z")}
@@ -231,6 +244,7 @@ def variable_order(
     n_internal: int,
     z_digits: Sequence[str],
     z_owner: Mapping[str, int],
+    z_below: Mapping[str, Sequence[int]] | None = None,
 ) -> list[str]:
     """Bit names in level order (top first) for ``order`` (see the module docstring).
 
@@ -249,11 +263,22 @@ def variable_order(
         The intermediate variables, in topological (node) order.
     z_owner : mapping of str to int
         Output ``j`` whose MDec tree each ``z`` belongs to.
+    z_below : mapping of str to sequence of int, optional
+        Intermediate variables to place right below the last (in ``blocks`` order) of the given subsystems'
+        blocks instead (the reduction trees of :mod:`~pipelines.interconnection.reduction`: a ``z`` below the
+        coordinates under it keeps their conjunction a running maximum; above them it would branch on every
+        combination of the open subtrees' values).
     """
     if order not in ORDERS:
         raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
     out: list[str] = []
     placed: set[str] = set()
+    rank = {b: r for r, b in enumerate(blocks)}
+    below: dict[int, list[str]] = {}
+    for z in z_digits:  # topological order: a z's children come before it
+        if z_below and z in z_below:
+            below.setdefault(max(z_below[z], key=rank.__getitem__), []).append(z)
+    z_free = [z for z in z_digits if not (z_below and z in z_below)]
 
     def put(digit: str) -> None:
         if digit not in placed:
@@ -262,7 +287,7 @@ def variable_order(
 
     def put_w(j: int) -> None:
         # The z of w_j's tree right above w_j: M̂_j's nodes then sit together.
-        for z in z_digits:
+        for z in z_free:
             if z_owner.get(z) == j:
                 put(z)
         put(f"w{j}")
@@ -270,23 +295,27 @@ def variable_order(
     if order == "shared_top":
         for j in range(n_internal):
             put(f"w{j}")
-        for z in z_digits:
+        for z in z_free:
             put(z)
-        for s in (subsystems[b] for b in blocks):
+        for blk in blocks:
+            s = subsystems[blk]
             for i in s.coords:
                 put(f"x{i}")
             put(f"u{s.index}")
             for i in s.coords:
                 put(f"xn{i}")
+            for z in below.get(blk, ()):
+                put(z)
         return out
     read = {j for s in subsystems for j in s.reads}
-    for z in z_digits:  # intermediate variables of unread outputs, or of unknown owner
+    for z in z_free:  # intermediate variables of unread outputs, or of unknown owner
         if z_owner.get(z) not in read:
             put(z)
     for j in range(n_internal):
         if j not in read:
             put(f"w{j}")
-    for s in (subsystems[b] for b in blocks):
+    for blk in blocks:
+        s = subsystems[blk]
         for j in s.reads:
             put_w(j)
         put(f"u{s.index}")
@@ -294,4 +323,6 @@ def variable_order(
             placed.update((f"x{i}", f"xn{i}"))
             for a, b in zip(bits[f"x{i}"], bits[f"xn{i}"]):
                 out.extend((a, b))
+        for z in below.get(blk, ()):
+            put(z)
     return out
