@@ -295,6 +295,7 @@ class DaskPredecessors:
                 key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
         index = {f.key: k for k, f in enumerate(futures)}
         seconds = [0.0] * len(futures)
+        t_sent = time.perf_counter()
         result = g.bdd.false
         try:
             for fut in as_completed(futures):
@@ -311,6 +312,7 @@ class DaskPredecessors:
         finally:
             for fut in futures:
                 fut.cancel()
+        t_parts = time.perf_counter()
         if self.cut == "w":  # the parts are the bad pairs: the one ∃u step, on the whole set, here
             admissible = g.admissible if within is None else within.admissible
             with m.guard("joining the parts of CPre"):
@@ -319,8 +321,9 @@ class DaskPredecessors:
         self._calls += 1
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
-        log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s", len(seconds),
-                 [round(s, 2) for s in seconds], sum(seconds), time.perf_counter() - t_start)
+        log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "
+                 "joining them %.2f, the ∃u step %.2f", len(seconds), [round(s, 2) for s in seconds], sum(seconds),
+                 time.perf_counter() - t_start, t_sent - t_start, t_parts - t_sent, time.perf_counter() - t_parts)
         return result
 
     def close(self) -> None:

@@ -422,9 +422,12 @@ class ControllablePredecessor:
             M &= part
         self.M = M
         self.w_bits = m.w_bits
-        blocked = bdd.false
-        for nb in self.NB:  # ∃w.(M̂ ∧ ¬∧NB_i) = ∨_i ∃w.(M̂ ∧ ¬NB_i)
-            blocked |= and_exists(M, ~nb, self.w_bits)
+        # ∃w.(M̂ ∧ ¬∧NB_i) in one step: the disjunction of the small ¬NB_i first. One ∃w per subsystem instead
+        # walks M̂ N times (the 1,024-coordinate max tree: M̂ 328 k nodes; at N = 256 13.3 s against 0.4 s).
+        some_blocks = bdd.false
+        for nb in self.NB:
+            some_blocks |= ~nb
+        blocked = and_exists(M, some_blocks, self.w_bits)
         self.admissible = m.x_domain & m.u_domain & bdd.exist(self.w_bits, M) & ~blocked
         chain = [(t, m.bits_of(m.subsystem_digits(s)["xn"])) for s, t in zip(m.subsystems, self.T)]
         self.chain = schedule(chain, set(m.xn_bits), bdd, self.chain_order)
