@@ -103,6 +103,12 @@ def lines(rec: dict[str, Any]) -> list[str]:
         p = r["parallel"]
         out.append(f"    {r['mode']:<28} {r['wall']:8.1f} {r['speedup']:9.2f}  {p.get('processes', 1):>5}  "
                    f"{p.get('calls', 0):>5}  {'yes' if r['same_domain'] else 'NO'}")
+    for r in rec["rows"]:
+        t = r["parallel"].get("seconds")
+        if t:
+            out.append(f"    {r['mode']}: of the partitioned calls, {t['slowest_part']:.1f} s the slower part of each, "
+                       f"{t['after_parts']:.1f} s reading and joining the parts after it, {t['exists_u']:.1f} s the ∃u "
+                       f"step, {t['sending']:.1f} s sending the sets (in the job's process)")
     for k, target in rec["targets"].items():
         row = next((r for r in rec["rows"] if r.get("workers") == k), None)
         if row is not None:

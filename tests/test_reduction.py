@@ -128,6 +128,7 @@ def test_bdd_equals_the_node_tables_and_zs_sit_below_their_coordinates(tmp_path,
     assert m2.variables == m.variables and m2.z_below == m.z_below and M2.dag_size == M.dag_size
 
 
+@pytest.mark.slow
 def test_bdd_of_a_thousand_coordinates_stays_linear():
     """N = 1024: 1,023 nodes; M̂ is a scan over the states (33 values of w, a running maximum), not a product."""
     net = network(1024)

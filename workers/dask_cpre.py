@@ -203,6 +203,9 @@ class DaskPredecessors:
         self._cuts = equal_work_cuts(self._density, self.parts)
         self._seconds: list[float] = []
         self._calls = 0
+        #: Seconds summed over the calls: sending the sets, the slower part of each call, reading and joining the
+        #: parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time).
+        self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0}
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
         self._max_memory = m.max_memory
@@ -319,6 +322,10 @@ class DaskPredecessors:
                 result = and_exists(admissible, ~result, list(g.u_bits))
         self._seconds = seconds
         self._calls += 1
+        for key, value in (("sending", t_sent - t_start), ("slowest_part", max(seconds, default=0.0)),
+                           ("after_parts", t_parts - t_sent - max(seconds, default=0.0)),
+                           ("exists_u", time.perf_counter() - t_parts)):
+            self.timing[key] += value
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
         log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "

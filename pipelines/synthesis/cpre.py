@@ -538,6 +538,9 @@ class ControllablePredecessor:
                                "calls": p.calls, "digits": list(p.digits),
                                "cuts": [list(c) for c in p.cut_cells],
                                "last_seconds": [round(s, 3) for s in p.seconds]}
+        timing = getattr(p, "timing", None)
+        if timing:  # the cluster's breakdown (workers.dask_cpre)
+            out["seconds"] = {k: round(v, 2) for k, v in timing.items()}
         if self._pool_error is not None:
             out["stopped"] = f"{self._pool_error}; the later calls ran in one process"
         return out
