@@ -32,6 +32,16 @@ def _snap(r: np.ndarray) -> np.ndarray:
     return np.where(close, nearest, r)
 
 
+#: Indices beyond this are clamped before the cast to int64: a box bound of 1e308 over a spacing of 0.25 is an
+#: infinite index, and numpy's cast of ±inf gives -2^63 (an upper end of -2^63 made such a box an empty region).
+_INDEX_LIMIT = float(2**62)
+
+
+def _index(r: np.ndarray) -> np.ndarray:
+    """``r`` (whole numbers, possibly ±inf) as int64 indices, clamped to ``±2^62``."""
+    return np.clip(r, -_INDEX_LIMIT, _INDEX_LIMIT).astype(np.int64)
+
+
 def _as_vector(value: float | Sequence[float], dim: int, name: str) -> np.ndarray:
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.shape == (1,) and dim > 1:
@@ -225,8 +235,9 @@ class UniformGrid:
         inside : ndarray of bool, shape (B,)
             Whether the cell is on this grid.
         """
-        r = _snap((np.asarray(x, dtype=float) - np.asarray(self.origin)) / self.eta_array + 0.5)
-        k = (np.floor(r) if tie == "upper" else np.ceil(r) - 1).astype(np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):  # a far point is an infinite index, clamped by _index
+            r = _snap((np.asarray(x, dtype=float) - np.asarray(self.origin)) / self.eta_array + 0.5)
+        k = _index(np.floor(r) if tie == "upper" else np.ceil(r) - 1)
         idx = k - np.asarray(self.k_lo, dtype=np.int64)
         inside = np.all((idx >= 0) & (idx < np.asarray(self.shape)), axis=-1)
         return idx, inside
@@ -244,13 +255,14 @@ class UniformGrid:
         """
         o = np.asarray(self.origin)
         eta = self.eta_array
-        a = (np.asarray(lo, dtype=float) - o) / eta - 0.5
-        b = (np.asarray(hi, dtype=float) - o) / eta + 0.5
-        # Outward rounding: a relative SNAP_RTOL widening cannot lose a cell that meets the box.
-        a = a - SNAP_RTOL * np.maximum(1.0, np.abs(a))
-        b = b + SNAP_RTOL * np.maximum(1.0, np.abs(b))
-        first = np.ceil(a).astype(np.int64) - np.asarray(self.k_lo, dtype=np.int64)
-        last = np.floor(b).astype(np.int64) - np.asarray(self.k_lo, dtype=np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):  # far bounds are infinite indices, clamped by _index
+            a = (np.asarray(lo, dtype=float) - o) / eta - 0.5
+            b = (np.asarray(hi, dtype=float) - o) / eta + 0.5
+            # Outward rounding: a relative SNAP_RTOL widening cannot lose a cell that meets the box.
+            a = a - SNAP_RTOL * np.maximum(1.0, np.abs(a))
+            b = b + SNAP_RTOL * np.maximum(1.0, np.abs(b))
+        first = _index(np.ceil(a)) - np.asarray(self.k_lo, dtype=np.int64)
+        last = _index(np.floor(b)) - np.asarray(self.k_lo, dtype=np.int64)
         return first, last
 
     def inner_range(
@@ -263,8 +275,9 @@ class UniformGrid:
         """
         o = np.asarray(self.origin)
         eta = self.eta_array
-        first = np.ceil(_snap((np.asarray(lb, dtype=float) - o) / eta + 0.5)).astype(np.int64)
-        last = np.floor(_snap((np.asarray(ub, dtype=float) - o) / eta - 0.5)).astype(np.int64)
+        with np.errstate(over="ignore", invalid="ignore"):  # far bounds are infinite indices, clamped by _index
+            first = _index(np.ceil(_snap((np.asarray(lb, dtype=float) - o) / eta + 0.5)))
+            last = _index(np.floor(_snap((np.asarray(ub, dtype=float) - o) / eta - 0.5)))
         first = np.maximum(first - np.asarray(self.k_lo), 0)
         last = np.minimum(last - np.asarray(self.k_lo), np.asarray(self.shape) - 1)
         return first, last

@@ -108,3 +108,23 @@ def test_a_grid_whose_point_count_overflows_is_a_clear_error_without_warnings(ma
         warnings.simplefilter("error")
         with pytest.raises(SpecError, match="too fine.*use a larger eta"):
             make(lb, ub, eta)
+
+
+def test_boxes_beyond_every_index_are_clamped_not_wrapped():
+    """A box bound of ±1e308 over a spacing of 0.25 is an infinite index: numpy casts it to -2^63, which made the
+    box [-1e308, 1e308] (all of the grid) an empty region and a successor at 1e308 a cell below the grid."""
+    import warnings
+
+    g = UniformGrid(origin=(0.0,), eta=(0.25,), k_lo=(0,), k_hi=(10,), lb=(0.0,), ub=(2.5,))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "invalid value encountered in cast" is the symptom
+        first, last = g.inner_range([-1e308], [1e308])
+        assert (first.tolist(), last.tolist()) == ([0], [10])
+        first, last = g.inner_range([0.0], [1e308])
+        assert (first.tolist(), last.tolist()) == ([1], [10])  # cell 0 reaches below 0
+        first, last = g.inner_range([1e308], [np.inf])
+        assert first[0] > last[0]  # empty: the box lies above the grid
+        lo, hi = g.cells_touching(np.array([[-1e308]]), np.array([[1e308]]))
+        assert lo[0, 0] < 0 and hi[0, 0] > 10  # reaches out of the grid on both sides
+        idx, inside = g.cell_of(np.array([[1e308], [-np.inf]]))
+        assert idx[0, 0] > 10 and idx[1, 0] < 0 and not inside.any()
