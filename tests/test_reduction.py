@@ -195,3 +195,35 @@ def test_scalability_job_with_a_declared_max_runs_and_audits_clean(tmp_path):
     paper = run_job(parse(spec_text(12, "certify", "max(x)")), tmp_path / "paper", workers=2)
     assert paper["interconnection"]["output_modes"] == ["certify"]
     assert 0 < paper["domain_states"] <= report["domain_states"]
+
+
+def test_two_outputs_get_their_own_trees():
+    """Two internal variables, each the min of its own coordinates (``reads: i % 2``): distinct z names, each
+    tree sound on drawn states, and each ``M̂_j`` as a BDD admits what its tables admit."""
+    data = yaml.safe_load(spec_text(7, "min", "[min(x[0], x[2], x[4], x[6]), min(x[1], x[3], x[5])]"))
+    data["subsystems"][0]["reads"] = ["i % 2"]
+    net = build_network(parse_spec(yaml.safe_dump(data)), allowed_modules=None)
+    ia = abstract_interconnection(net, np.random.default_rng(4))
+    assert ia.output_modes == ("min", "min") and ia.supports == ((0, 2, 4, 6), (1, 3, 5))
+    names = [n.output for n in ia.nodes]
+    assert len(names) == len(set(names)) == 5
+    x = draws(net, 2000, 11)
+    w = net.interconnection_map(x)
+    x_up, x_low = both_cells(net.composed_state_grid(), x)
+    for xi in (x_up, x_low):
+        wi = np.stack([both_cells(g, w[:, j : j + 1])[0][:, 0] for j, g in enumerate(net.internal_grids)], axis=1)
+        assert ia.contains(xi, wi).all()
+    m = SymbolicModel.from_network(net, ia, order="shared_top")
+    parts = interconnection_parts(m, ia.nodes)
+    rng = np.random.default_rng(5)
+    for xi in rng.integers(0, 33, (100, 7)):
+        point = m.state_assignment(list(xi))
+        for j, part in parts.items():
+            sub = m.bdd.let(point, part)
+            bits = m.bits[f"w{j}"]
+            for c in (0, int(xi[j::2].min()), 32):
+                wpt = {b: bool((c >> (len(bits) - 1 - k)) & 1) for k, b in enumerate(bits)}
+                other = np.zeros((1, 2), dtype=np.int64)
+                other[0, j] = c
+                other[0, 1 - j] = int(xi[1 - j :: 2].min())  # a cell the other output admits
+                assert (m.bdd.let(wpt, sub) == m.bdd.true) == bool(ia.contains(xi[None, :], other)[0])
