@@ -322,15 +322,15 @@ class DaskPredecessors:
                 result = and_exists(admissible, ~result, list(g.u_bits))
         self._seconds = seconds
         self._calls += 1
-        for key, value in (("sending", t_sent - t_start), ("slowest_part", max(seconds, default=0.0)),
-                           ("after_parts", t_parts - t_sent - max(seconds, default=0.0)),
-                           ("exists_u", time.perf_counter() - t_parts)):
+        t_end, slowest = time.perf_counter(), max(seconds, default=0.0)
+        for key, value in (("sending", t_sent - t_start), ("slowest_part", slowest),
+                           ("after_parts", t_parts - t_sent - slowest), ("exists_u", t_end - t_parts)):
             self.timing[key] += value
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
         log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "
                  "joining them %.2f, the ∃u step %.2f", len(seconds), [round(s, 2) for s in seconds], sum(seconds),
-                 time.perf_counter() - t_start, t_sent - t_start, t_parts - t_sent, time.perf_counter() - t_parts)
+                 t_end - t_start, t_sent - t_start, t_parts - t_sent, t_end - t_parts)
         return result
 
     def close(self) -> None:

@@ -36,6 +36,7 @@ from dd import cudd
 from dd.cudd import Function, and_exists  # re-exported: the synthesis reaches CUDD through this package only
 
 from pipelines.errors import CompabsError
+from pipelines.interconnection.reduction import REDUCTIONS
 from pipelines.symbolic.order import (
     ORDERS,
     SubsystemLayout,
@@ -202,7 +203,7 @@ class SymbolicModel:
             z_sizes,
             z_owner=tree_owners(nodes),
             z_below=(blocks_below(nodes, layouts)
-                     if interconnection is not None and interconnection.mode in ("max", "min") else None),
+                     if interconnection is not None and interconnection.mode in REDUCTIONS else None),
             order=order,
             max_memory=max_memory,
             grids=grids,

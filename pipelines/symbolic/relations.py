@@ -159,6 +159,9 @@ def _tree_part(model: SymbolicModel, group: Sequence[NodeRelation]) -> Function:
         f = node_relation(model, node)
         for name in node.inputs:
             if name.startswith("z"):
+                if name not in done:
+                    raise ValueError(f"node {node.output} reads {name}, which no earlier node produces or another "
+                                     "node read already (MDec and reduction trees read each z once)")
                 f = and_exists(f, done.pop(name), model.bits_of([name]))
         if node.output.startswith("z"):
             done[node.output] = f
@@ -172,9 +175,9 @@ def _tree_part(model: SymbolicModel, group: Sequence[NodeRelation]) -> Function:
 def interconnection_parts(model: SymbolicModel, nodes: Sequence[NodeRelation]) -> dict[int, Function]:
     """``M̂_j(x, w_j) = ∃z. ∧ R_node`` over the nodes of output ``j``'s tree (Sec. 4.2, Theorem 4.7).
 
-    Nodes are grouped by the ``z`` they share (MDec's forest has one tree per output); within a group they
-    are conjoined in the given (topological) order and each ``z`` is quantified as soon as no remaining node
-    mentions it (early quantification).
+    Nodes are grouped by the ``z`` they share (MDec's forest and the reduction trees have one tree per output,
+    each ``z`` read once); each group is conjoined subtree by subtree, each ``z`` quantified once its reader
+    holds it (:func:`_tree_part`).
     """
     t0 = time.perf_counter()
     groups: dict[int, list[NodeRelation]] = {}
@@ -187,20 +190,7 @@ def interconnection_parts(model: SymbolicModel, nodes: Sequence[NodeRelation]) -
     parts: dict[int, Function] = {}
     with model.guard("building the interconnection relation"):
         for j, group in groups.items():
-            reads = [name for node in group for name in node.inputs if name.startswith("z")]
-            if len(reads) == len(set(reads)):
-                parts[j] = _tree_part(model, group)
-                continue
-            last: dict[str, int] = {}
-            for k, node in enumerate(group):
-                for name in (node.output, *node.inputs):
-                    if name.startswith("z"):
-                        last[name] = k
-            acc = model.bdd.true
-            for k, node in enumerate(group):
-                dead = [z for z, kk in last.items() if kk == k]
-                acc = and_exists(acc, node_relation(model, node), model.bits_of(dead))
-            parts[j] = acc
+            parts[j] = _tree_part(model, group)
     missing = set(range(len(model.w_sizes))) - set(parts)
     if missing:
         raise ValueError(f"no node produces w{sorted(missing)}")
