@@ -227,3 +227,20 @@ def test_two_outputs_get_their_own_trees():
                 other[0, j] = c
                 other[0, 1 - j] = int(xi[1 - j :: 2].min())  # a cell the other output admits
                 assert (m.bdd.let(wpt, sub) == m.bdd.true) == bool(ia.contains(xi[None, :], other)[0])
+
+
+@pytest.mark.parametrize("error,map_text,fragment", [
+    ("max", "mean(x)", "is not the max of the coordinates it reads"),
+    ("maximum", "max(x)", "interconnection.error"),
+])
+def test_the_cli_refuses_a_bad_declaration_in_one_line(tmp_path, capsys, error, map_text, fragment):
+    """A declaration the samples contradict, and an unknown error mode: exit 2, one ``error:`` line."""
+    from tests.test_cli_errors import assert_one_error, run_cli
+
+    spec = tmp_path / "spec.yaml"
+    data = yaml.safe_load((EXAMPLES / "scalability.yaml").read_text())
+    data["interconnection"].update(error=error, map=map_text)
+    spec.write_text(yaml.safe_dump(data))
+    code, _, err = run_cli(capsys, "run", spec, "--out", tmp_path / "out", "--quiet")
+    assert_one_error(code, err, fragment)
+    assert fragment in err
