@@ -81,18 +81,19 @@ def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
         assert got == first, name
 
 
-@pytest.mark.parametrize("cut", ["w", "x"])
-def test_both_cuts_of_the_shared_cpre_are_exact(client, cut):
-    """The shared CPre cut along ``ŵ`` (parts are bad inputs, joined before ``∃u``) and along the states: the
-    explicit predecessors, whole, ``within`` a set and on ``outside``, at random cuts."""
-    rng = np.random.default_rng(7300 + (cut == "w"))
+@pytest.mark.parametrize("cut", ["window", "w", "x"])
+def test_every_cut_of_the_shared_cpre_is_exact(client, cut):
+    """The shared CPre cut along ``ŵ`` (windows: each part final on its states; or bad inputs joined before
+    ``∃u``) and along the states: the explicit predecessors, whole, ``within`` a set and on ``outside``, at random
+    cuts."""
+    rng = np.random.default_rng(7300 + ["window", "w", "x"].index(cut))
     net = random_net(rng, True)
     ex = Explicit(net)
     game = build(net, "shared_top")
     m = game.model
     pool = DaskPredecessors(game, 3, client=client, cut=cut)
     try:
-        assert pool.cut == cut and (pool.digits[0].startswith("w") == (cut == "w"))
+        assert pool.cut == cut and (pool.digits[0].startswith("w") == (cut != "x"))
         for k in range(3):
             if k and pool.cells > pool.parts:
                 pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
@@ -110,9 +111,14 @@ def test_both_cuts_of_the_shared_cpre_are_exact(client, cut):
 def test_the_w_cut_needs_a_shared_internal_variable():
     game = build(random_net(np.random.default_rng(3), False), "interleaved")
     assert game.M is None
-    with pytest.raises(ValueError, match="w cut needs the shared CPre"):
-        cut_digits(game, "w")
+    for cut in ("w", "window"):
+        with pytest.raises(ValueError, match=f"{cut} cut needs the shared CPre"):
+            cut_digits(game, cut)
     assert cut_digits(game)[0] == "x"
+    with pytest.raises(ValueError, match="cut must be one of"):
+        cut_digits(game, "diagonal")
+    shared = build(random_net(np.random.default_rng(4), True), "shared_top")
+    assert cut_digits(shared)[0] == "window"
 
 
 def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here():

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pipelines.symbolic.relations import state_set
-from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, resolve_processes
+from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, resolve_processes, window_predecessors
 from pipelines.synthesis.fixed_points import cobuchi, reach, safe
 from pipelines.synthesis.partition import (
     damped_cuts,
@@ -19,6 +19,7 @@ from pipelines.synthesis.partition import (
     lexicographic_part,
     split_digits,
     update_density,
+    w_window,
 )
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 from workers.processes.partitioned_cpre import HelperError, PartitionedPredecessors
@@ -91,6 +92,46 @@ def test_lexicographic_parts_partition_every_code(order):
                 padded = (*codes, *([0] * (len(digits) - len(used))))
                 owners = [j for j, f in enumerate(parts) if holds(f, padded)]
                 assert owners == [sum(s <= codes for s in starts) - 1], (starts, codes, owners)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_w_windows_partition_the_states_and_their_parts_are_the_predecessors(seed):
+    """Windows of the shared ``ŵ`` at random cuts: their states are disjoint and cover every state with an
+    admissible ``ŵ``, each window holds every ``ŵ`` its states admit, and the parts of
+    :func:`window_predecessors` are the explicit ``∃u.CPre(Z)`` on their states (whole, ``within``, ``outside``)."""
+    rng = np.random.default_rng(8100 + seed)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    m, bdd, M = game.model, game.bdd, game.M
+    (digit,) = m.w_digits()
+    assert M is not None
+    some_w = bdd.exist(m.w_bits, M)
+    for _ in range(4):
+        k = int(rng.integers(1, m.sizes[digit]))
+        starts = [0, *sorted(rng.choice(np.arange(1, m.sizes[digit]), size=k - 1, replace=False).tolist())]
+        windows = [w_window(m, M, digit, a, b) for a, b in zip(starts, [*starts[1:], None])]
+        union = bdd.false
+        for (states, window), a in zip(windows, starts):
+            assert (union & states) == bdd.false  # disjoint
+            union |= states
+            assert (states & M & ~window) == bdd.false  # every admitted ŵ is in the window
+            assert (window & m.interval(digit, 0, a - 1)) == bdd.false or a == 0  # nothing below the range
+        assert union == some_w
+        Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
+        bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
+        want = ex.cpre(Z).any(axis=1)
+        inside = game.within(bS)
+        for chain, admissible, outside, expect, on in (
+                (game.chain, game.admissible, None, want, slice(None)),
+                (inside.chain, inside.admissible, None, want & S, slice(None)),
+                (game.chain, game.admissible, bO, want, Out)):
+            got = bdd.false
+            for states, window in windows:
+                part = window_predecessors(m, chain, admissible, M, m.w_bits, m.u_bits, bZ, states, window, outside)
+                assert (part & ~states) == bdd.false
+                got |= part
+            np.testing.assert_array_equal(states_vector(m, got, ex)[on], expect[on])
 
 
 def test_damped_cuts_move_half_way_and_stay_ordered():

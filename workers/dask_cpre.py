@@ -8,9 +8,11 @@ like :class:`workers.processes.partitioned_cpre.PartitionedPredecessors`, with t
   manager of its own and keeps them (:data:`_HELD`, per worker process) for the later calls, so a call sends
   only ``Z`` (and ``outside``), once per worker, and gets back each part's result as DDDMP bytes.
 * **Parts.** A call is cut into ``parts`` ranges (:mod:`pipelines.synthesis.partition`: exact, the union of the
-  parts is the whole): for the shared CPre, ranges of the shared internal variable ``ŵ``, each part the inputs
-  bad for some ``ŵ`` of its range, joined here before the one ``∃u`` step (:func:`cut_digits` says why); else
-  ranges of the top two current-state digits, each part its states' ``∃u.CPre``. Dask hands each worker the next
+  parts is the whole): for the shared CPre, ranges of the shared internal variable ``ŵ``, each part the
+  ``∃u.CPre`` of the states whose lowest admissible ``ŵ`` lies in its range, the chain run on the ``ŵ`` cells
+  those states admit (:func:`cut_digits` says why); else ranges of the top two current-state digits, each part
+  its states' ``∃u.CPre``. Either way a part's answer is a set of states, final on its own: this process only
+  ORs them. Dask hands each worker the next
   part as it frees up, and the cuts move after every call towards equal measured work
   (:func:`~pipelines.synthesis.partition.update_density`).
 * **The same answer in every mode.** Each part is ``part ∧ ∃u.CPre(Z)`` computed by
@@ -39,13 +41,21 @@ import numpy as np
 
 from pipelines.symbolic.files import header, model_from_header
 from pipelines.symbolic.model import BDDMemoryError, Function, SymbolicModel, and_exists
-from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, Within, bad_inputs, predecessors_of
+from pipelines.synthesis.cpre import (
+    ControllablePredecessor,
+    PartitionFailed,
+    Within,
+    bad_inputs,
+    predecessors_of,
+    window_predecessors,
+)
 from pipelines.synthesis.partition import (
     damped_cuts,
     equal_work_cuts,
     lexicographic_part,
     split_digits,
     update_density,
+    w_window,
 )
 
 log = logging.getLogger(__name__)
@@ -59,6 +69,10 @@ within 10 % of each other."""
 HELD_PROBLEMS = 2
 """Problems a worker keeps loaded (a safety loop's ``within`` problem and the plain one alternate in
 Reach(Safe)); older ones are dropped with their CUDD manager when no other problem of theirs is held."""
+
+
+CUTS = ("auto", "window", "w", "x")
+"""What the parts of a call split (:func:`cut_digits`)."""
 
 
 class DaskPartFailed(PartitionFailed):
@@ -147,6 +161,24 @@ def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     return blob, time.perf_counter() - t0
 
 
+def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+                start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
+    """A Dask task of the window cut: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible code of
+    the internal variable ``digits[0]`` lies in ``[start, end)``, with the chain run on the ``ŵ`` cells those
+    states admit (:func:`~pipelines.synthesis.partition.w_window`,
+    :func:`~pipelines.synthesis.cpre.window_predecessors`), as DDDMP bytes, and the seconds it took."""
+    model, chain, admissible, M, u_bits, w_bits, _ = _problem(key, problem)
+    t0 = time.perf_counter()
+    with model.guard("computing a part of CPre on a Dask worker"):
+        z = _load(model, Z)
+        out = None if outside is None else _load(model, outside)
+        states, window = w_window(model, M, digits[0], start[0], None if end is None else end[0])
+        P = window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out)
+        blob = _dump(model, P)
+    del z, out, P, states, window
+    return blob, time.perf_counter() - t0
+
+
 def forget(model_key: str) -> int:
     """Drop every problem of one CPre this worker holds (run on every worker when the CPre closes)."""
     keys = [k for k, h in _HELD.items() if h[6] == model_key]
@@ -176,11 +208,12 @@ class DaskPredecessors:
         The job's client (its workers import ``workers.dask_cpre``, as they import ``workers.tasks``).
     retries : int
         Dask retries of a part that raised (a worker's death is retried by Dask itself).
-    cut : {'auto', 'w', 'x'}
+    cut : {'auto', 'window', 'w', 'x'}
         What the parts split (:func:`cut_digits`): ``x``, ranges of the top two current-state digits, each part
-        ``part ∧ ∃u.CPre(Z)``; ``w``, ranges of the top shared internal variable, each part the inputs that
-        are bad for some ``ŵ`` of its range (:func:`bad_part`), joined here before the one ``∃u`` step;
-        ``auto``: ``w`` for the shared CPre, ``x`` otherwise.
+        ``part ∧ ∃u.CPre(Z)``; ``window``, ranges of the top shared internal variable, each part ``∃u.CPre(Z)``
+        on the states whose lowest admissible ``ŵ`` lies in its range (:func:`window_part`); ``w``, the same
+        ranges, each part the inputs that are bad for some ``ŵ`` of its range (:func:`bad_part`), joined here
+        before the one ``∃u`` step; ``auto``: ``window`` for the shared CPre, ``x`` otherwise.
 
     Call it like :meth:`.ControllablePredecessor.predecessors`; :meth:`close` drops the workers' copies.
     """
@@ -289,7 +322,7 @@ class DaskPredecessors:
             o = None if outside is None else self._scatter(_dump(m, outside))
         bounds, starts = self.bounds(), self._starts()
         futures = []
-        task = bad_part if self.cut == "w" else predecessors_part
+        task = {"w": bad_part, "window": window_part}.get(self.cut, predecessors_part)
         for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
             assert start is not None
             futures.append(self.client.submit(
@@ -341,21 +374,26 @@ class DaskPredecessors:
 
 
 def cut_digits(cpre: ControllablePredecessor, cut: str = "auto") -> tuple[str, tuple[str, ...]]:
-    """The cut (``'w'`` or ``'x'``) and the digits it splits, for ``cut`` in ``auto``, ``w``, ``x``.
+    """The cut (``'window'``, ``'w'`` or ``'x'``) and the digits it splits, for ``cut`` in ``auto``, ``window``,
+    ``w``, ``x``.
 
-    Why ``w`` for the shared CPre: ``w`` sits above the states in its variable order and the bottleneck
-    quantifies it (``∃w.[M̂ ∧ ...]``), so ranges of ``ŵ`` split the work where CUDD's recursion splits it. On
-    the largest call of consensus N = 6 (CUDD cache lookups, which do not depend on the machine's load) two
-    ``w`` halves summed to 1.04x the whole (plus 0.06x for the join here), two ``x`` halves to 1.31x.
+    Why along ``ŵ`` for the shared CPre: ``w`` sits above the states in its variable order and the chain's cost
+    is spread over its cells, so ranges of ``ŵ`` split the work where CUDD's recursion splits it (on the largest
+    call of consensus N = 6, in CUDD cache lookups, two ``ŵ`` halves summed to 1.04x the whole, two state halves
+    to 1.31x). ``window`` (the default there) gives each part the states whose admissible ``ŵ`` start in its
+    range, so each part's answer is final and the parts are only OR-ed; ``w`` leaves the bad pairs of every part
+    to be joined and one ``∃u`` step to run in the job's process, which took a quarter of consensus N = 8's time
+    on two workers while the workers waited.
     """
-    if cut not in ("auto", "w", "x"):
-        raise ValueError(f"cut must be 'auto', 'w' or 'x', got {cut!r}")
+    if cut not in CUTS:
+        raise ValueError(f"cut must be one of {CUTS}, got {cut!r}")
     m = cpre.model
-    w_digits = [d for d in dict.fromkeys(v.rsplit("_", 1)[0] for v in m.variables) if d.startswith("w")]
-    if cut == "w" or (cut == "auto" and cpre.M is not None and w_digits):
+    w_digits = [d for d in dict.fromkeys(v.rsplit("_", 1)[0] for v in m.variables)
+                if d.startswith("w") and m.sizes[d] > 1]
+    if cut in ("w", "window") or (cut == "auto" and cpre.M is not None and w_digits):
         if cpre.M is None or not w_digits:
-            raise ValueError("the w cut needs the shared CPre (a shared internal variable)")
-        return "w", (w_digits[0],)
+            raise ValueError(f"the {cut} cut needs the shared CPre (a shared internal variable)")
+        return ("window" if cut == "auto" else cut), (w_digits[0],)
     return "x", split_digits(m)
 
 
@@ -373,5 +411,5 @@ def on_cluster(client: Any, retries: int = 1, cut: str = "auto"):
     return factory
 
 
-__all__ = ["HELD_PROBLEMS", "PARTS_PER_WORKER", "DaskPartFailed", "DaskPredecessors", "bad_part", "cut_digits",
-           "forget", "on_cluster", "parts_for", "predecessors_part"]
+__all__ = ["CUTS", "HELD_PROBLEMS", "PARTS_PER_WORKER", "DaskPartFailed", "DaskPredecessors", "bad_part", "cut_digits",
+           "forget", "on_cluster", "parts_for", "predecessors_part", "window_part"]

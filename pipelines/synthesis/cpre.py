@@ -160,6 +160,34 @@ def predecessors_of(
     return and_exists(admissible, ~bad, list(u_bits))
 
 
+def window_predecessors(
+    model: SymbolicModel, chain: Chain, admissible: Function, M: Function, w_bits: Sequence[str],
+    u_bits: Sequence[str], Z: Function, states: Function, window: Function, outside: Function | None = None,
+) -> Function:
+    """``states ∧ ∃u.CPre(Z)`` for the shared CPre, with ``ŵ`` restricted to ``window`` before the chain runs.
+
+    ``states`` and ``window`` come from :func:`~.partition.w_window`: every internal input a state of ``states``
+    admits lies in ``window`` (``states ∧ M̂ → window``). Then for ``x̂`` in ``states``
+
+        ∃ŵ. M̂ ∧ B(x̂, û, ŵ)  =  ∃ŵ. M̂ ∧ states ∧ [window ∧ B](x̂, û, ŵ),   B = ∃x'.(∧_i T_i ∧ ¬Z'),
+
+    and ``window`` reads only ``w`` bits, so it commutes with ``∃x'``: conjoined into the chain's first operand it
+    cuts the chain down to the ``ŵ`` cells of the window (the chain's cost is spread over ``ŵ``, which sits on top
+    of the shared order). ``states`` is conjoined only where the result is read (the ``∃w`` step and the
+    admissible pairs): in the chain's first operand it blew up the intermediate products (``M̂``-shaped sets of
+    states cut across every subsystem's block). The result is exact on ``states`` and empty outside it, so the
+    windows of :func:`~.partition.w_window` (a partition of the states) give parts whose union is ``∃u.CPre(Z)``
+    with nothing to join but a disjunction of sets of states; a cut along ``ŵ`` alone leaves the pairs ``(x̂, û)``
+    of every part to be joined before one ``∃u`` step.
+    """
+    acc = ~model.to_next(Z) & window
+    for rel, xn_bits in chain:
+        acc = and_exists(acc, rel, xn_bits)
+    care = M & states if outside is None else M & states & outside
+    bad = and_exists(care, acc, list(w_bits))
+    return and_exists(admissible & states, ~bad, list(u_bits))
+
+
 def cpre_at_state(
     model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, state: Mapping[str, bool],
     Z_next: Function,

@@ -145,3 +145,35 @@ def lexicographic_part(
     if end is not None:
         part &= below(0, end)
     return part
+
+
+def w_window(
+    model: SymbolicModel, M: Function, digit: str, start: int, end: int | None
+) -> tuple[Function, Function]:
+    """The states whose lowest admissible code of ``digit`` lies in ``[start, end)``, and every ``ŵ`` they admit.
+
+    Parameters
+    ----------
+    model : SymbolicModel
+    M : Function
+        The shared interconnection ``M̂(x̂, ŵ)`` (:attr:`~.cpre.ControllablePredecessor.M`).
+    digit : str
+        An internal variable's digit (``w0``); ``end = None``: no upper end.
+
+    Returns
+    -------
+    states : Function
+        ``{x̂ : min{code(ŵ_digit) : M̂(x̂, ŵ)} ∈ [start, end)}``. Consecutive ranges ``[s_0, s_1), ..., [s_k, None)``
+        with ``s_0 = 0`` partition the states with ``M̂(x̂) ≠ ∅`` (the only states with admissible inputs).
+    window : Function
+        ``∃x̂. M̂ ∧ states``, over ``w`` bits: every ``ŵ`` a state of ``states`` admits. It reaches past ``end``
+        by the spread of ``M̂(x̂)`` (one or two cells for consensus), which is what the parts of
+        :func:`~.cpre.window_predecessors` compute twice.
+    """
+    bdd = model.bdd
+    top = (1 << len(model.bits[digit])) - 1
+    w_bits = model.w_bits
+    reaches = bdd.exist(w_bits, M & model.interval(digit, start, top if end is None else end - 1))
+    states = reaches if start == 0 else reaches & ~bdd.exist(w_bits, M & model.interval(digit, 0, start - 1))
+    window = bdd.exist(model.x_bits, M & states)
+    return states, window
