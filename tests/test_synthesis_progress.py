@@ -111,3 +111,62 @@ def test_run_synthesis_maps_iterations_to_stage_progress(kind):
     assert len(middle) == sum(r["iterations"] + r["inner_iterations"] for r in results.values()) > 2
     assert all(message.split(" iteration")[0] in {"reach", "cobuchi", "reach_safe/safe", "reach_safe/reach"}
                and message.endswith(" states") for *_, message in middle)
+
+
+def test_large_iterates_are_reported_by_their_nodes(monkeypatch):
+    """Above PROGRESS_COUNT_NODES an iterate is reported by its BDD nodes (an exact count would walk it in
+    Python); below, by its exact number of states."""
+    import pipelines.synthesis.fixed_points as fp
+
+    game = _line()
+    T = state_set(game.model, np.array([[0]]))
+    monkeypatch.setattr(fp, "PROGRESS_COUNT_NODES", 0)
+    seen = Recorder()
+    reach(game, T, layered=True, progress=seen)
+    assert seen.events and all(m.endswith(" BDD nodes") for _, m in seen.events)
+    monkeypatch.undo()
+    seen = Recorder()
+    reach(game, T, layered=True, progress=seen)
+    assert all(m.endswith(" states") for _, m in seen.events)
+
+
+CRASH_CASE = """
+import sys, yaml
+from pipelines.spec.model import parse_spec
+from pipelines.synthesis.synthesize import synthesize
+from workers.job import run_abstraction
+from workers.processes.partitioned_cpre import PartitionedPredecessors
+
+def main():
+    data = yaml.safe_load(open(sys.argv[1]).read())
+    data["parameters"]["N"] = 6
+    data["options"]["initial_states"] = []
+    spec = parse_spec(yaml.safe_dump(data))
+    a = run_abstraction(spec, audit=False)
+    events = []
+    _, results, _ = synthesize(a.network, a.relations, a.interconnection, spec.specification,
+                               reach_and_stay_methods=("reach_safe",), processes=2, partitioned=PartitionedPredecessors,
+                               parallel_after=0.0, progress=lambda k, m: events.append(m))
+    print("domain", results["reach_safe"].domain_states, "events", len(events))
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+@pytest.mark.slow
+def test_progress_of_a_partitioned_fixed_point_does_not_abort_cudd(tmp_path):
+    """Consensus N = 6 with its parts in helper processes and a progress callback, in a child process (CUDD aborts
+    the whole process): CUDD's own model count per iteration aborted it ("cuddGarbageCollect: problem in
+    constants") in the fourth reach iteration; it must finish with the one-process domain."""
+    import subprocess
+    import sys
+
+    from .conftest import EXAMPLES
+
+    script = tmp_path / "case.py"
+    script.write_text(CRASH_CASE)
+    done = subprocess.run([sys.executable, str(script), str(EXAMPLES / "consensus.yaml")], capture_output=True,
+                          text=True, timeout=600, cwd=str(EXAMPLES.parent))
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "domain 51048559 events 10" in done.stdout, done.stdout
