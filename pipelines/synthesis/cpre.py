@@ -46,6 +46,7 @@ from pipelines.errors import CompabsError
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import default_order
 from pipelines.symbolic.relations import interconnection_parts, subsystem_relations
+from pipelines.synthesis.symmetry import Symmetry, find_symmetry
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -55,6 +56,9 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
 Chain = list[tuple[Function, list[str]]]  # (relation, next-state bits it quantifies), in schedule order
 
 METHODS = ("auto", "per_subsystem", "shared")
+#: Networks above this many subsystems are not searched for interchangeable ones (each candidate pair renames the
+#: relations, ``M̂`` and the admissible pairs once; the scalability case's ``M̂`` has 10^5 nodes at N = 1024).
+SYMMETRY_MAX_SUBSYSTEMS = 64
 CHAIN_ORDERS = ("greedy", "widest_last", "network")
 log = logging.getLogger(__name__)
 
@@ -98,7 +102,9 @@ class Partitioned(Protocol):
     def calls(self) -> int:
         """Calls answered so far."""
 
-    def __call__(self, Z: Function, outside: Function | None, within: Within | None) -> Function: ...
+    def __call__(self, Z: Function, outside: Function | None, within: Within | None,
+                 part: Function | None = None) -> Function:
+        """``part`` is passed only to parts whose ``takes_part`` attribute is true."""
 
     def close(self) -> None: ...
 
@@ -163,6 +169,7 @@ def predecessors_of(
 def window_predecessors(
     model: SymbolicModel, chain: Chain, admissible: Function, M: Function, w_bits: Sequence[str],
     u_bits: Sequence[str], Z: Function, states: Function, window: Function, outside: Function | None = None,
+    part: Function | None = None,
 ) -> Function:
     """``states ∧ ∃u.CPre(Z)`` for the shared CPre, with ``ŵ`` restricted to ``window`` before the chain runs.
 
@@ -178,9 +185,13 @@ def window_predecessors(
     states cut across every subsystem's block). The result is exact on ``states`` and empty outside it, so the
     windows of :func:`~.partition.w_window` (a partition of the states) give parts whose union is ``∃u.CPre(Z)``
     with nothing to join but a disjunction of sets of states; a cut along ``ŵ`` alone leaves the pairs ``(x̂, û)``
-    of every part to be joined before one ``∃u`` step.
+    of every part to be joined before one ``∃u`` step. ``part`` (current states, e.g. the representatives of
+    :mod:`.symmetry`) is conjoined into the first operand and into ``states``, as in :func:`predecessors_of`.
     """
     acc = ~model.to_next(Z) & window
+    if part is not None:
+        acc &= part
+        states = states & part
     for rel, xn_bits in chain:
         acc = and_exists(acc, rel, xn_bits)
     care = M & states if outside is None else M & states & outside
@@ -321,6 +332,10 @@ class ControllablePredecessor:
     auto_parts : int, optional
         What ``processes='auto'`` means for the shared CPre when the parts do not run on this machine's CPUs
         (the job's Dask cluster: :func:`workers.dask_cpre.parts_for`); default :func:`resolve_processes`.
+    symmetry : bool
+        Compute :meth:`predecessors` of invariant sets on one state per orbit of the interchangeable subsystems
+        and close the result (:mod:`.symmetry`; exact). Looked for at the first call, for networks of at most
+        :data:`SYMMETRY_MAX_SUBSYSTEMS` subsystems.
 
     Attributes
     ----------
@@ -346,6 +361,7 @@ class ControllablePredecessor:
         parallel_after: float = 1.0,
         partitioned: PartitionedFactory | None = None,
         auto_parts: int | None = None,
+        symmetry: bool = True,
     ) -> None:
         if isinstance(processes, int) and processes < 1:
             raise ValueError(f"processes must be at least 1, got {processes}")
@@ -383,6 +399,9 @@ class ControllablePredecessor:
         else:
             self.processes = resolve_processes(processes)
         self.u_bits = model.u_bits
+        self.use_symmetry = symmetry
+        self._symmetry: Symmetry | None | bool = False  # False: not looked for yet
+        self._invariant_within: dict[int, tuple[Within, bool]] = {}
         self.M: Function | None = None
         self.w_bits: list[str] = []
         self.setup_seconds = 0.0
@@ -512,15 +531,28 @@ class ControllablePredecessor:
         time on consensus N = 5. ``within``: as in :meth:`cpre`. ``part``: a set of current states; the
         result is ``part ∧ ∃u.CPre(Z)``, computed on that part only, in this process.
 
+        Without ``part``, when the network has interchangeable subsystems (:attr:`symmetry`) and ``Z``,
+        ``outside`` and ``within`` are invariant under them, the call is computed on one state per orbit and
+        closed (:mod:`.symmetry`): the same result.
+
         With ``processes > 1`` and a ``partitioned`` factory, a call that is not given a ``part`` runs in parts
         at once once one call here took ``parallel_after`` seconds. If a part fails (:class:`PartitionFailed`),
         that call and the later ones run in this process (:attr:`parallel` ``["stopped"]`` says why); any other
         error (CUDD out of memory in a part is a :class:`~.symbolic.model.BDDMemoryError`) is raised, as it
         would be here.
         """
-        if part is None and self._pool is not None:
+        sym = self._symmetry_for(Z, outside, within) if part is None else None
+        if sym is not None:
+            return sym.close(self._predecessors(Z, outside, within, sym.representatives, whole=True))
+        return self._predecessors(Z, outside, within, part, whole=part is None)
+
+    def _predecessors(self, Z: Function, outside: Function | None, within: Within | None, part: Function | None,
+                      whole: bool) -> Function:
+        """:meth:`predecessors` on ``part`` (all states if ``None``); ``whole``: this call stands for a whole one
+        (the parts may run it, and may start after it)."""
+        if whole and self._pool is not None:
             try:
-                return self._pool(Z, outside, within)
+                return self._pool(Z, outside, within) if part is None else self._pool(Z, outside, within, part)
             except PartitionFailed as exc:
                 # A part died or failed (killed, out of memory in its process): it is recomputed here, and so is
                 # everything after; the answer is the same, only slower. The report says why.
@@ -536,10 +568,41 @@ class ControllablePredecessor:
         with self.model.guard("computing CPre"):
             result = predecessors_of(self.model, chain, admissible, self.M, self.w_bits, self.u_bits, Z, outside,
                                      part)
-        if (part is None and self.processes > 1 and self.partitioned is not None
+        if (whole and self.processes > 1 and self.partitioned is not None
                 and time.perf_counter() - t0 >= self.parallel_after):
             self._pool = self.partitioned(self, self.processes)
         return result
+
+    # ------------------------------------------------------------------ symmetry
+    @property
+    def symmetry(self) -> Symmetry | None:
+        """The interchangeable subsystems (:func:`~.symmetry.find_symmetry`), looked for once; ``None`` if there are
+        none, if ``symmetry=False``, or above :data:`SYMMETRY_MAX_SUBSYSTEMS` subsystems."""
+        if self._symmetry is False:
+            found = None
+            if self.use_symmetry and len(self.model.subsystems) <= SYMMETRY_MAX_SUBSYSTEMS:
+                with self.model.guard("looking for interchangeable subsystems"):
+                    found = find_symmetry(self.model, self.chain, self.M, self.admissible)
+            self._symmetry = found
+        return self._symmetry if isinstance(self._symmetry, Symmetry) else None
+
+    def _symmetry_for(self, Z: Function, outside: Function | None, within: Within | None) -> Symmetry | None:
+        """The symmetry to compute ``∃u.CPre(Z)`` with, if every set of the call is invariant under it and the
+        parts (if running) can take the representatives; else ``None`` (the plain computation)."""
+        sym = self.symmetry
+        if sym is None or (self._pool is not None and not getattr(self._pool, "takes_part", False)):
+            return None
+        if not sym.invariant(Z) or (outside is not None and not sym.invariant(outside)):
+            return None
+        if within is not None:
+            seen = self._invariant_within.get(id(within))
+            if seen is None or seen[0] is not within:
+                seen = (within, sym.invariant(within.admissible))
+                kept = list(self._invariant_within.items())[-3:]  # a fixed point's Within lives for its loop
+                self._invariant_within = {**dict(kept), id(within): seen}
+            if not seen[1]:
+                return None
+        return sym
 
     # ------------------------------------------------------------------ the parts
     def close(self) -> None:
