@@ -49,7 +49,8 @@ Cases (``--cases``; default: all but ``consensus``):
     ``tanks`` is, their transitions and winning domains, and the per-cell stage against the floor, beside SCOTS's
     figures (:mod:`bench.general`).
 ``synthesis`` (issue 24; only when named, never under ``--quick``)
-    Consensus synthesis (``--synthesis-N``, default 8) on one abstraction in every mode: one process, helper
+    Consensus synthesis (``--synthesis-N``, default 8) on one abstraction in every mode: one process (also without
+    the symmetry of interchangeable agents, to show what it buys), helper
     processes, and an embedded Dask cluster of 1, 2, 4, ... workers up to the cores present, with the speed-up
     over one process and whether each domain is the one process's (:mod:`bench.synthesis`, in a child process).
 
@@ -1207,7 +1208,7 @@ def bench_synthesis_case(args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "synthesis.json"
         proc = subprocess.run([sys.executable, str(ROOT / "bench" / "synthesis.py"), "--N", str(args.synthesis_N),
-                               "--json", str(out)], cwd=ROOT, timeout=args.consensus_timeout * 8)
+                               "--no-symmetry", "--json", str(out)], cwd=ROOT, timeout=args.consensus_timeout * 8)
         if proc.returncode != 0 or not out.exists():
             return {"case": "synthesis", "status": f"failed (exit {proc.returncode})", "rows": []}
         return {"case": "synthesis", "status": "ok", **json.loads(out.read_text())}

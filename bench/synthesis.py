@@ -7,7 +7,10 @@ the cores present (:mod:`workers.dask_cpre`). Each row gives the wall seconds, t
 parts' summed seconds of the largest call against that call in one process (what cutting costs), and whether the
 domain is the one process's (it must be: every mode is exact).
 
-    python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1] [--json OUT]
+    python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1] [--no-symmetry] [--json OUT]
+
+``--no-symmetry`` adds one process without the symmetry of the interchangeable agents
+(:mod:`pipelines.synthesis.symmetry`): what it buys.
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ def default_workers(cores: int) -> list[int]:
     return out
 
 
-def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: bool = False) -> dict[str, Any]:
+def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: bool = False,
+            no_symmetry: bool = False) -> dict[str, Any]:
     import yaml
 
     from pipelines.spec.model import parse_spec
@@ -76,6 +80,8 @@ def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: 
     say(f"consensus N = {N}: abstraction {abstraction_seconds:.1f} s; synthesis in every mode")
     rows = [run("one process", processes=1)]
     base = rows[0]
+    if no_symmetry:  # what the interchangeable subsystems bought (pipelines/synthesis/symmetry.py)
+        rows.append(run("one process, no symmetry", processes=1, symmetry=False))
     if processes > 1:
         rows.append(run(f"{processes} helper processes", processes=processes, partitioned=PartitionedPredecessors))
     for k in workers:
@@ -125,10 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--per-worker", type=int, default=1, help="parts per worker (workers.dask_cpre.PARTS_PER_WORKER)")
     p.add_argument("--processes", type=int, default=2, help="helper processes for the local mode (1: skip it)")
     p.add_argument("--json", default=None, help="write the results here")
+    p.add_argument("--no-symmetry", action="store_true", help="also run one process without the symmetry")
     args = p.parse_args(argv)
     cores = os.cpu_count() or 1
     workers = [int(w) for w in args.workers.split(",")] if args.workers else default_workers(cores)
-    rec = measure(args.N, workers, args.per_worker, args.processes)
+    rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry)
     print("\n".join(lines(rec)))
     if args.json:
         Path(args.json).write_text(json.dumps(rec, indent=1))

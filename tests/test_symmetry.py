@@ -59,7 +59,7 @@ def test_the_consensus_agents_are_interchangeable(consensus3):
     assert sym is not None and sym.classes == [[0, 1, 2]]
     assert sym.invariant(game.M) and sym.invariant(game.admissible)
     R = sym.representatives
-    assert sym.close(R) == game.bdd.true  # one state of every orbit (all codes, past the grid too)
+    assert sym.close(R) == game.model.x_domain  # one state of every orbit of the grid's cells
     assert not sym.invariant(R)
 
 

@@ -429,6 +429,7 @@ class ControllablePredecessor:
         parallel_after: float = 1.0,
         partitioned: PartitionedFactory | None = None,
         auto_parts: int | None = None,
+        symmetry: bool = True,
     ) -> ControllablePredecessor:
         """Encode an abstraction (its network, subsystem relations and interconnection) and prepare its CPre.
 
@@ -442,7 +443,7 @@ class ControllablePredecessor:
         T, NB = subsystem_relations(model, relations, share=share)
         parts = interconnection_parts(model, interconnection.nodes)
         return cls(model, T, NB, parts, method, chain_order, processes=processes, parallel_after=parallel_after,
-                   partitioned=partitioned, auto_parts=auto_parts)
+                   partitioned=partitioned, auto_parts=auto_parts, symmetry=symmetry)
 
     def _prepare_per_subsystem(self) -> None:
         m, bdd = self.model, self.bdd

@@ -51,8 +51,13 @@ class Symmetry:
     swaps : list of dict
         One renaming per adjacent pair of each set (``bdd.let`` substitutions exchanging the pair's current-state,
         next-state and input bits): they generate the group.
+    state_swaps : list of dict
+        The same exchanging current-state bits only (enough for sets of states: cheaper substitutions).
     representatives : Function
-        The states whose codes do not decrease along each set: one state of every orbit.
+        The cells (codes inside the grid) whose codes do not decrease along each set: one state of every orbit of
+        the grid's states, the only ones ``∃u.CPre`` can hold (its admissible pairs lie in the state domain).
+        Leaving the codes past the grid out keeps them out of the chain's intermediate products: with them, consensus
+        N = 8 took 401 s instead of 233 s.
     """
 
     def __init__(self, model: SymbolicModel, classes: Sequence[Sequence[int]]) -> None:
@@ -60,6 +65,7 @@ class Symmetry:
         self.classes = [list(c) for c in classes]
         bdd = model.bdd
         self.swaps = [swap_of(model, a, b) for c in self.classes for a, b in zip(c, c[1:])]
+        self.state_swaps = [swap_of(model, a, b, kinds=("x",)) for c in self.classes for a, b in zip(c, c[1:])]
         R = bdd.true
         for c in self.classes:
             digits = [state_digit(model, i) for i in c]
@@ -77,7 +83,7 @@ class Symmetry:
         bdd = self.model.bdd
         while True:
             g = f
-            for s in self.swaps:
+            for s in self.state_swaps:
                 g = g | bdd.let(s, g)
             if g == f:
                 return f
@@ -95,23 +101,23 @@ def state_digit(model: SymbolicModel, i: int) -> str:
     return d
 
 
-def swap_of(model: SymbolicModel, a: int, b: int) -> Swap:
-    """The renaming that exchanges subsystems ``a`` and ``b`` (current, next and input bits)."""
+def swap_of(model: SymbolicModel, a: int, b: int, kinds: Sequence[str] = ("x", "xn", "u")) -> Swap:
+    """The renaming that exchanges subsystems ``a`` and ``b`` (their ``kinds`` of bits: current, next, input)."""
     da, db = model.subsystem_digits(model.subsystems[a]), model.subsystem_digits(model.subsystems[b])
     bdd = model.bdd
     sub: Swap = {}
-    for kind in ("x", "xn", "u"):
+    for kind in kinds:
         for va, vb in zip(model.bits_of(da[kind]), model.bits_of(db[kind])):
             sub[va], sub[vb] = bdd.var(vb), bdd.var(va)
     return sub
 
 
 def at_most(model: SymbolicModel, lo: str, hi: str) -> Function:
-    """``code(lo) <= code(hi)`` over every code of the two digits (those past the grid included)."""
-    top = (1 << len(model.bits[lo])) - 1
+    """``code(lo) <= code(hi)``, both codes cells of the grid (the two digits have the same number of cells)."""
+    last = int(model.sizes[hi]) - 1
     f = model.bdd.false
-    for c in range(top + 1):
-        f |= model.interval(lo, c, c) & model.interval(hi, c, top)
+    for c in range(last + 1):
+        f |= model.interval(lo, c, c) & model.interval(hi, c, last)
     return f
 
 

@@ -51,6 +51,7 @@ def synthesize(
     auto_parts: int | None = None,
     parallel_after: float = 1.0,
     progress: IterationProgress | None = None,
+    symmetry: bool = True,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -81,6 +82,8 @@ def synthesize(
     progress : callable, optional
         ``progress(iteration, message)``, once per iteration of every fixed point, inner ones included
         (:data:`~.fixed_points.IterationProgress`); the BDDs are built before the first call.
+    symmetry : bool
+        Use interchangeable subsystems (:mod:`~.symmetry`; the same results, faster where there are some).
 
     Returns
     -------
@@ -97,7 +100,7 @@ def synthesize(
     cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=order, method=method,
                                                 max_memory=max_memory, chain_order=chain_order, processes=processes,
                                                 partitioned=partitioned, auto_parts=auto_parts,
-                                                parallel_after=parallel_after)
+                                                parallel_after=parallel_after, symmetry=symmetry)
     build = time.perf_counter() - t0
     m = cpre.model
     grid = network.composed_state_grid()
@@ -135,6 +138,7 @@ def synthesize(
         "interconnection_nodes": {f"w{j}": p.dag_size for j, p in cpre.parts.items()},
         "results": {k: r.summary() for k, r in results.items()},
         "parallel": cpre.parallel,
+        "symmetry": None if cpre.symmetry is None else cpre.symmetry.describe(),
         "bdd": m.stats(),
     }
     return cpre, results, report
