@@ -119,9 +119,9 @@ def test_fixed_points_give_the_same_domains_with_and_without_symmetry(consensus3
 
 
 @pytest.mark.slow
-def test_on_the_cluster_the_windows_take_the_representatives(client):
-    """Consensus N = 4 on two workers, windows of ŵ with the orbit representatives: the pinned domain, the parts
-    ran, and the same domain with the symmetry off."""
+def test_with_parts_on_the_cluster_the_domain_is_the_same(client):
+    """Consensus N = 4 on two workers: the first call on the representatives in this process, the later ones in
+    windows of ŵ on the workers (without the symmetry): the pinned domain, the same as with the symmetry off."""
     game, phi = _consensus(4)
     phi_domain = {}
     for on in (True, False):

@@ -130,8 +130,7 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
 
 
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
-                      start: Sequence[int], end: Sequence[int] | None, part: bytes | None = None,
-                      ) -> tuple[bytes, float]:
+                      start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
     """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as DDDMP bytes, and the
     seconds it took (the problem's loading not counted: it happens once per worker)."""
     model, chain, admissible, M, u_bits, w_bits, _ = _problem(key, problem)
@@ -139,17 +138,15 @@ def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: byte
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
-        cut = lexicographic_part(model, digits, start, end)
-        if part is not None:
-            cut &= _load(model, part)
-        P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out, cut)
+        P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out,
+                            lexicographic_part(model, digits, start, end))
         blob = _dump(model, P)
     del z, out, P
     return blob, time.perf_counter() - t0
 
 
 def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
-             start: Sequence[int], end: Sequence[int] | None, part: bytes | None = None) -> tuple[bytes, float]:
+             start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
     """A Dask task of the ``w`` cut: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some admissible
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
     that range of ``ŵ`` as its part), as DDDMP bytes, and the seconds it took."""
@@ -158,17 +155,14 @@ def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
-        cut = lexicographic_part(model, digits, start, end)
-        if part is not None:  # the pairs' states only: states are not cut along w
-            cut &= _load(model, part)
-        bad = bad_inputs(model, chain, M, w_bits, z, out, cut)
+        bad = bad_inputs(model, chain, M, w_bits, z, out, lexicographic_part(model, digits, start, end))
         blob = _dump(model, bad)
     del z, out, bad
     return blob, time.perf_counter() - t0
 
 
 def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
-                start: Sequence[int], end: Sequence[int] | None, part: bytes | None = None) -> tuple[bytes, float]:
+                start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
     """A Dask task of the window cut: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible code of
     the internal variable ``digits[0]`` lies in ``[start, end)``, with the chain run on the ``ŵ`` cells those
     states admit (:func:`~pipelines.synthesis.partition.w_window`,
@@ -179,8 +173,7 @@ def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | No
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
         states, window = w_window(model, M, digits[0], start[0], None if end is None else end[0])
-        P = window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out,
-                                None if part is None else _load(model, part))
+        P = window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out)
         blob = _dump(model, P)
     del z, out, P, states, window
     return blob, time.perf_counter() - t0
@@ -226,7 +219,6 @@ class DaskPredecessors:
     """
 
     on = "cluster"
-    takes_part = True  # a call may restrict the states (ControllablePredecessor's symmetry)
 
     def __init__(self, cpre: ControllablePredecessor, parts: int, *, client: Any, retries: int = 1,
                  cut: str = "auto") -> None:
@@ -309,12 +301,9 @@ class DaskPredecessors:
         self._problem_key = f"{self._model_key}-{uuid.uuid4().hex}"
         self._problem = key
 
-    def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None,
-                 part: Function | None = None) -> Function:
-        """``∃u.CPre(Z)`` as :meth:`.ControllablePredecessor.predecessors` computes it; with ``part`` (a set of
-        current states), ``part ∧ ∃u.CPre(Z)``."""
+    def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None) -> Function:
         try:
-            return self._call(Z, outside, within, part)
+            return self._call(Z, outside, within)
         except BDDMemoryError:
             raise
         except PartitionFailed:
@@ -322,7 +311,7 @@ class DaskPredecessors:
         except Exception as exc:  # the cluster failed us: the CPre goes on in one process
             raise DaskPartFailed(f"a part of CPre failed on the Dask cluster: {type(exc).__name__}: {exc}") from None
 
-    def _call(self, Z: Function, outside: Function | None, within: Within | None, part: Function | None) -> Function:
+    def _call(self, Z: Function, outside: Function | None, within: Within | None) -> Function:
         from distributed import as_completed
 
         g, m = self.cpre, self.cpre.model
@@ -331,7 +320,6 @@ class DaskPredecessors:
         with m.guard("writing a set for the Dask workers"):
             z = self._scatter(_dump(m, Z))
             o = None if outside is None else self._scatter(_dump(m, outside))
-            p = None if part is None else self._scatter(_dump(m, part))
         bounds, starts = self.bounds(), self._starts()
         futures = []
         task = {"w": bad_part, "window": window_part}.get(self.cut, predecessors_part)
@@ -339,7 +327,7 @@ class DaskPredecessors:
             assert start is not None
             futures.append(self.client.submit(
                 task, self._problem_key, self._problem_future, z, o, list(self.digits), list(start),
-                None if end is None else list(end), p, pure=False, retries=self.retries,
+                None if end is None else list(end), pure=False, retries=self.retries,
                 key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
         index = {f.key: k for k, f in enumerate(futures)}
         seconds = [0.0] * len(futures)
@@ -363,8 +351,6 @@ class DaskPredecessors:
         t_parts = time.perf_counter()
         if self.cut == "w":  # the parts are the bad pairs: the one ∃u step, on the whole set, here
             admissible = g.admissible if within is None else within.admissible
-            if part is not None:
-                admissible = admissible & part
             with m.guard("joining the parts of CPre"):
                 result = and_exists(admissible, ~result, list(g.u_bits))
         self._seconds = seconds

@@ -16,8 +16,9 @@ the result under ``G``:
 Swaps that connect a set of subsystems generate every permutation of it, so ``R`` = the states whose codes
 increase along each connected set (:attr:`Symmetry.representatives`). ``R`` is conjoined into the chain's first
 operand (the ``part`` of :func:`~.cpre.predecessors_of`), where it cuts the intermediate products down.
-Measured on consensus, Reach(Safe), one process: N = 8 304.1 s -> 232.7 s (closing took 11.6 s of it); N = 6 31.8 s
--> 27.4 s; the same domains.
+Measured on consensus, Reach(Safe), one process, the same domains: N = 8 314.6 s -> 220.9 s (``bench/synthesis.py
+--no-symmetry``; closing takes about 12 s of it), N = 6 36.7 s -> 28.9 s. It is not used while a fixed point's
+parts run elsewhere (:meth:`~.cpre.ControllablePredecessor.predecessors` says why).
 
 Only subsystems with a one-dimensional state grid are considered (their codes compare as numbers); fixed points
 call :meth:`Symmetry.invariant` on every iterate and fall back to the plain CPre when it says no.
@@ -56,8 +57,8 @@ class Symmetry:
     representatives : Function
         The cells (codes inside the grid) whose codes do not decrease along each set: one state of every orbit of
         the grid's states, the only ones ``∃u.CPre`` can hold (its admissible pairs lie in the state domain).
-        Leaving the codes past the grid out keeps them out of the chain's intermediate products: with them, consensus
-        N = 8 took 401 s instead of 233 s.
+        Leaving the codes past the grid out keeps them out of the chain's intermediate products (with them, and the
+        closing swapping input and next-state bits too, consensus N = 8 took 401.1 s instead of 220.9 s).
     """
 
     def __init__(self, model: SymbolicModel, classes: Sequence[Sequence[int]]) -> None:
