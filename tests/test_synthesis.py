@@ -507,7 +507,7 @@ def test_greedy_schedule_is_the_greedy_rule(seed):
     shared bits and owns its next-state bits."""
     from dd.cudd import BDD
 
-    from pipelines.synthesis.cpre import _greedy_plain, schedule
+    from pipelines.synthesis.schedule import _greedy_plain, schedule
 
     rng = np.random.default_rng(900 + seed)
     bdd = BDD()

@@ -27,12 +27,9 @@ call :meth:`Symmetry.invariant` on every iterate and fall back to the plain CPre
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 from pipelines.symbolic.model import Function, SymbolicModel
-
-if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
-    from pipelines.synthesis.cpre import Chain
+from pipelines.synthesis.schedule import Chain
 
 Swap = dict[str, Function]
 
