@@ -34,7 +34,7 @@ import time
 import uuid
 import weakref
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -129,20 +129,33 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
     return held
 
 
-def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
-                      start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
-    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as DDDMP bytes, and the
-    seconds it took (the problem's loading not counted: it happens once per worker)."""
-    model, chain, admissible, M, u_bits, w_bits, _ = _problem(key, problem)
+def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
+            compute: Callable[[tuple, Function, Function | None], Function]) -> tuple[bytes, float]:
+    """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
+    outside)`` run under CUDD's memory guard, its result as DDDMP bytes, and the seconds it took (the problem's
+    loading not counted: it happens once per worker)."""
+    held = _problem(key, problem)
+    model = held[0]
     t0 = time.perf_counter()
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
-        P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out,
-                            lexicographic_part(model, digits, start, end))
-        blob = _dump(model, P)
-    del z, out, P
+        blob = _dump(model, compute(held, z, out))
+    del z, out
     return blob, time.perf_counter() - t0
+
+
+def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+                      start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
+    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as DDDMP bytes, and the
+    seconds it took."""
+
+    def compute(held: tuple, z: Function, out: Function | None) -> Function:
+        model, chain, admissible, M, u_bits, w_bits, _ = held
+        return predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out,
+                               lexicographic_part(model, digits, start, end))
+
+    return _answer(key, problem, Z, outside, compute)
 
 
 def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -150,15 +163,12 @@ def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     """A Dask task of the ``w`` cut: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some admissible
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
     that range of ``ŵ`` as its part), as DDDMP bytes, and the seconds it took."""
-    model, chain, _, M, _, w_bits, _ = _problem(key, problem)
-    t0 = time.perf_counter()
-    with model.guard("computing a part of CPre on a Dask worker"):
-        z = _load(model, Z)
-        out = None if outside is None else _load(model, outside)
-        bad = bad_inputs(model, chain, M, w_bits, z, out, lexicographic_part(model, digits, start, end))
-        blob = _dump(model, bad)
-    del z, out, bad
-    return blob, time.perf_counter() - t0
+
+    def compute(held: tuple, z: Function, out: Function | None) -> Function:
+        model, chain, _, M, _, w_bits, _ = held
+        return bad_inputs(model, chain, M, w_bits, z, out, lexicographic_part(model, digits, start, end))
+
+    return _answer(key, problem, Z, outside, compute)
 
 
 def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -167,16 +177,13 @@ def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | No
     the internal variable ``digits[0]`` lies in ``[start, end)``, with the chain run on the ``ŵ`` cells those
     states admit (:func:`~pipelines.synthesis.partition.w_window`,
     :func:`~pipelines.synthesis.cpre.window_predecessors`), as DDDMP bytes, and the seconds it took."""
-    model, chain, admissible, M, u_bits, w_bits, _ = _problem(key, problem)
-    t0 = time.perf_counter()
-    with model.guard("computing a part of CPre on a Dask worker"):
-        z = _load(model, Z)
-        out = None if outside is None else _load(model, outside)
+
+    def compute(held: tuple, z: Function, out: Function | None) -> Function:
+        model, chain, admissible, M, u_bits, w_bits, _ = held
         states, window = w_window(model, M, digits[0], start[0], None if end is None else end[0])
-        P = window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out)
-        blob = _dump(model, P)
-    del z, out, P, states, window
-    return blob, time.perf_counter() - t0
+        return window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out)
+
+    return _answer(key, problem, Z, outside, compute)
 
 
 def forget(model_key: str) -> int:

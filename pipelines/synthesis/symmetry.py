@@ -132,7 +132,7 @@ def find_symmetry(model: SymbolicModel, chain: Chain, M: Function | None, admiss
     for i, s in enumerate(subs):
         if len(s.state_shape) == 1:
             groups.setdefault((s.key, s.reads, s.state_shape, s.n_inputs), []).append(i)
-    relations = [rel for rel, _ in chain]
+    relations = {rel for rel, _ in chain}
     parent = list(range(len(subs)))
 
     def root(i: int) -> int:
@@ -147,7 +147,7 @@ def find_symmetry(model: SymbolicModel, chain: Chain, M: Function | None, admiss
                 continue
             if bdd.let(sub, admissible) != admissible:
                 continue
-            if all(any(bdd.let(sub, r) == q for q in relations) for r in relations):
+            if {bdd.let(sub, r) for r in relations} == relations:  # the swap maps the chain onto itself
                 parent[root(b)] = root(a)
     classes: dict[int, list[int]] = {}
     for i in range(len(subs)):
