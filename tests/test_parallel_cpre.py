@@ -282,7 +282,9 @@ class _FailingParts:
         # weak, as PartitionedPredecessors: a cycle through CUDD objects would leave their order to the collector
         self.cpre, self.processes, self.calls, self.closed = weakref.ref(cpre), processes, 0, False
 
-    def __call__(self, Z, outside, within):
+    takes_symmetry = False
+
+    def __call__(self, Z, outside, within, symmetry=None):
         self.calls += 1
         if self.calls > 1:
             self.close()

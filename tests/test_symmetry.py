@@ -14,7 +14,7 @@ from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.fixed_points import reach, reach_safe, safe
 from pipelines.synthesis.symmetry import find_symmetry
 from tests.test_synthesis import build, random_net
-from workers.dask_cpre import on_cluster
+from workers.dask_cpre import DaskPredecessors, on_cluster
 from workers.job import run_abstraction
 
 from .conftest import EXAMPLES
@@ -118,10 +118,40 @@ def test_fixed_points_give_the_same_domains_with_and_without_symmetry(consensus3
     assert out[True][2] != game.bdd.false
 
 
+@pytest.mark.parametrize("cut", ["window", "x"])
+def test_parts_on_the_cluster_close_their_representatives(consensus3, client, cut):
+    """Each part on a worker computes its states' representatives and closes its own answer: the union is the
+    plain ``∃u.CPre`` (whole, ``outside``, ``within``) at random cuts, more parts than workers."""
+    game, _ = consensus3
+    game.use_symmetry, game._symmetry = True, False
+    sym = game.symmetry
+    rng = np.random.default_rng(40 + len(cut))
+    pool = DaskPredecessors(game, 3, client=client, cut=cut)
+    try:
+        assert pool.takes_symmetry
+        for k in range(3):
+            if k:
+                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
+            Z = sym.close(_random_set(game, rng, 0.5))
+            S = sym.close(_random_set(game, rng, 0.5))
+            game.use_symmetry, game._symmetry = False, False
+            want, want_out, want_in = (game.predecessors(Z), game.predecessors(Z, outside=~Z),
+                                       game.predecessors(Z, within=game.within(S)))
+            game.use_symmetry, game._symmetry = True, False
+            assert pool(Z, None, None, sym) == want
+            assert pool(Z, ~Z, None, sym) & ~Z == want_out & ~Z
+            assert pool(Z, None, game.within(S), sym) == want_in
+    finally:
+        pool.close()
+    with pytest.raises(ValueError, match="w cut does not take a symmetry"):
+        DaskPredecessors(game, 2, client=client, cut="w")(game.model.x_domain, None, None, sym)
+
+
 @pytest.mark.slow
 def test_with_parts_on_the_cluster_the_domain_is_the_same(client):
     """Consensus N = 4 on two workers: the first call on the representatives in this process, the later ones in
-    windows of ŵ on the workers (without the symmetry): the pinned domain, the same as with the symmetry off."""
+    windows of ŵ on the workers, each closing its own representatives' answer: the pinned domain, the same as with
+    the symmetry off."""
     game, phi = _consensus(4)
     phi_domain = {}
     for on in (True, False):

@@ -79,8 +79,12 @@ class Partitioned(Protocol):
     """``∃u.CPre(Z)`` computed in parts at once (what a ``partitioned`` factory returns; :mod:`.partition`).
 
     Calls like :meth:`ControllablePredecessor.predecessors` without ``part``; raises :class:`PartitionFailed`
-    when a part fails (and is closed then); :meth:`close` stops it (idempotent).
+    when a part fails (and is closed then); :meth:`close` stops it (idempotent). One whose attribute
+    ``takes_symmetry`` is true also takes ``symmetry=`` (a :class:`~.symmetry.Symmetry` the sets of the call are
+    invariant under): each part then works on the representatives of its states and closes its own answer.
     """
+
+    takes_symmetry: bool
 
     @property
     def digits(self) -> Sequence[str]:
@@ -102,7 +106,8 @@ class Partitioned(Protocol):
     def calls(self) -> int:
         """Calls answered so far."""
 
-    def __call__(self, Z: Function, outside: Function | None, within: Within | None) -> Function: ...
+    def __call__(self, Z: Function, outside: Function | None, within: Within | None,
+                 symmetry: Symmetry | None = None) -> Function: ...
 
     def close(self) -> None: ...
 
@@ -462,9 +467,10 @@ class ControllablePredecessor:
         time on consensus N = 5. ``within``: as in :meth:`cpre`. ``part``: a set of current states; the
         result is ``part ∧ ∃u.CPre(Z)``, computed on that part only, in this process.
 
-        Without ``part`` and without running parts, when the network has interchangeable subsystems
-        (:attr:`symmetry`) and ``Z``, ``outside`` and ``within`` are invariant under them, the call is computed on
-        one state per orbit and closed (:mod:`.symmetry`): the same result.
+        Without ``part``, when the network has interchangeable subsystems (:attr:`symmetry`) and ``Z``,
+        ``outside`` and ``within`` are invariant under them, the call is computed on one state per orbit and closed
+        (:mod:`.symmetry`): the same result. Running parts do the same on their states when they take the
+        symmetry (the cluster's window and state cuts), else the call is the plain one.
 
         With ``processes > 1`` and a ``partitioned`` factory, a call that is not given a ``part`` runs in parts
         at once once one call here took ``parallel_after`` seconds. If a part fails (:class:`PartitionFailed`),
@@ -473,17 +479,16 @@ class ControllablePredecessor:
         would be here.
         """
         sym = self._symmetry_for(Z, outside, within) if part is None else None
-        if sym is not None:
-            return sym.close(self._predecessors(Z, outside, within, sym.representatives, whole=True))
-        return self._predecessors(Z, outside, within, part, whole=part is None)
+        return self._predecessors(Z, outside, within, part, whole=part is None, symmetry=sym)
 
     def _predecessors(self, Z: Function, outside: Function | None, within: Within | None, part: Function | None,
-                      whole: bool) -> Function:
+                      whole: bool, symmetry: Symmetry | None = None) -> Function:
         """:meth:`predecessors` on ``part`` (all states if ``None``); ``whole``: this call stands for a whole one
-        (the parts may run it, and may start after it)."""
+        (the parts may run it, and may start after it); ``symmetry``: computed on its representatives and closed
+        (``part`` is then ``None``), by the parts too when they take it."""
         if part is None and self._pool is not None:
             try:
-                return self._pool(Z, outside, within)
+                return self._pool(Z, outside, within, symmetry)
             except PartitionFailed as exc:
                 # A part died or failed (killed, out of memory in its process): it is recomputed here, and so is
                 # everything after; the answer is the same, only slower. The report says why.
@@ -498,7 +503,9 @@ class ControllablePredecessor:
         t0 = time.perf_counter()
         with self.model.guard("computing CPre"):
             result = predecessors_of(self.model, chain, admissible, self.M, self.w_bits, self.u_bits, Z, outside,
-                                     part)
+                                     symmetry.representatives if symmetry is not None else part)
+            if symmetry is not None:
+                result = symmetry.close(result)
         if (whole and self.processes > 1 and self.partitioned is not None
                 and time.perf_counter() - t0 >= self.parallel_after):
             self._pool = self.partitioned(self, self.processes)
@@ -518,14 +525,11 @@ class ControllablePredecessor:
         return self._symmetry if isinstance(self._symmetry, Symmetry) else None
 
     def _symmetry_for(self, Z: Function, outside: Function | None, within: Within | None) -> Symmetry | None:
-        """The symmetry to compute ``∃u.CPre(Z)`` with, if every set of the call is invariant under it and no
-        parts are running; else ``None`` (the plain computation).
-
-        Not with parts: on consensus N = 8 the cluster's windows with the representatives took 191.9 s on two
-        workers (the closing 12 s more in this process), the windows without them 167.4 s, and one process with
-        them 220.9 s; cut along the states with them, 178.6 s."""
+        """The symmetry to compute ``∃u.CPre(Z)`` with, if every set of the call is invariant under it and the
+        running parts (if any) take it along (:attr:`Partitioned.takes_symmetry`); else ``None`` (the plain
+        computation)."""
         sym = self.symmetry
-        if sym is None or self._pool is not None:
+        if sym is None or (self._pool is not None and not self._pool.takes_symmetry):
             return None
         if not sym.invariant(Z) or (outside is not None and not sym.invariant(outside)):
             return None

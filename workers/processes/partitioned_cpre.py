@@ -138,6 +138,8 @@ class PartitionedPredecessors:
     ``cuts`` and ``seconds`` show the current cuts and the last call's time per part.
     """
 
+    takes_symmetry = False  # the helpers compute the plain CPre (ControllablePredecessor.predecessors)
+
     def __init__(self, cpre: ControllablePredecessor, processes: int) -> None:
         if processes < 2:
             raise ValueError(f"PartitionedPredecessors needs at least 2 processes, got {processes}")
@@ -238,9 +240,13 @@ class PartitionedPredecessors:
         self._problem = key
 
     # ------------------------------------------------------------------ the call
-    def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None) -> Function:
+    def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None,
+                 symmetry: Any = None) -> Function:
         """``∃u.CPre(Z)`` as :meth:`.ControllablePredecessor.predecessors` computes it. Any error stops the helpers first (their
-        pending answers would otherwise be read by the next call), so the pool is unusable after one."""
+        pending answers would otherwise be read by the next call), so the pool is unusable after one. The helpers
+        do not take a symmetry (:attr:`takes_symmetry`)."""
+        if symmetry is not None:
+            raise ValueError("helper processes do not take a symmetry")
         try:
             return self._call(Z, outside, within)
         except BaseException:
