@@ -40,7 +40,7 @@ def test_quick_benchmark(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run.py"), "--quick", "--json", str(out)],
                           cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "targets (issues 6 and 22)" in proc.stdout
+    assert "targets (issues 6, 22 and 24)" in proc.stdout
     res = json.loads(out.read_text())
     assert {"meta", "paper", "cases", "targets", "ratios", "exponents"} <= set(res)
     assert res["meta"]["quick"] is True
