@@ -9,8 +9,8 @@ domain is the one process's (it must be: every mode is exact).
 
     python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1] [--no-symmetry] [--json OUT]
 
-``--no-symmetry`` adds one process without the symmetry of the interchangeable agents
-(:mod:`pipelines.synthesis.symmetry`): what it buys.
+``--no-symmetry`` adds one process and the largest cluster without the symmetry of the interchangeable agents
+(:mod:`pipelines.synthesis.symmetry`): what it buys in each.
 """
 
 from __future__ import annotations
@@ -91,6 +91,9 @@ def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: 
             rows.append(run(f"cluster, {k} worker{'s' if k > 1 else ''}", processes="auto",
                             partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker)))
             rows[-1]["workers"] = k
+            if no_symmetry and k == workers[-1]:  # what the symmetry buys on the cluster's parts
+                rows.append(run(f"cluster, {k} workers, no symmetry", processes="auto", symmetry=False,
+                                partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker)))
         finally:
             conn.close()
     for r in rows:
@@ -131,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--per-worker", type=int, default=1, help="parts per worker (workers.dask_cpre.PARTS_PER_WORKER)")
     p.add_argument("--processes", type=int, default=2, help="helper processes for the local mode (1: skip it)")
     p.add_argument("--json", default=None, help="write the results here")
-    p.add_argument("--no-symmetry", action="store_true", help="also run one process without the symmetry")
+    p.add_argument("--no-symmetry", action="store_true", help="also run one process and the largest cluster without the symmetry")
     args = p.parse_args(argv)
     cores = os.cpu_count() or 1
     workers = [int(w) for w in args.workers.split(",")] if args.workers else default_workers(cores)
