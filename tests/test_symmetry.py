@@ -16,6 +16,7 @@ from pipelines.synthesis.symmetry import find_symmetry
 from tests.test_synthesis import build, random_net
 from workers.dask_cpre import DaskPredecessors, on_cluster
 from workers.job import run_abstraction
+from workers.processes.partitioned_cpre import PartitionedPredecessors
 
 from .conftest import EXAMPLES
 
@@ -118,15 +119,15 @@ def test_fixed_points_give_the_same_domains_with_and_without_symmetry(consensus3
     assert out[True][2] != game.bdd.false
 
 
-@pytest.mark.parametrize("cut", ["window", "x"])
-def test_parts_on_the_cluster_close_their_representatives(consensus3, client, cut):
-    """Each part on a worker computes its states' representatives and closes its own answer: the union is the
-    plain ``∃u.CPre`` (whole, ``outside``, ``within``) at random cuts, more parts than workers."""
+@pytest.mark.parametrize("cut", ["window", "x", "processes"])
+def test_parts_close_their_representatives(consensus3, client, cut):
+    """Each part (on a worker, or in a helper process) computes its states' representatives and closes its own
+    answer: the union is the plain ``∃u.CPre`` (whole, ``outside``, ``within``) at random cuts."""
     game, _ = consensus3
     game.use_symmetry, game._symmetry = True, False
     sym = game.symmetry
     rng = np.random.default_rng(40 + len(cut))
-    pool = DaskPredecessors(game, 3, client=client, cut=cut)
+    pool = PartitionedPredecessors(game, 3) if cut == "processes" else DaskPredecessors(game, 3, client=client, cut=cut)
     try:
         assert pool.takes_symmetry
         for k in range(3):

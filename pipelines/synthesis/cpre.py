@@ -470,7 +470,7 @@ class ControllablePredecessor:
         Without ``part``, when the network has interchangeable subsystems (:attr:`symmetry`) and ``Z``,
         ``outside`` and ``within`` are invariant under them, the call is computed on one state per orbit and closed
         (:mod:`.symmetry`): the same result. Running parts do the same on their states when they take the
-        symmetry (the cluster's window and state cuts), else the call is the plain one.
+        symmetry (helper processes, the cluster's window and state cuts), else the call is the plain one.
 
         With ``processes > 1`` and a ``partitioned`` factory, a call that is not given a ``part`` runs in parts
         at once once one call here took ``parallel_after`` seconds. If a part fails (:class:`PartitionFailed`),

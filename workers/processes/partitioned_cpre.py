@@ -44,6 +44,7 @@ from pipelines.synthesis.partition import (
     split_digits,
     update_density,
 )
+from pipelines.synthesis.symmetry import Symmetry
 from workers.processes.children import start_module
 
 log = logging.getLogger(__name__)
@@ -138,7 +139,7 @@ class PartitionedPredecessors:
     ``cuts`` and ``seconds`` show the current cuts and the last call's time per part.
     """
 
-    takes_symmetry = False  # the helpers compute the plain CPre (ControllablePredecessor.predecessors)
+    takes_symmetry = True  # each part closes its representatives' answer (__call__)
 
     def __init__(self, cpre: ControllablePredecessor, processes: int) -> None:
         if processes < 2:
@@ -241,30 +242,36 @@ class PartitionedPredecessors:
 
     # ------------------------------------------------------------------ the call
     def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None,
-                 symmetry: Any = None) -> Function:
+                 symmetry: Symmetry | None = None) -> Function:
         """``∃u.CPre(Z)`` as :meth:`.ControllablePredecessor.predecessors` computes it. Any error stops the helpers first (their
-        pending answers would otherwise be read by the next call), so the pool is unusable after one. The helpers
-        do not take a symmetry (:attr:`takes_symmetry`)."""
-        if symmetry is not None:
-            raise ValueError("helper processes do not take a symmetry")
+        pending answers would otherwise be read by the next call), so the pool is unusable after one. With
+        ``symmetry`` (the sets of the call invariant under it) every part works on its representatives and closes
+        its own answer (the union of the closures is the whole: closing distributes over unions)."""
         try:
-            return self._call(Z, outside, within)
+            return self._call(Z, outside, within, symmetry)
         except BaseException:
             self.close()
             raise
 
-    def _call(self, Z: Function, outside: Function | None, within: Within | None) -> Function:
+    def _call(self, Z: Function, outside: Function | None, within: Within | None,
+              symmetry: Symmetry | None) -> Function:
         g, m = self.cpre, self.cpre.model
         t_start = time.perf_counter()
         self._send_problem(within)
         z_file = self._dump(Z)
         o_file = None if outside is None else self._dump(outside)
         bounds, starts = self.bounds(), self._starts()
+        classes = None if symmetry is None else symmetry.classes
         for h, start, end in zip(self._helpers, starts[1:], starts[2:]):
-            h.send(("pred", z_file, o_file, self.digits, start, end, self._path()))
+            h.send(("pred", z_file, o_file, self.digits, start, end, self._path(), classes))
         t0 = time.perf_counter()
         mine = lexicographic_part(m, self.digits, (0,) * len(self.shape), starts[1])  # starts[0], never None
+        if symmetry is not None:
+            mine &= symmetry.representatives
         result = g.predecessors(Z, outside, within, part=mine)
+        if symmetry is not None:
+            with m.guard("closing a part of CPre"):
+                result = symmetry.close(result)
         seconds = [time.perf_counter() - t0]
         t_mine = time.perf_counter()
         for h in self._helpers:
@@ -292,6 +299,7 @@ def _serve(inp: Connection, out: Connection) -> None:
     """Answer ``problem`` and ``pred`` messages until ``None`` or end of input."""
     model: SymbolicModel | None = None
     problem: tuple | None = None
+    symmetries: dict[tuple, Symmetry] = {}  # the model's, by classes
     while True:
         try:
             msg = inp.recv()
@@ -316,14 +324,21 @@ def _serve(inp: Connection, out: Connection) -> None:
                 out.send(("ok",))
             elif msg[0] == "pred":
                 assert model is not None and problem is not None
-                _, z_file, o_file, digits, start, end, result_file = msg
+                _, z_file, o_file, digits, start, end, result_file, classes = msg
                 t0 = time.perf_counter()
                 with model.guard("computing a part of CPre"):
                     Z = model.bdd.load(z_file)[0]
                     outside = None if o_file is None else model.bdd.load(o_file)[0]
                     chain, admissible, M, u_bits, w_bits = problem
-                    P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside,
-                                        lexicographic_part(model, digits, start, end))
+                    part = lexicographic_part(model, digits, start, end)
+                    sym = None
+                    if classes is not None:
+                        key = tuple(tuple(c) for c in classes)
+                        sym = symmetries.get(key) or symmetries.setdefault(key, Symmetry(model, classes))
+                        part &= sym.representatives
+                    P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside, part)
+                    if sym is not None:
+                        P = sym.close(P)
                     model.bdd.dump(result_file, [P])
                 del Z, outside, P
                 out.send(("ok", result_file, time.perf_counter() - t0))
