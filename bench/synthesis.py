@@ -118,8 +118,8 @@ def lines(rec: dict[str, Any]) -> list[str]:
             out.append(f"    {r['mode']}: of the partitioned calls, {t['slowest_part']:.1f} s the slower part of each, "
                        f"{t['after_parts']:.1f} s reading and joining the parts after it, {t['exists_u']:.1f} s the ∃u "
                        f"step, {t['sending']:.1f} s sending the sets (in the job's process)")
-    for k, target in rec["targets"].items():
-        row = next((r for r in rec["rows"] if r.get("workers") == k), None)
+    for k, target in rec["targets"].items():  # keys are strings once read back from JSON
+        row = next((r for r in rec["rows"] if r.get("workers") == int(k)), None)
         if row is not None:
             met = row["speedup"] >= target
             out.append(f"    target: {k} workers >= {target}x one process: {row['speedup']:.2f}x "

@@ -103,3 +103,27 @@ def test_tree_cpu_counts_a_child_that_started_and_ended_between_two_looks():
     subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass"],
                    check=True)
     assert tree_cpu() - before >= 0.5
+
+
+def test_the_synthesis_case_prints_its_own_table_and_targets():
+    """The synthesis case (read back from its JSON: string keys) has no end-to-end row: its modes, speed-ups and
+    issue 24's verdicts are printed (a run of bench/run.py once lost its whole table to a KeyError here)."""
+    import io
+
+    from bench.run import print_table, targets
+
+    row = {"iterations": 9, "domain_states": 14475269953, "same_domain": True}
+    synthesis = {"case": "synthesis", "status": "ok", "N": 8, "cores": 2, "per_worker": 1, "abstraction_seconds": 1.1,
+                 "targets": {"2": 1.8, "16": 8.0},
+                 "rows": [{**row, "mode": "one process", "wall": 228.7, "parallel": {}, "speedup": 1.0},
+                          {**row, "mode": "cluster, 2 workers", "wall": 90.8, "workers": 2, "speedup": 2.52,
+                           "parallel": {"processes": 2, "calls": 9, "seconds": {"sending": 0.6, "slowest_part": 79.8,
+                                                                                "after_parts": 4.0, "exists_u": 0.0}}}]}
+    results = {"cases": {"synthesis": synthesis}}
+    results["targets"] = targets(results)
+    out = io.StringIO()
+    print_table(results, out=out)
+    text = out.getvalue()
+    assert "    cluster, 2 workers               90.8      2.52      2      9  yes" in text
+    assert "target: 2 workers >= 1.8x one process: 2.52x (met)" in text
+    assert results["targets"]["consensus synthesis, 2 Dask workers / one process"] == (2.52, ">= 1.8", True)
