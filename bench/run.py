@@ -221,7 +221,6 @@ def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
     ``p['workers']`` workers kept for synthesis (``0``: everything in this process, synthesis parts in helper
     processes), synthesis, closed loop, files."""
     from pipelines.spec.model import load_spec
-    from workers.control import run_synthesis
     from workers.job import abstract_job, run_abstraction
 
     spec = load_spec(p["spec"], p.get("set"))
@@ -233,13 +232,15 @@ def child_end_to_end(p: dict, emit: Callable[[dict], None]) -> None:
         else:
             r = run_abstraction(spec, progress=clock, audit_beside=True)
         try:
-            _end_to_end_synthesis(r, out, clock, emit, run_synthesis)
+            _end_to_end_synthesis(r, out, clock, emit)
         finally:
             r.close_cluster()
 
 
-def _end_to_end_synthesis(r, out: str, clock: StageClock, emit: Callable[[dict], None], run_synthesis) -> None:
+def _end_to_end_synthesis(r, out: str, clock: StageClock, emit: Callable[[dict], None]) -> None:
     """The synthesis half of :func:`child_end_to_end`, and its records."""
+    from workers.control import run_synthesis
+
     rep = r.report
     emit({"type": "info", "stage_seconds": rep["stage_seconds"], "abstract_states": rep["abstract_states"],
           "region_states": rep.get("region_states"),
@@ -1180,7 +1181,8 @@ def targets(results: dict) -> dict[str, tuple]:
         if name in c:
             v = c[name]["vs_paper"].get("end_to_end")
             put(f"{name} end to end / paper", v, f"<= {TARGETS[key]}", v is not None and v <= TARGETS[key])
-            secs, cap = c[name]["total_wall"] if c[name]["status"] == "ok" else None, TARGETS[f"{name}_end_to_end_seconds"]
+            secs = c[name]["total_wall"] if c[name]["status"] == "ok" else None
+            cap = TARGETS[f"{name}_end_to_end_seconds"]
             put(f"{name} end to end s", secs, f"<= {cap:.0f}", secs is not None and secs <= cap)
             if name == "tanks":
                 m = c[name]["peak_rss_mb"]

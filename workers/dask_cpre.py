@@ -57,7 +57,7 @@ from pipelines.synthesis.partition import (
     update_density,
     w_window,
 )
-from pipelines.synthesis.symmetry import Symmetry
+from pipelines.synthesis.symmetry import Symmetry, cached_symmetry
 
 log = logging.getLogger(__name__)
 
@@ -132,33 +132,24 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
     return held
 
 
-def _symmetry(held: tuple, classes: Sequence[Sequence[int]] | None) -> Symmetry | None:
-    """The worker's :class:`~pipelines.synthesis.symmetry.Symmetry` of ``classes`` on the held problem's model
-    (built once per model: its representatives and swaps are a few small BDDs)."""
-    if classes is None:
-        return None
-    key = (held[6], tuple(tuple(c) for c in classes))
-    sym = _SYMMETRIES.get(key)
-    if sym is None:
-        sym = _SYMMETRIES[key] = Symmetry(held[0], classes)
-    return sym
-
-
 def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
-            compute: Callable[[tuple, Function, Function | None], Function],
-            symmetry: Symmetry | None = None) -> tuple[bytes, float]:
+            compute: Callable[[tuple, Function, Function | None, Function | None], Function],
+            classes: Sequence[Sequence[int]] | None = None) -> tuple[bytes, float]:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
-    outside)`` run under CUDD's memory guard (closed under ``symmetry`` if given), its result as DDDMP bytes, and
-    the seconds it took (the problem's loading not counted: it happens once per worker)."""
+    outside, representatives)`` run under CUDD's memory guard, its result as DDDMP bytes, and the seconds it took
+    (the problem's loading not counted: it happens once per worker). With the ``classes`` of interchangeable
+    subsystems (the sets of the call invariant under them) ``representatives`` are their orbit representatives
+    (else ``None``) and the result is closed under them here, on the worker."""
     held = _problem(key, problem)
     model = held[0]
+    sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held[6])
     t0 = time.perf_counter()
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
-        result = compute(held, z, out)
-        if symmetry is not None:
-            result = symmetry.close(result)
+        result = compute(held, z, out, None if sym is None else sym.representatives)
+        if sym is not None:
+            result = sym.close(result)
         blob = _dump(model, result)
     del z, out, result
     return blob, time.perf_counter() - t0
@@ -171,17 +162,15 @@ def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: byte
     seconds it took. With the ``classes`` of interchangeable subsystems (the sets of the call invariant under
     them): the closure of the answer on the part's representatives (the parts' closures overlap; their union is
     the whole, since closing distributes over unions)."""
-    held = _problem(key, problem)
-    sym = _symmetry(held, classes)
 
-    def compute(held: tuple, z: Function, out: Function | None) -> Function:
+    def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
         model, chain, admissible, M, u_bits, w_bits, _ = held
         part = lexicographic_part(model, digits, start, end)
-        if sym is not None:
-            part &= sym.representatives
+        if reps is not None:
+            part &= reps
         return predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out, part)
 
-    return _answer(key, problem, Z, outside, compute, sym)
+    return _answer(key, problem, Z, outside, compute, classes)
 
 
 def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -190,7 +179,7 @@ def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
     that range of ``ŵ`` as its part), as DDDMP bytes, and the seconds it took."""
 
-    def compute(held: tuple, z: Function, out: Function | None) -> Function:
+    def compute(held: tuple, z: Function, out: Function | None, _reps: Function | None) -> Function:
         model, chain, _, M, _, w_bits, _ = held
         return bad_inputs(model, chain, M, w_bits, z, out, lexicographic_part(model, digits, start, end))
 
@@ -210,17 +199,15 @@ def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | No
     the states go (the ``∃w`` step and the admissible pairs), not into the chain's first operand: on consensus
     N = 6 the two windows' slower parts summed to 13.8 s over a Reach(Safe) that way, 14.7 s with them in the
     chain too, 20.2 s without the representatives."""
-    held = _problem(key, problem)
-    sym = _symmetry(held, classes)
 
-    def compute(held: tuple, z: Function, out: Function | None) -> Function:
+    def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
         model, chain, admissible, M, u_bits, w_bits, _ = held
         states, window = w_window(model, M, digits[0], start[0], None if end is None else end[0])
-        if sym is not None:
-            states &= sym.representatives
+        if reps is not None:
+            states &= reps
         return window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out)
 
-    return _answer(key, problem, Z, outside, compute, sym)
+    return _answer(key, problem, Z, outside, compute, classes)
 
 
 def forget(model_key: str) -> int:

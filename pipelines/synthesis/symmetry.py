@@ -94,6 +94,21 @@ class Symmetry:
         return [[subs[i].name or str(subs[i].index) for i in c] for c in self.classes]
 
 
+def cached_symmetry(cache: dict[tuple, Symmetry], model: SymbolicModel, classes: Sequence[Sequence[int]],
+                    owner: object = None) -> Symmetry:
+    """The :class:`Symmetry` of ``classes`` on ``model``, built once per ``(owner, classes)`` in ``cache``.
+
+    For the processes that compute parts (helper processes, Dask workers): a call ships only the classes, and each
+    process keeps the representatives and swaps it built (a worker holding several models passes each model's key
+    as ``owner``).
+    """
+    key = (owner, tuple(tuple(c) for c in classes))
+    sym = cache.get(key)
+    if sym is None:
+        sym = cache[key] = Symmetry(model, classes)
+    return sym
+
+
 def state_digit(model: SymbolicModel, i: int) -> str:
     """The one current-state digit of subsystem ``i`` (a one-dimensional state grid)."""
     (d,) = model.subsystem_digits(model.subsystems[i])["x"]

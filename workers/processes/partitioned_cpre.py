@@ -44,7 +44,7 @@ from pipelines.synthesis.partition import (
     split_digits,
     update_density,
 )
-from pipelines.synthesis.symmetry import Symmetry
+from pipelines.synthesis.symmetry import Symmetry, cached_symmetry
 from workers.processes.children import start_module
 
 log = logging.getLogger(__name__)
@@ -331,10 +331,8 @@ def _serve(inp: Connection, out: Connection) -> None:
                     outside = None if o_file is None else model.bdd.load(o_file)[0]
                     chain, admissible, M, u_bits, w_bits = problem
                     part = lexicographic_part(model, digits, start, end)
-                    sym = None
-                    if classes is not None:
-                        key = tuple(tuple(c) for c in classes)
-                        sym = symmetries.get(key) or symmetries.setdefault(key, Symmetry(model, classes))
+                    sym = None if classes is None else cached_symmetry(symmetries, model, classes)
+                    if sym is not None:
                         part &= sym.representatives
                     P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside, part)
                     if sym is not None:
