@@ -108,9 +108,13 @@ def test_run_synthesis_maps_iterations_to_stage_progress(kind):
     middle = syn[1:-1]
     assert [(done, total) for _, done, total, _ in middle] == [(k, k + 1) for k in range(1, len(middle) + 1)]
     results = report["synthesis"]["results"]
-    assert len(middle) == sum(r["iterations"] + r["inner_iterations"] for r in results.values()) > 2
+    rounds = sum(r.get("local_games", {}).get("rounds", 0) for r in results.values())
+    assert rounds == (kind == "reach_and_stay")  # the safety part's local games: one round, one event
+    assert len(middle) == sum(r["iterations"] + r["inner_iterations"] for r in results.values()) + rounds > 2
+    games = [message for *_, message in middle if " local games round " in message]
+    assert len(games) == rounds and all(m.startswith("reach_safe/safe local games round ") for m in games)
     assert all(message.split(" iteration")[0] in {"reach", "cobuchi", "reach_safe/safe", "reach_safe/reach"}
-               and message.endswith(" states") for *_, message in middle)
+               and message.endswith(" states") for *_, message in middle if message not in games)
 
 
 def test_large_iterates_are_reported_by_their_nodes(monkeypatch):

@@ -28,6 +28,7 @@ from typing import Any, Concatenate, ParamSpec, TypeVar
 from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.synthesis.cpre import ControllablePredecessor
+from pipelines.synthesis.local_games import invariant_bound
 
 log = logging.getLogger(__name__)
 P = ParamSpec("P")
@@ -205,26 +206,37 @@ def _result(
 @_guarded
 def safe(
     cpre: ControllablePredecessor, S: Function, *, layered: bool = False, progress: IterationProgress | None = None,
+    local_games: bool = True,
 ) -> SynthesisResult:
     """Safety ``□S``: ``νZ. S ∧ ∃u.CPre(Z)`` (the invariance game of Algorithm 5, SCOTS's
     ``solve_invariance_game``); the controller allows every input that keeps the state in the invariant.
 
+    ``local_games``: start the iteration from :func:`~.local_games.invariant_bound` instead of ``S`` (the same
+    invariant in fewer, smaller iterates; ``details["local_games"]`` says what it took). Each iterate is
+    ``Z ∧ ∃u.CPre(Z)``: from ``S`` the same sets as ``S ∧ ∃u.CPre(Z)``, and from the bound a decreasing sequence
+    that stays between the invariant and those sets, so it stops at the invariant.
     ``layered``: return the invariant as a one-layer controller (``stay``) instead of ``Z ∧ CPre(Z)``.
     ``progress``: see :data:`IterationProgress`.
     """
     meter = _Meter(cpre.model, "safe", progress)
     S = S & cpre.model.x_domain
     inside = cpre.within(S)  # every iterate is inside S
+    details: dict[str, Any] = {}
     Z = S
+    if local_games:
+        said = None if progress is None else functools.partial(progress, 0)
+        bound = invariant_bound(cpre, S, progress=None if said is None else lambda m: said(f"safe {m}"))
+        Z = bound.bound
+        details["local_games"] = bound.summary()
     while True:
-        Zn = S & cpre.predecessors(Z, within=inside)
+        Zn = Z & cpre.predecessors(Z, within=inside)
         meter.tick(current=Zn)
         if Zn == Z:
             break
         Z = Zn
     if layered:
-        return _result(cpre, "safe", Z, None, meter, layers=(Z,), stay=True)
-    return _result(cpre, "safe", Z, Z & cpre.cpre(Z, inside), meter)
+        return _result(cpre, "safe", Z, None, meter, layers=(Z,), stay=True, **details)
+    return _result(cpre, "safe", Z, Z & cpre.cpre(Z, inside), meter, **details)
 
 
 @_guarded
@@ -337,7 +349,7 @@ def cobuchi(
 @_guarded
 def reach_safe(
     cpre: ControllablePredecessor, phi: Function, *, layered: bool = False, safe_set: Function | None = None,
-    progress: IterationProgress | None = None,
+    progress: IterationProgress | None = None, local_games: bool = True,
 ) -> SynthesisResult:
     """``◇□φ`` as ``Reach(Safe(φ))``: inside the safe set the safety controller, outside the reach controller.
 
@@ -346,16 +358,20 @@ def reach_safe(
 
     ``layered``: the reach iterates over the safe set, with ``stay`` (layer 0 is the invariant).
     ``progress``: see :data:`IterationProgress`; the safety part's calls come first (``reach_safe/safe``).
+    ``local_games``: for the safety part (:func:`safe`).
     """
     meter = _Meter(cpre.model, "reach_safe")
 
     named = None if progress is None else functools.partial(_prefixed, progress, "reach_safe/")
-    s = safe(cpre, phi if safe_set is None else phi & safe_set, layered=layered, progress=named)
+    s = safe(cpre, phi if safe_set is None else phi & safe_set, layered=layered, progress=named,
+             local_games=local_games)
     r = reach(cpre, s.domain, layered=layered, safe=safe_set, progress=named)
     meter.iterations = r.iterations
     meter.inner = s.iterations
     meter.peak = max(s.peak_nodes, r.peak_nodes)
     extra: dict[str, Any] = dict(safe_states=s.domain_states, safe_seconds=s.seconds, reach_seconds=r.seconds)
+    if "local_games" in s.details:
+        extra["local_games"] = s.details["local_games"]
     if layered:
         return _result(cpre, "reach_and_stay/reach_safe", r.domain, None, meter, layers=r.layers, stay=True, **extra)
     controller = (s.domain & s.controller) | (~s.domain & r.controller)
@@ -368,17 +384,20 @@ REACH_AND_STAY = {"cobuchi": cobuchi, "reach_safe": reach_safe}
 def reach_and_stay(
     cpre: ControllablePredecessor, phi: Function, methods: Sequence[str] = ("cobuchi", "reach_safe"), *,
     layered: bool = False, safe: Function | None = None, progress: IterationProgress | None = None,
+    local_games: bool = True,
 ) -> dict[str, SynthesisResult]:
     """``◇□φ`` (``□S ∧ ◇□φ`` with a safe set ``safe``) by each of ``methods`` (METHOD §6 asks for both domains to
     be reported).
 
     ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit. ``progress``: see
-    :data:`IterationProgress`, the methods' calls one after the other.
+    :data:`IterationProgress`, the methods' calls one after the other. ``local_games``: see :func:`safe`
+    (Reach(Safe)'s safety part).
     """
     out: dict[str, SynthesisResult] = {}
     for name in methods:
         if name == "reach_safe":
-            out[name] = reach_safe(cpre, phi, layered=layered, safe_set=safe, progress=progress)
+            out[name] = reach_safe(cpre, phi, layered=layered, safe_set=safe, progress=progress,
+                                   local_games=local_games)
         elif name == "cobuchi":
             out[name] = cobuchi(cpre, phi, safe=safe, progress=progress)
         else:

@@ -52,6 +52,7 @@ def synthesize(
     parallel_after: float = 1.0,
     progress: IterationProgress | None = None,
     symmetry: bool = True,
+    local_games: bool = True,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -84,6 +85,9 @@ def synthesize(
         (:data:`~.fixed_points.IterationProgress`); the BDDs are built before the first call.
     symmetry : bool
         Use interchangeable subsystems (:mod:`~.symmetry`; the same results, faster where there are some).
+    local_games : bool
+        Start safety fixed points from the bound of :mod:`~.local_games` (the same results, faster where
+        subsystems read few others).
 
     Returns
     -------
@@ -116,7 +120,8 @@ def synthesize(
     try:
         S = states("safe") if kind != "safe" and specification.safe is not None else None
         if kind == "safe":
-            results = {"safe": safe(cpre, states("safe"), layered=layered, progress=progress)}
+            results = {"safe": safe(cpre, states("safe"), layered=layered, progress=progress,
+                                    local_games=local_games)}
         elif kind == "reach":
             results = {"reach": reach(cpre, states("target"), layered=layered, safe=S, progress=progress)}
         elif kind == "reach_avoid":
@@ -124,7 +129,7 @@ def synthesize(
                                                   progress=progress)}
         else:
             results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered, safe=S,
-                                     progress=progress)
+                                     progress=progress, local_games=local_games)
     finally:
         cpre.close()
     report = {

@@ -1,0 +1,171 @@
+"""Safety games on small groups of subsystems: a superset of the maximal controlled invariant to start from.
+
+Issue 24 asks the fixed points to lower their total work. The safety fixed point ``νZ. S ∧ ∃u.CPre(Z)`` of the 10
+tanks spends nearly all of its time in its middle iterates (1-3·10^5 BDD nodes, against 3.8·10^3 for the
+invariant it converges to): they hold states that every tank's upstream neighbours already rule out, but only
+many iterations later. Starting the same iteration from any set ``O`` with ``W ⊆ O ⊆ S`` (``W`` the maximal
+invariant) gives the same ``W``: every iterate stays between ``W`` and the iterate started from ``S``. This module
+computes such an ``O`` from *local games*.
+
+**Local game.** For a set ``I`` of subsystems and a set ``O ⊇ W`` of composed states, the local game on ``I`` is
+the safety game over the states ``x̂_I`` of ``I`` alone
+
+    Y  ↦  Y ∧ ∃x̂_{-I}, û. [adm ∧ O ∧ ∀ŵ ∈ M̂_I(x̂), x̂'_I. (∧_{i∈I} T_i → Y(x̂'_I))]
+
+(``adm`` the admissible pairs of :class:`~.cpre.ControllablePredecessor`, ``M̂_I`` the parts of ``M̂`` for the
+internal variables ``I`` reads; for the per-subsystem CPre ``w`` is already inside the ``T̃_i``). The states of
+the other subsystems are *angelic*: chosen once per state, inside ``O``. Its greatest fixed point ``Y*`` contains
+the projection ``X = ∃x̂_{-I}. W``, so ``O ∧ Y*`` still contains ``W``:
+
+    take ``x̂_I ∈ X``, ``x̂ ∈ W`` extending it and ``û`` an input that keeps ``x̂`` in ``W``; ``x̂ ∈ O`` and
+    ``adm(x̂, û)``. For every admissible ``ŵ`` and every ``x̂'_I`` the subsystems of ``I`` allow, every other
+    subsystem ``j`` has some successor ``x̂'_j`` (``adm`` contains ``∀ŵ ∈ M̂(x̂). NB_j``), so ``(x̂'_I, x̂'_{-I})``
+    is a successor of ``(x̂, û)``, hence in ``W``, and ``x̂'_I ∈ X``. So ``X`` is a post-fixed point of the local
+    game's map and lies in its greatest fixed point.
+
+**Groups.** One per subsystem ``i``: ``i`` and the subsystems whose states its relation reads (its upstream
+neighbours), at most half the network (a larger group costs nearly what the whole game does). The games run
+round after round in network order, each conjoining its ``Y*`` into ``O`` at once (the next game starts from the
+tighter ``O``), until a round changes nothing.
+
+**Cost.** Every relation of a local game is conjoined with the projection of ``adm ∧ O`` on the state and input
+bits it does not read (as :meth:`~.cpre.ControllablePredecessor.within` does): the bad pairs of a game then range
+only over neighbours' states that ``O`` still allows. Without it the game of tank 9 (tanks 6, 8, 9, whose relations
+read four more tanks) built 8·10^4-node bad sets and took 4.8 s of a 5.7 s round; with it the round takes 0.4 s.
+
+Measured on the 10 tanks (safety part of Reach(Safe), one process, same invariant): the bound holds 7.9·10^11 of
+the safe set's 2.0·10^12 states (the invariant 1.6·10^11) after 0.65 s of local games, and the fixed point from it
+takes 2.2 s instead of 30.3 s. Local groups of two levels of neighbours bounded tighter (1.61·10^11) but cost 12 s;
+single subsystems bound nothing (every tank alone is safe when its neighbours are chosen for it).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from pipelines.symbolic.model import Function, and_exists
+from pipelines.synthesis.cpre import bad_inputs
+from pipelines.synthesis.schedule import Chain, schedule
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.synthesis.cpre import ControllablePredecessor
+
+
+@dataclass(frozen=True)
+class LocalGroup:
+    """The subsystems of one local game (positions in ``model.subsystems``), and its chain entries."""
+
+    members: tuple[int, ...]
+    chain: Chain
+    reads: tuple[int, ...]  # internal variables the members read (the shared CPre's parts of M̂)
+
+
+@dataclass
+class InvariantBound:
+    """What :func:`invariant_bound` found: ``bound`` (``W ⊆ bound ⊆ S``) and how it got there."""
+
+    bound: Function
+    groups: list[tuple[int, ...]] = field(default_factory=list)
+    rounds: int = 0
+    iterations: int = 0
+    seconds: float = 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready (no BDDs)."""
+        return {"groups": [list(g) for g in self.groups], "rounds": self.rounds, "iterations": self.iterations,
+                "seconds": round(self.seconds, 3)}
+
+
+def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
+    """One group per subsystem: it and the subsystems whose state its relation reads (module docstring), groups of
+    more than half the network left out, repeated groups once, in network order."""
+    m, bdd = cpre.model, cpre.bdd
+    subs = m.subsystems
+    owner_of_x = {b: k for k, s in enumerate(subs) for b in m.bits_of(m.subsystem_digits(s)["x"])}
+    entry = {}
+    for rel, xn_bits in cpre.chain:
+        for k, s in enumerate(subs):
+            if set(xn_bits) == set(m.bits_of(m.subsystem_digits(s)["xn"])):
+                entry[k] = (rel, xn_bits)
+    if len(entry) != len(subs):  # not one relation per subsystem: no local games (never seen)
+        return []
+    reads_of: dict[int, set[int]] = {}
+    for k, s in enumerate(subs):
+        support = set(bdd.support(entry[k][0]))
+        if cpre.M is not None:  # shared CPre: subsystem k is coupled through the parts of M̂ it reads
+            for j in s.reads:
+                support |= set(bdd.support(cpre.parts[j]))
+        reads_of[k] = {owner_of_x[b] for b in support if b in owner_of_x} - {k}
+    groups: list[LocalGroup] = []
+    seen: set[tuple[int, ...]] = set()
+    for k in range(len(subs)):
+        members = tuple(sorted({k} | reads_of[k]))
+        if 2 * len(members) > len(subs) or members in seen:
+            continue
+        seen.add(members)
+        xn_start = set(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["xn"]]))
+        chain = schedule([entry[i] for i in members], xn_start, bdd, cpre.chain_order)
+        reads = tuple(sorted({j for i in members for j in subs[i].reads})) if cpre.M is not None else ()
+        groups.append(LocalGroup(members, chain, reads))
+    return groups
+
+
+def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function) -> tuple[Function, int]:
+    """The greatest fixed point of the local game of ``group`` inside ``bound`` (``O`` of the module docstring), over
+    the current-state bits of its members, and the iterations it took (1: the projection of ``bound`` was one)."""
+    m, bdd = cpre.model, cpre.bdd
+    subs = m.subsystems
+    own = set(m.bits_of([d for i in group.members for d in m.subsystem_digits(subs[i])["x"]]))
+    xu = [*m.x_bits, *m.u_bits]
+    M, w_bits = None, []
+    if cpre.M is not None:
+        M = bdd.true
+        for j in group.reads:
+            M &= cpre.parts[j]
+        w_bits = m.bits_of([f"w{j}" for j in group.reads])
+    support: set[str] = set().union(*(bdd.support(rel) for rel, _ in group.chain))
+    if M is not None:
+        support |= set(bdd.support(M))
+    care = bdd.exist([b for b in xu if b not in support], cpre.admissible & bound)
+    chain = [(rel & bdd.exist([b for b in xu if b not in bdd.support(rel)], care), xn) for rel, xn in group.chain]
+    if M is not None:
+        M &= bdd.exist([b for b in xu if b not in bdd.support(M)], care)
+    angelic = [b for b in xu if b in support and b not in own]
+    Y = bdd.exist([b for b in m.x_bits if b not in own], bound)
+    iterations = 0
+    while True:
+        bad = bad_inputs(m, chain, M, w_bits, Y)
+        Yn = Y & and_exists(care, ~bad, angelic)
+        iterations += 1
+        if Yn == Y:
+            return Y, iterations
+        Y = Yn
+
+
+def invariant_bound(
+    cpre: ControllablePredecessor, S: Function, progress: Callable[[str], None] | None = None,
+) -> InvariantBound:
+    """A set ``O`` with ``W ⊆ O ⊆ S`` (``W`` the maximal controlled invariant inside ``S``) from local games, round
+    after round until one changes nothing (module docstring). ``S`` itself where the network has no group of at most
+    half its subsystems. ``progress(message)``: one line per round."""
+    t0 = time.perf_counter()
+    groups = local_groups(cpre)
+    out = InvariantBound(S, [g.members for g in groups])
+    bound = S
+    while groups:
+        before = bound
+        for group in groups:
+            Y, iterations = local_game(cpre, group, bound)
+            out.iterations += iterations
+            bound &= Y
+        out.rounds += 1
+        if progress is not None:
+            progress(f"local games round {out.rounds}: bound of {bound.dag_size:,} BDD nodes")
+        if bound == before:
+            break
+    out.bound = bound
+    out.seconds = time.perf_counter() - t0
+    return out

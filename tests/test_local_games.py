@@ -1,0 +1,137 @@
+"""Local games (pipelines/synthesis/local_games.py): their bound contains the maximal invariant, and the safety fixed
+points started from it give the same invariant and controllers as from the safe set (and as the explicit solver)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipelines.abstraction.relation import SubsystemRelation
+from pipelines.symbolic.order import SubsystemLayout
+from pipelines.symbolic.relations import state_set
+from pipelines.synthesis.fixed_points import reach_and_stay, safe
+from pipelines.synthesis.local_games import invariant_bound, local_game, local_groups
+
+from .test_synthesis import Explicit, Net, build, random_node, random_set, states_vector
+
+
+def coupled_net(rng: np.random.Generator, shared: bool) -> Net:
+    """4-6 subsystems, each coupled to one or two others through an internal variable (a chain, a tree, a ring):
+    groups of at most half the network exist. ``shared``: some internal variables are read by two subsystems."""
+    N = int(rng.integers(4, 7))
+    shape = tuple(int(k) for k in rng.integers(3, 5, size=N))
+    n_u = tuple(2 if i in rng.choice(N, size=2, replace=False) else 1 for i in range(N))  # keeps Explicit small
+    nodes, w_sizes, reads = [], [], []
+    for i in range(N):
+        if i == 0 and rng.random() < 0.5:  # a source that reads nothing
+            reads.append(())
+            continue
+        if shared and i > 0 and reads[i - 1] and rng.random() < 0.4:  # read the same variable as the previous one
+            reads.append(reads[i - 1])
+            continue
+        j = len(w_sizes)
+        Kw = int(rng.integers(2, 4))
+        w_sizes.append(Kw)
+        reads.append((j,))
+        others = [k for k in range(N) if k != i]
+        sup = sorted(rng.choice(others, size=int(rng.integers(1, 3)), replace=False).tolist())
+        nodes.append(random_node(rng, f"w{j}", Kw, [f"x{k}" for k in sup], [shape[k] for k in sup], 0.0))
+    layouts, relations = [], {}
+    for i in range(N):
+        key = f"k{i}"
+        layouts.append(SubsystemLayout(i, (shape[i],), n_u[i], reads[i], key, i))
+        n_w = math.prod(w_sizes[j] for j in reads[i]) if reads[i] else 1
+        here = np.arange(shape[i]).reshape(-1, 1, 1, 1)
+        lo = np.clip(here + rng.integers(-1, 2, size=(shape[i], n_u[i], n_w, 1)), 0, shape[i] - 1)
+        hi = np.minimum(lo + rng.integers(0, 2, size=lo.shape), shape[i] - 1)
+        blocking = rng.random((shape[i], n_u[i], n_w)) < 0.03
+        lo[blocking], hi[blocking] = 0, -1
+        relations[key] = SubsystemRelation("test", lo.astype(np.int32), hi.astype(np.int32), blocking, 1, 1)
+    return Net(layouts, relations, w_sizes, nodes, shape, n_u)
+
+
+def _case(seed: int, shared: bool):
+    rng = np.random.default_rng(7000 + 100 * shared + seed)
+    net = coupled_net(rng, shared)
+    game = build(net, ["interleaved", "shared_top"][seed % 2], "shared" if shared else "auto")
+    return rng, net, game
+
+
+@pytest.mark.parametrize("shared", [False, True], ids=["per_subsystem_w", "shared_w"])
+def test_the_bound_contains_the_invariant_and_the_fixed_points_do_not_change(shared):
+    """Over 24 random coupled networks: ``W ⊆ bound ⊆ S``; ``safe`` and Reach(Safe) from the bound give the domains
+    and controllers they give from ``S``, which the explicit solver gives; and some bound is strictly inside ``S``
+    (else nothing here would test the games)."""
+    tighter = 0
+    for seed in range(24):
+        rng, net, game = _case(seed, shared)
+        m = game.model
+        ex = Explicit(net)
+        S, phi = random_set(rng, ex, 0.9), random_set(rng, ex, 0.75)
+        bS, bphi = (state_set(m, np.array(ex.states)[v]) for v in (S, phi))
+
+        plain = safe(game, bS, local_games=False)
+        fast = safe(game, bS)
+        assert fast.domain == plain.domain and fast.controller == plain.controller
+        np.testing.assert_array_equal(states_vector(m, fast.domain, ex), ex.safe(S))
+        bound = invariant_bound(game, bS & m.x_domain).bound
+        assert plain.domain & ~bound == game.bdd.false, f"seed {seed}: the bound cut off an invariant state"
+        assert bound & ~bS == game.bdd.false
+        tighter += bound != (bS & m.x_domain)
+        assert fast.details["local_games"]["groups"] == [list(g.members) for g in local_groups(game)]
+
+        both = reach_and_stay(game, bphi, ("reach_safe",))["reach_safe"]
+        without = reach_and_stay(game, bphi, ("reach_safe",), local_games=False)["reach_safe"]
+        assert both.domain == without.domain and both.controller == without.controller
+        np.testing.assert_array_equal(states_vector(m, both.domain, ex), ex.reach(ex.safe(phi)))
+    assert tighter >= 6, f"only {tighter} of 24 bounds were tighter than S"
+
+
+def test_each_local_game_contains_the_projection_of_the_invariant():
+    """The proof's step, game by game, over 12 random networks: the greatest fixed point of a local game inside ``S``
+    contains the projection of the maximal invariant on the game's subsystems (and lies in the projection of
+    ``S``)."""
+    checked = 0
+    for seed in range(12):
+        rng, net, game = _case(seed, bool(seed % 2))
+        m, bdd = game.model, game.bdd
+        ex = Explicit(net)
+        bS = state_set(m, np.array(ex.states)[random_set(rng, ex, 0.9)]) & m.x_domain
+        W = safe(game, bS, local_games=False).domain
+        for group in local_groups(game):
+            own = set(m.bits_of([f"x{i}" for i in group.members]))
+            others = [b for b in m.x_bits if b not in own]
+            Y, iterations = local_game(game, group, bS)
+            assert iterations >= 1
+            assert bdd.exist(others, W) & ~Y == bdd.false, f"seed {seed}: group {group.members} lost an invariant state"
+            assert Y & ~bdd.exist(others, bS) == bdd.false
+            checked += 1
+    assert checked >= 24, f"only {checked} local games checked"
+
+
+def test_groups_are_a_subsystem_and_the_ones_it_reads_at_most_half_the_network():
+    """Tanks-like cascade 0 -> 1 -> 2 -> 3 -> 4 -> 5 (each reads the one before): the groups are {0}, {0, 1}, ...,
+    {4, 5}; a network where one subsystem reads four others has no group for it."""
+    rng = np.random.default_rng(3)
+    N = 6
+    shape, n_u = (3,) * N, (2,) * N
+    nodes, reads = [], [()]
+    for i in range(1, N):
+        nodes.append(random_node(rng, f"w{i - 1}", 2, [f"x{i - 1}"], [3], 0.0))
+        reads.append((i - 1,))
+    here = np.arange(3).reshape(-1, 1, 1, 1)
+    layouts, relations = [], {}
+    for i in range(N):
+        n_w = 2 if reads[i] else 1
+        lo = np.clip(here + np.zeros((3, 2, n_w, 1), dtype=int), 0, 2)
+        layouts.append(SubsystemLayout(i, (3,), 2, reads[i], f"k{i}", i))
+        relations[f"k{i}"] = SubsystemRelation("test", lo.astype(np.int32), lo.astype(np.int32),
+                                               np.zeros((3, 2, n_w), bool), 1, 1)
+    game = build(Net(layouts, relations, [2] * (N - 1), nodes, shape, n_u), "interleaved")
+    assert [g.members for g in local_groups(game)] == [(0,), (0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
+
+    nodes[-1] = random_node(rng, "w4", 2, ["x0", "x1", "x2", "x3"], [3] * 4, 0.0)  # subsystem 5 reads four others
+    game = build(Net(layouts, relations, [2] * (N - 1), nodes, shape, n_u), "interleaved")
+    assert [g.members for g in local_groups(game)] == [(0,), (0, 1), (1, 2), (2, 3), (3, 4)]
