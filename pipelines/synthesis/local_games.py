@@ -85,11 +85,13 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
     m, bdd = cpre.model, cpre.bdd
     subs = m.subsystems
     owner_of_x = {b: k for k, s in enumerate(subs) for b in m.bits_of(m.subsystem_digits(s)["x"])}
+    next_bits = [set(m.bits_of(m.subsystem_digits(s)["xn"])) for s in subs]
+    owner_of_xn = {b: k for k, bits in enumerate(next_bits) for b in bits}
     entry = {}
     for rel, xn_bits in cpre.chain:
-        for k, s in enumerate(subs):
-            if set(xn_bits) == set(m.bits_of(m.subsystem_digits(s)["xn"])):
-                entry[k] = (rel, xn_bits)
+        k = owner_of_xn.get(xn_bits[0]) if xn_bits else None
+        if k is not None and set(xn_bits) == next_bits[k]:
+            entry[k] = (rel, xn_bits)
     if len(entry) != len(subs):  # not one relation per subsystem: no local games (never seen)
         return []
     reads_of: dict[int, set[int]] = {}
