@@ -635,6 +635,33 @@ def child_bdd(p: dict, emit: Callable[[dict], None]) -> None:
     }})
 
 
+def child_local_games(p: dict, emit: Callable[[dict], None]) -> None:
+    """Synthesis of one abstraction in this process, the safety fixed point started from the local games' bound and
+    from the safe set (``pipelines/synthesis/local_games.py``): what the bound buys, and that the domains agree."""
+    from pipelines.spec.model import load_spec
+    from pipelines.synthesis.synthesize import synthesize
+    from workers.job import run_abstraction
+
+    spec = load_spec(p["spec"], p.get("set"))
+    r = run_abstraction(spec, audit=False)
+    methods = tuple(spec.options.fixed_points)
+    runs = {}
+    for local in (True, False):
+        t0 = time.perf_counter()
+        cpre, results, report = synthesize(r.network, r.relations, r.interconnection, spec.specification,
+                                           reach_and_stay_methods=methods, processes=1, local_games=local)
+        seconds = time.perf_counter() - t0
+        runs["local_games" if local else "from_safe_set"] = {
+            "seconds": seconds,
+            "domains": {k: res.domain_states for k, res in results.items()},
+            "safe_seconds": {k: res.details.get("safe_seconds", res.seconds) for k, res in results.items()},
+            "iterations": {k: res.inner_iterations or res.iterations for k, res in results.items()},
+            "local_games": {k: res.details.get("local_games") for k, res in results.items()},
+        }
+        del cpre, results
+    emit({"type": "info", "local_games_runs": runs})
+
+
 CHILDREN: dict[str, Callable[[dict, Callable[[dict], None]], None]] = {
     "end_to_end": child_end_to_end,
     "scalability": child_scalability,
@@ -642,6 +669,7 @@ CHILDREN: dict[str, Callable[[dict, Callable[[dict], None]], None]] = {
     "scp": child_scp,
     "workers": child_workers,
     "bdd": child_bdd,
+    "local_games": child_local_games,
 }
 
 
@@ -857,6 +885,27 @@ def bench_end_to_end(name: str, spec: Path, args, timeout: float) -> dict:
             "domain_states": _ratio(rec["domain_states"], paper["domain_states"]),
         }
     return rec
+
+
+def bench_local_games(spec: Path, args) -> dict:
+    """The tanks' synthesis in one process with and without the local games' bound (same abstraction)."""
+    child = run_child("local_games", {"spec": str(spec)}, args.tanks_timeout, args.mem_limit_gb * 1024)
+    runs = info_of(child).get("local_games_runs") or {}
+    with_, without = runs.get("local_games", {}), runs.get("from_safe_set", {})
+    return {"status": child["status"], "error": child["error"], "runs": runs,
+            "ratio": _ratio(without.get("seconds"), with_.get("seconds")),
+            "same_domains": bool(runs) and with_.get("domains") == without.get("domains")}
+
+
+def _local_games_lines(c: dict) -> list[str]:
+    if c.get("status") != "ok":
+        return [f"  tanks synthesis with/without local games: {c.get('status')}: {(c.get('error') or '')[:300]}"]
+    a, b = c["runs"]["local_games"], c["runs"]["from_safe_set"]
+    games = next(iter(a["local_games"].values()), None) or {}
+    return [f"  tanks synthesis in one process: safety from the local games' bound {_fmt(a['seconds'])} s "
+            f"(games {_fmt(games.get('seconds'))} s, {games.get('rounds')} rounds; safety iterations "
+            f"{list(a['iterations'].values())}), from the safe set {_fmt(b['seconds'])} s "
+            f"(iterations {list(b['iterations'].values())}): {_fmt(c['ratio'])}x, same domains: {c['same_domains']}"]
 
 
 def bench_scalability(args) -> dict:
@@ -1104,6 +1153,9 @@ def print_table(results: dict, out=sys.stdout) -> None:
                 w(f"    {r['status']}: {r['error'][:300]}")
     w()
     w("baselines (same run)")
+    if (results["cases"].get("tanks") or {}).get("local_games"):
+        for line in _local_games_lines(results["cases"]["tanks"]["local_games"]):
+            w(line)
     if "scalability" in results["cases"]:
         s = results["cases"]["scalability"]
         ex = s["exponents"]
@@ -1331,6 +1383,8 @@ def main(argv: list[str] | None = None) -> int:
             rec = bench_end_to_end("small" if args.quick else "tanks", spec, args, args.tanks_timeout)
             results["cases"]["small" if args.quick else "tanks"] = rec
             _progress(rec)
+            if not args.quick:
+                rec["local_games"] = bench_local_games(spec, args)
         elif case == "consensus":
             if args.quick:
                 results["skipped"]["consensus"] = "not run under --quick"

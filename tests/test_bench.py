@@ -127,3 +127,18 @@ def test_the_synthesis_case_prints_its_own_table_and_targets():
     assert "    cluster, 2 workers               90.8      2.52      2      9  yes" in text
     assert "target: 2 workers >= 1.8x one process: 2.52x (met)" in text
     assert results["targets"]["consensus synthesis, 2 Dask workers / one process"] == (2.52, ">= 1.8", True)
+
+
+def test_the_local_games_baseline_runs_both_ways_and_prints_its_ratio():
+    """The tanks' local-games baseline (here on examples/small.yaml): one abstraction synthesized from the bound
+    and from the safe set, the same domains, and a line with the ratio."""
+    from bench.run import _local_games_lines, child_local_games
+
+    events: list[dict] = []
+    child_local_games({"spec": str(ROOT / "examples" / "small.yaml")}, events.append)
+    runs = events[-1]["local_games_runs"]
+    assert runs["local_games"]["domains"] == runs["from_safe_set"]["domains"]
+    assert all(v > 0 for v in runs["local_games"]["domains"].values())
+    record = {"status": "ok", "error": None, "runs": runs, "ratio": 2.0, "same_domains": True}
+    (line,) = _local_games_lines(record)
+    assert "from the local games' bound" in line and "2x, same domains: True" in line
