@@ -11,6 +11,7 @@ import pytest
 from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import state_set
+from pipelines.synthesis import local_games
 from pipelines.synthesis.fixed_points import reach_and_stay, safe
 from pipelines.synthesis.local_games import invariant_bound, local_game, local_groups
 
@@ -60,10 +61,11 @@ def _case(seed: int, shared: bool):
 
 
 @pytest.mark.parametrize("shared", [False, True], ids=["per_subsystem_w", "shared_w"])
-def test_the_bound_contains_the_invariant_and_the_fixed_points_do_not_change(shared):
-    """Over 24 random coupled networks: ``W ⊆ bound ⊆ S``; ``safe`` and Reach(Safe) from the bound give the domains
-    and controllers they give from ``S``, which the explicit solver gives; and some bound is strictly inside ``S``
-    (else nothing here would test the games)."""
+def test_the_bound_contains_the_invariant_and_the_fixed_points_do_not_change(shared, monkeypatch):
+    """Over 24 random coupled networks: ``W ⊆ bound ⊆ S``; ``safe`` and Reach(Safe) from the bound (used whatever
+    share of ``S`` it keeps) give the domains and controllers they give from ``S``, which the explicit solver gives;
+    and some bound is strictly inside ``S`` (else nothing here would test the games)."""
+    monkeypatch.setattr(local_games, "USE_BELOW", 1.0)
     tighter = 0
     for seed in range(24):
         rng, net, game = _case(seed, shared)
@@ -81,6 +83,7 @@ def test_the_bound_contains_the_invariant_and_the_fixed_points_do_not_change(sha
         assert bound & ~bS == game.bdd.false
         tighter += bound != (bS & m.x_domain)
         assert fast.details["local_games"]["groups"] == [list(g.members) for g in local_groups(game)]
+        assert fast.details["local_games"]["used"] == (bound != (bS & m.x_domain))
 
         both = reach_and_stay(game, bphi, ("reach_safe",))["reach_safe"]
         without = reach_and_stay(game, bphi, ("reach_safe",), local_games=False)["reach_safe"]
@@ -135,3 +138,24 @@ def test_groups_are_a_subsystem_and_the_ones_it_reads_at_most_half_the_network()
     nodes[-1] = random_node(rng, "w4", 2, ["x0", "x1", "x2", "x3"], [3] * 4, 0.0)  # subsystem 5 reads four others
     game = build(Net(layouts, relations, [2] * (N - 1), nodes, shape, n_u), "interleaved")
     assert [g.members for g in local_groups(game)] == [(0,), (0, 1), (1, 2), (2, 3), (3, 4)]
+
+
+def test_a_bound_that_keeps_more_than_half_of_the_safe_set_is_not_started_from():
+    """The bound is started from only when it keeps at most USE_BELOW of S (a loose bound has many more nodes than
+    S and made the first iterates larger); the share is exact, and the invariant is the same either way."""
+    seen = set()
+    for seed in range(24):
+        rng, net, game = _case(seed, False)
+        m = game.model
+        ex = Explicit(net)
+        bS = state_set(m, np.array(ex.states)[random_set(rng, ex, 0.9)]) & m.x_domain
+        found = invariant_bound(game, bS)
+        if found.bound == bS:
+            continue
+        share = states_vector(m, found.bound, ex).sum() / states_vector(m, bS, ex).sum()
+        assert found.share == pytest.approx(share)
+        assert found.used == (share <= local_games.USE_BELOW)
+        seen.add(found.used)
+        assert found.start == (found.bound if found.used else bS)
+        assert safe(game, bS).domain == safe(game, bS, local_games=False).domain
+    assert seen == {True, False}, f"only bounds with used = {seen}"

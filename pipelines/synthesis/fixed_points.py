@@ -211,8 +211,9 @@ def safe(
     """Safety ``□S``: ``νZ. S ∧ ∃u.CPre(Z)`` (the invariance game of Algorithm 5, SCOTS's
     ``solve_invariance_game``); the controller allows every input that keeps the state in the invariant.
 
-    ``local_games``: start the iteration from :func:`~.local_games.invariant_bound` instead of ``S`` (the same
-    invariant in fewer, smaller iterates; ``details["local_games"]`` says what it took). Each iterate is
+    ``local_games``: start the iteration from :func:`~.local_games.invariant_bound` instead of ``S`` where it cuts
+    ``S`` at least in half (the same invariant in fewer, smaller iterates; ``details["local_games"]`` says what it
+    took and whether it was used). Each iterate is
     ``Z ∧ ∃u.CPre(Z)``: from ``S`` the same sets as ``S ∧ ∃u.CPre(Z)``, and from the bound a decreasing sequence
     that stays between the invariant and those sets, so it stops at the invariant.
     ``layered``: return the invariant as a one-layer controller (``stay``) instead of ``Z ∧ CPre(Z)``.
@@ -226,7 +227,7 @@ def safe(
     if local_games:
         said = None if progress is None else functools.partial(progress, 0)
         bound = invariant_bound(cpre, S, progress=None if said is None else lambda m: said(f"safe {m}"))
-        Z = bound.bound
+        Z = bound.start
         details["local_games"] = bound.summary()
     while True:
         Zn = Z & cpre.predecessors(Z, within=inside)

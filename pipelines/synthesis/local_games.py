@@ -37,6 +37,11 @@ Measured on the 10 tanks (safety part of Reach(Safe), one process, same invarian
 the safe set's 2.0·10^12 states (the invariant 1.6·10^11) after 0.65 s of local games, and the fixed point from it
 takes 2.2 s instead of 30.3 s. Local groups of two levels of neighbours bounded tighter (1.61·10^11) but cost 12 s;
 single subsystems bound nothing (every tank alone is safe when its neighbours are chosen for it).
+
+**When the bound is used.** Only when it holds at most :data:`USE_BELOW` of ``S``'s states. A bound that removes
+little still has many more BDD nodes than ``S`` and makes the first iterates larger: at the tanks' spacing 1.25 it
+keeps 92 % of the target in 24,580 nodes, and the first iterations from it took 2, 7 and 19 s against 0.05, 1.0 and
+5.7 s from the target.
 """
 
 from __future__ import annotations
@@ -46,12 +51,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.model import Function, and_exists
 from pipelines.synthesis.cpre import bad_inputs
 from pipelines.synthesis.schedule import Chain, schedule
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.synthesis.cpre import ControllablePredecessor
+
+#: Largest share of ``S``'s states a bound may keep and still be started from (module docstring).
+USE_BELOW = 0.5
 
 
 @dataclass(frozen=True)
@@ -65,9 +74,13 @@ class LocalGroup:
 
 @dataclass
 class InvariantBound:
-    """What :func:`invariant_bound` found: ``bound`` (``W ⊆ bound ⊆ S``) and how it got there."""
+    """What :func:`invariant_bound` found: ``bound`` (``W ⊆ bound ⊆ S``), the share of ``S``'s states it keeps,
+    whether to start from it (``start``: the bound if ``used``, else ``S``) and how it got there."""
 
     bound: Function
+    start: Function
+    share: float = 1.0
+    used: bool = False
     groups: list[tuple[int, ...]] = field(default_factory=list)
     rounds: int = 0
     iterations: int = 0
@@ -76,7 +89,7 @@ class InvariantBound:
     def summary(self) -> dict[str, Any]:
         """JSON-ready (no BDDs)."""
         return {"groups": [list(g) for g in self.groups], "rounds": self.rounds, "iterations": self.iterations,
-                "seconds": round(self.seconds, 3)}
+                "seconds": round(self.seconds, 3), "share_of_safe_set": self.share, "used": self.used}
 
 
 def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
@@ -151,11 +164,12 @@ def invariant_bound(
     cpre: ControllablePredecessor, S: Function, progress: Callable[[str], None] | None = None,
 ) -> InvariantBound:
     """A set ``O`` with ``W ⊆ O ⊆ S`` (``W`` the maximal controlled invariant inside ``S``) from local games, round
-    after round until one changes nothing (module docstring). ``S`` itself where the network has no group of at most
-    half its subsystems. ``progress(message)``: one line per round."""
+    after round until one changes nothing (module docstring), and whether to start from it (at most
+    :data:`USE_BELOW` of ``S``'s states). ``S`` itself where the network has no group of at most half its
+    subsystems. ``progress(message)``: one line per round."""
     t0 = time.perf_counter()
     groups = local_groups(cpre)
-    out = InvariantBound(S, [g.members for g in groups])
+    out = InvariantBound(S, S, groups=[g.members for g in groups])
     bound = S
     while groups:
         before = bound
@@ -169,5 +183,10 @@ def invariant_bound(
         if bound == before:
             break
     out.bound = bound
+    if bound != S:
+        total = count_states(cpre.model, S)
+        out.share = count_states(cpre.model, bound) / total if total else 0.0
+        out.used = out.share <= USE_BELOW
+        out.start = bound if out.used else S
     out.seconds = time.perf_counter() - t0
     return out
