@@ -128,9 +128,15 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
     return groups
 
 
-def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function) -> tuple[Function, int]:
+def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function,
+               memo: dict[tuple[int, ...], tuple[Function, Function, Function]] | None = None) -> tuple[Function, int]:
     """The greatest fixed point of the local game of ``group`` inside ``bound`` (``O`` of the module docstring), over
-    the current-state bits of its members, and the iterations it took (1: the projection of ``bound`` was one)."""
+    the current-state bits of its members, and the iterations it took (1: the projection of ``bound`` was one).
+
+    ``memo``: the game's inputs (the admissible pairs and the start, both cut down by ``bound``) and answer from an
+    earlier call, by group; a call whose inputs are the same returns that answer (0 iterations). A round after the
+    bound changed elsewhere then costs each group two quantifications.
+    """
     m, bdd = cpre.model, cpre.bdd
     subs = m.subsystems
     own = set(m.bits_of([d for i in group.members for d in m.subsystem_digits(subs[i])["x"]]))
@@ -145,17 +151,23 @@ def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function
     if M is not None:
         support |= set(bdd.support(M))
     care = bdd.exist([b for b in xu if b not in support], cpre.admissible & bound)
+    Y = start = bdd.exist([b for b in m.x_bits if b not in own], bound)
+    if memo is not None and group.members in memo:
+        was_care, was_start, answer = memo[group.members]
+        if was_care == care and was_start == start:
+            return answer, 0
     chain = [(rel & bdd.exist([b for b in xu if b not in bdd.support(rel)], care), xn) for rel, xn in group.chain]
     if M is not None:
         M &= bdd.exist([b for b in xu if b not in bdd.support(M)], care)
     angelic = [b for b in xu if b in support and b not in own]
-    Y = bdd.exist([b for b in m.x_bits if b not in own], bound)
     iterations = 0
     while True:
         bad = bad_inputs(m, chain, M, w_bits, Y)
         Yn = Y & and_exists(care, ~bad, angelic)
         iterations += 1
         if Yn == Y:
+            if memo is not None:
+                memo[group.members] = (care, start, Y)
             return Y, iterations
         Y = Yn
 
@@ -171,10 +183,11 @@ def invariant_bound(
     groups = local_groups(cpre)
     out = InvariantBound(S, S, groups=[g.members for g in groups])
     bound = S
+    memo: dict[tuple[int, ...], tuple[Function, Function, Function]] = {}
     while groups:
         before = bound
         for group in groups:
-            Y, iterations = local_game(cpre, group, bound)
+            Y, iterations = local_game(cpre, group, bound, memo)
             out.iterations += iterations
             bound &= Y
         out.rounds += 1
