@@ -34,8 +34,8 @@ only over neighbours' states that ``O`` still allows. Without it the game of tan
 read four more tanks) built 8·10^4-node bad sets and took 4.8 s of a 5.7 s round; with it the round takes 0.4 s.
 
 Measured on the 10 tanks (safety part of Reach(Safe), one process, same invariant): the bound holds 7.9·10^11 of
-the safe set's 2.0·10^12 states (the invariant 1.6·10^11) after 0.65 s of local games, and the fixed point from it
-takes 2.2 s instead of 30.3 s. Local groups of two levels of neighbours bounded tighter (1.61·10^11) but cost 12 s;
+the safe set's 2.0·10^12 states (the invariant 1.6·10^11) after about 1 s of local games (3 rounds), and the fixed
+point from it takes 2.3 s instead of 30.3 s (the synthesis 4.3 s instead of 29.1 s: ``bench/run.py``'s tanks case). Local groups of two levels of neighbours bounded tighter (1.61·10^11) but cost 12 s;
 single subsystems bound nothing (every tank alone is safe when its neighbours are chosen for it).
 
 **When the bound is used.** Only when it holds at most :data:`USE_BELOW` of ``S``'s states. A bound that removes
