@@ -114,9 +114,10 @@ def test_each_local_game_contains_the_projection_of_the_invariant():
     assert checked >= 24, f"only {checked} local games checked"
 
 
-def test_groups_are_a_subsystem_and_the_ones_it_reads_at_most_half_the_network():
+def test_groups_are_a_subsystem_and_the_ones_it_reads_at_most_half_the_network(monkeypatch):
     """Tanks-like cascade 0 -> 1 -> 2 -> 3 -> 4 -> 5 (each reads the one before): the groups are {0}, {0, 1}, ...,
-    {4, 5}; a network where one subsystem reads four others has no group for it."""
+    {4, 5}; a network where one subsystem reads four others has no group for it; groups above MAX_GROUP_BITS state
+    bits are left out."""
     rng = np.random.default_rng(3)
     N = 6
     shape, n_u = (3,) * N, (2,) * N
@@ -138,6 +139,8 @@ def test_groups_are_a_subsystem_and_the_ones_it_reads_at_most_half_the_network()
     nodes[-1] = random_node(rng, "w4", 2, ["x0", "x1", "x2", "x3"], [3] * 4, 0.0)  # subsystem 5 reads four others
     game = build(Net(layouts, relations, [2] * (N - 1), nodes, shape, n_u), "interleaved")
     assert [g.members for g in local_groups(game)] == [(0,), (0, 1), (1, 2), (2, 3), (3, 4)]
+    monkeypatch.setattr(local_games, "MAX_GROUP_BITS", 3)  # 2 bits per subsystem: single subsystems only
+    assert [g.members for g in local_groups(game)] == [(0,)]
 
 
 def test_a_bound_that_keeps_more_than_half_of_the_safe_set_is_not_started_from():
