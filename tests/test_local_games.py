@@ -15,7 +15,15 @@ from pipelines.synthesis import local_games
 from pipelines.synthesis.fixed_points import reach_and_stay, safe
 from pipelines.synthesis.local_games import invariant_bound, local_game, local_groups
 
-from .test_synthesis import Explicit, Net, build, random_node, random_set, states_vector
+from .test_synthesis import (
+    Explicit,
+    Net,
+    build,
+    random_node,
+    random_relation,
+    random_set,
+    states_vector,
+)
 
 
 def coupled_net(rng: np.random.Generator, shared: bool) -> Net:
@@ -44,12 +52,7 @@ def coupled_net(rng: np.random.Generator, shared: bool) -> Net:
         key = f"k{i}"
         layouts.append(SubsystemLayout(i, (shape[i],), n_u[i], reads[i], key, i))
         n_w = math.prod(w_sizes[j] for j in reads[i]) if reads[i] else 1
-        here = np.arange(shape[i]).reshape(-1, 1, 1, 1)
-        lo = np.clip(here + rng.integers(-1, 2, size=(shape[i], n_u[i], n_w, 1)), 0, shape[i] - 1)
-        hi = np.minimum(lo + rng.integers(0, 2, size=lo.shape), shape[i] - 1)
-        blocking = rng.random((shape[i], n_u[i], n_w)) < 0.03
-        lo[blocking], hi[blocking] = 0, -1
-        relations[key] = SubsystemRelation("test", lo.astype(np.int32), hi.astype(np.int32), blocking, 1, 1)
+        relations[key] = random_relation(rng, shape[i], n_u[i], n_w, 0.03)
     return Net(layouts, relations, w_sizes, nodes, shape, n_u)
 
 

@@ -225,8 +225,8 @@ def safe(
     details: dict[str, Any] = {}
     Z = S
     if local_games:
-        said = None if progress is None else functools.partial(progress, 0)
-        bound = invariant_bound(cpre, S, progress=None if said is None else lambda m: said(f"safe {m}"))
+        said = None if progress is None else functools.partial(_prefixed, progress, "safe ", 0)
+        bound = invariant_bound(cpre, S, progress=said)
         Z = bound.start
         details["local_games"] = bound.summary()
     while True:

@@ -69,11 +69,16 @@ MAX_GROUP_BITS = 40
 
 @dataclass(frozen=True)
 class LocalGroup:
-    """The subsystems of one local game (positions in ``model.subsystems``), and its chain entries."""
+    """One local game's fixed ingredients: its subsystems (positions in ``model.subsystems``), their chain entries,
+    for the shared CPre the parts of ``M̂`` they read and those parts' ``w`` bits (``None``/empty otherwise), the
+    members' current-state bits, and every state and input bit the relations and ``M̂`` read."""
 
     members: tuple[int, ...]
     chain: Chain
-    reads: tuple[int, ...]  # internal variables the members read (the shared CPre's parts of M̂)
+    M: Function | None
+    w_bits: tuple[str, ...]
+    own: frozenset[str]
+    support: frozenset[str]
 
 
 @dataclass
@@ -102,6 +107,7 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
     network order."""
     m, bdd = cpre.model, cpre.bdd
     subs = m.subsystems
+    xu = frozenset([*m.x_bits, *m.u_bits])
     owner_of_x = {b: k for k, s in enumerate(subs) for b in m.bits_of(m.subsystem_digits(s)["x"])}
     next_bits = [set(m.bits_of(m.subsystem_digits(s)["xn"])) for s in subs]
     owner_of_xn = {b: k for k, bits in enumerate(next_bits) for b in bits}
@@ -129,8 +135,18 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
         seen.add(members)
         xn_start = set(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["xn"]]))
         chain = schedule([entry[i] for i in members], xn_start, bdd, cpre.chain_order)
-        reads = tuple(sorted({j for i in members for j in subs[i].reads})) if cpre.M is not None else ()
-        groups.append(LocalGroup(members, chain, reads))
+        M: Function | None = None
+        w_bits: tuple[str, ...] = ()
+        read: set[str] = set().union(*(bdd.support(rel) for rel, _ in chain))
+        if cpre.M is not None:
+            reads = sorted({j for i in members for j in subs[i].reads})
+            M = bdd.true
+            for j in reads:
+                M &= cpre.parts[j]
+            w_bits = tuple(m.bits_of([f"w{j}" for j in reads]))
+            read |= set(bdd.support(M))
+        own = frozenset(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["x"]]))
+        groups.append(LocalGroup(members, chain, M, w_bits, own, frozenset(read) & xu))
     return groups
 
 
@@ -144,18 +160,8 @@ def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function
     bound changed elsewhere then costs each group two quantifications.
     """
     m, bdd = cpre.model, cpre.bdd
-    subs = m.subsystems
-    own = set(m.bits_of([d for i in group.members for d in m.subsystem_digits(subs[i])["x"]]))
+    own, support, M = group.own, group.support, group.M
     xu = [*m.x_bits, *m.u_bits]
-    M, w_bits = None, []
-    if cpre.M is not None:
-        M = bdd.true
-        for j in group.reads:
-            M &= cpre.parts[j]
-        w_bits = m.bits_of([f"w{j}" for j in group.reads])
-    support: set[str] = set().union(*(bdd.support(rel) for rel, _ in group.chain))
-    if M is not None:
-        support |= set(bdd.support(M))
     care = bdd.exist([b for b in xu if b not in support], cpre.admissible & bound)
     Y = start = bdd.exist([b for b in m.x_bits if b not in own], bound)
     if memo is not None and group.members in memo:
@@ -168,7 +174,7 @@ def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function
     angelic = [b for b in xu if b in support and b not in own]
     iterations = 0
     while True:
-        bad = bad_inputs(m, chain, M, w_bits, Y)
+        bad = bad_inputs(m, chain, M, group.w_bits, Y)
         Yn = Y & and_exists(care, ~bad, angelic)
         iterations += 1
         if Yn == Y:
