@@ -116,7 +116,10 @@ def lines(rec: dict[str, Any]) -> list[str]:
         t = r["parallel"].get("seconds")
         if t:
             out.append(f"    {r['mode']}: of the partitioned calls, {t['slowest_part']:.1f} s the slower part of each, "
-                       f"{t['after_parts']:.1f} s reading and joining the parts after it, {t['exists_u']:.1f} s the ∃u "
+                       f"{t['after_parts']:.1f} s reading and joining the parts after it"
+                       + (f" (of which {t['last_start']:.1f} s until the last part began, {t['after_last']:.1f} s after "
+                          "the last part ended)" if "last_start" in t else "")
+                       + f", {t['exists_u']:.1f} s the ∃u "
                        f"step, {t['sending']:.1f} s sending the sets (in the job's process)")
     for k, target in rec["targets"].items():  # keys are strings once read back from JSON
         row = next((r for r in rec["rows"] if r.get("workers") == int(k)), None)

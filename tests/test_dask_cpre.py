@@ -176,7 +176,8 @@ def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
             assert report["parallel"]["on"] == "cluster" and report["parallel"]["processes"] == 2 * per_worker
             assert report["parallel"]["calls"] > 0
             t = report["parallel"]["seconds"]  # the breakdown bench/synthesis.py prints
-            assert set(t) == {"sending", "slowest_part", "after_parts", "exists_u"} and t["slowest_part"] > 0
+            assert set(t) == {"sending", "slowest_part", "after_parts", "exists_u", "last_start", "after_last"}
+            assert t["slowest_part"] > 0 and t["last_start"] >= 0 and t["after_last"] >= 0
         finally:
             game.close()
 

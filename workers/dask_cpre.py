@@ -80,6 +80,10 @@ class DaskPartFailed(PartitionFailed):
     """A part of ``∃u.CPre`` failed on the cluster (the message says why); the CPre goes on in one process."""
 
 
+Part = tuple[bytes, float, float]
+"""What a part's task returns: its answer as DDDMP bytes, the seconds it computed, and the wall-clock time
+(``time.time()``) it began computing, after its worker loaded the problem."""
+
 # ====================================================================================== the worker's side
 #: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
 _HELD: OrderedDict[str, tuple] = OrderedDict()
@@ -134,15 +138,17 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
 
 def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             compute: Callable[[tuple, Function, Function | None, Function | None], Function],
-            classes: Sequence[Sequence[int]] | None = None) -> tuple[bytes, float]:
+            classes: Sequence[Sequence[int]] | None = None) -> Part:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
-    outside, representatives)`` run under CUDD's memory guard, its result as DDDMP bytes, and the seconds it took
-    (the problem's loading not counted: it happens once per worker). With the ``classes`` of interchangeable
-    subsystems (the sets of the call invariant under them) ``representatives`` are their orbit representatives
-    (else ``None``) and the result is closed under them here, on the worker."""
+    outside, representatives)`` run under CUDD's memory guard, its result as DDDMP bytes, the seconds it took
+    (the problem's loading not counted: it happens once per worker) and the wall-clock time it began (after the
+    loading). With the ``classes`` of interchangeable subsystems (the sets of the call invariant under them)
+    ``representatives`` are their orbit representatives (else ``None``) and the result is closed under them here,
+    on the worker."""
     held = _problem(key, problem)
     model = held[0]
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held[6])
+    began = time.time()
     t0 = time.perf_counter()
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
@@ -152,14 +158,13 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             result = sym.close(result)
         blob = _dump(model, result)
     del z, out, result
-    return blob, time.perf_counter() - t0
+    return blob, time.perf_counter() - t0, began
 
 
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
                       start: Sequence[int], end: Sequence[int] | None,
-                      classes: Sequence[Sequence[int]] | None = None) -> tuple[bytes, float]:
-    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as DDDMP bytes, and the
-    seconds it took. With the ``classes`` of interchangeable subsystems (the sets of the call invariant under
+                      classes: Sequence[Sequence[int]] | None = None) -> Part:
+    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as a :data:`Part`. With the ``classes`` of interchangeable subsystems (the sets of the call invariant under
     them): the closure of the answer on the part's representatives (the parts' closures overlap; their union is
     the whole, since closing distributes over unions)."""
 
@@ -174,10 +179,10 @@ def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: byte
 
 
 def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
-             start: Sequence[int], end: Sequence[int] | None) -> tuple[bytes, float]:
+             start: Sequence[int], end: Sequence[int] | None) -> Part:
     """A Dask task of the ``w`` cut: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some admissible
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
-    that range of ``ŵ`` as its part), as DDDMP bytes, and the seconds it took."""
+    that range of ``ŵ`` as its part), as a :data:`Part`."""
 
     def compute(held: tuple, z: Function, out: Function | None, _reps: Function | None) -> Function:
         model, chain, _, M, _, w_bits, _ = held
@@ -188,11 +193,11 @@ def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
 
 def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
                 start: Sequence[int], end: Sequence[int] | None,
-                classes: Sequence[Sequence[int]] | None = None) -> tuple[bytes, float]:
+                classes: Sequence[Sequence[int]] | None = None) -> Part:
     """A Dask task of the window cut: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible code of
     the internal variable ``digits[0]`` lies in ``[start, end)``, with the chain run on the ``ŵ`` cells those
     states admit (:func:`~pipelines.synthesis.partition.w_window`,
-    :func:`~pipelines.synthesis.cpre.window_predecessors`), as DDDMP bytes, and the seconds it took.
+    :func:`~pipelines.synthesis.cpre.window_predecessors`), as a :data:`Part`.
 
     With the ``classes`` of interchangeable subsystems: computed on the window's representatives and closed. A
     window is invariant (``M̂`` is), so the closures of the parts stay disjoint. The representatives go where
@@ -276,8 +281,14 @@ class DaskPredecessors:
         self._seconds: list[float] = []
         self._calls = 0
         #: Seconds summed over the calls: sending the sets, the slower part of each call, reading and joining the
-        #: parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time).
-        self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0}
+        #: parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time). Of
+        #: ``after_parts``: ``last_start``, from sending the parts until the last of them began computing (Dask's
+        #: dispatch, a worker's first loading of the problem, parts queued behind others), and ``after_last``, from
+        #: the end of the last part's computation until this process had joined every part (its bytes coming back
+        #: and read here). Both from the workers' wall clocks: exact on one machine, off by the clocks' skew on a
+        #: real cluster.
+        self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0,
+                       "last_start": 0.0, "after_last": 0.0}
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
         self._max_memory = m.max_memory
@@ -375,24 +386,30 @@ class DaskPredecessors:
                 key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
         index = {f.key: k for k, f in enumerate(futures)}
         seconds = [0.0] * len(futures)
-        t_sent = time.perf_counter()
+        t_sent, sent_at = time.perf_counter(), time.time()
+        last_start = last_end = sent_at
         result = g.bdd.false
         try:
-            for fut in as_completed(futures):
+            # with_results: the client fetches each answer as its part ends, in its own thread, instead of one round
+            # trip per part from here after it ended.
+            for fut, answer in as_completed(futures, with_results=True, raise_errors=False):
                 if fut.status == "error":
                     exc = fut.exception()
                     if isinstance(exc, BDDMemoryError):
                         raise BDDMemoryError(f"a synthesis part on a Dask worker: {exc}")
                     raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
-                blob, s = fut.result()
+                if fut.status != "finished":  # cancelled under us (the cluster is closing)
+                    raise DaskPartFailed(f"a part of CPre on a Dask worker ended {fut.status}")
+                blob, s, began = answer
                 with m.guard("reading a Dask worker's part of CPre"):
                     result |= _load(m, blob)
                 seconds[index[fut.key]] = s
+                last_start, last_end = max(last_start, began), max(last_end, began + s)
                 fut.release()
         finally:
             for fut in futures:
                 fut.cancel()
-        t_parts = time.perf_counter()
+        t_parts, joined_at = time.perf_counter(), time.time()
         if self.cut == "w":  # the parts are the bad pairs: the one ∃u step, on the whole set, here
             admissible = g.admissible if within is None else within.admissible
             with m.guard("joining the parts of CPre"):
@@ -401,13 +418,15 @@ class DaskPredecessors:
         self._calls += 1
         t_end, slowest = time.perf_counter(), max(seconds, default=0.0)
         for key, value in (("sending", t_sent - t_start), ("slowest_part", slowest),
-                           ("after_parts", t_parts - t_sent - slowest), ("exists_u", t_end - t_parts)):
+                           ("after_parts", t_parts - t_sent - slowest), ("exists_u", t_end - t_parts),
+                           ("last_start", max(0.0, last_start - sent_at)), ("after_last", max(0.0, joined_at - last_end))):
             self.timing[key] += value
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
         log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "
-                 "joining them %.2f, the ∃u step %.2f", len(seconds), [round(s, 2) for s in seconds], sum(seconds),
-                 t_end - t_start, t_sent - t_start, t_parts - t_sent, t_end - t_parts)
+                 "joining them %.2f (the last began after %.2f, joined %.2f after the last ended), the ∃u step %.2f",
+                 len(seconds), [round(s, 2) for s in seconds], sum(seconds), t_end - t_start, t_sent - t_start,
+                 t_parts - t_sent, last_start - sent_at, joined_at - last_end, t_end - t_parts)
         return result
 
     def close(self) -> None:
