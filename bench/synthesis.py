@@ -121,6 +121,12 @@ def lines(rec: dict[str, Any]) -> list[str]:
                           "the last part ended)" if "last_start" in t else "")
                        + f", {t['exists_u']:.1f} s the ∃u "
                        f"step, {t['sending']:.1f} s sending the sets (in the job's process)")
+    for r in rec["rows"]:
+        w = r["parallel"].get("window_cells")
+        if w and w["cells"]:
+            total = sum(w["parts"])
+            out.append(f"    {r['mode']}: the last call's parts ran the chain on {total} cells of ŵ's {w['cells']} "
+                       f"({total / w['cells']:.2f}x: each window reaches past its range by the spread of M̂)")
     for k, target in rec["targets"].items():  # keys are strings once read back from JSON
         row = next((r for r in rec["rows"] if r.get("workers") == int(k)), None)
         if row is not None:

@@ -295,6 +295,7 @@ class DaskPredecessors:
         self._problem: Any = None  # the Within (or "all") the workers hold
         self._problem_key = ""
         self._problem_future: Any = None
+        self._last_starts: list[tuple[int, ...] | None] | None = None  # the parts of the last call
         self._finalizer = weakref.finalize(self, _forget_everywhere, client, self._model_key)
 
     @property
@@ -320,6 +321,25 @@ class DaskPredecessors:
     @property
     def calls(self) -> int:
         return self._calls
+
+    @property
+    def window_cells(self) -> list[int]:
+        """Of the window cut, the ``ŵ`` cells each part of the last call ran the chain on (its window reaches past
+        its range by the spread of ``M̂``, so with many parts the chain runs on the same cells more than once: on
+        consensus N = 7, 1.12x the 33 cells with 2 parts, 2.70x with 16); empty for the other cuts or before a
+        call. Computed here when asked (reports), not during the calls."""
+        if self.cut != "window" or self._last_starts is None:
+            return []
+        g, m = self.cpre, self.cpre.model
+        digit, top = self.digits[0], self.cells
+        cells = [m.interval(digit, k, k) for k in range(top)]
+        out = []
+        with m.guard("counting the windows of the cluster's parts"):
+            for start, end in zip(self._last_starts[:-1], self._last_starts[1:]):
+                assert start is not None and g.M is not None
+                _, window = w_window(m, g.M, digit, start[0], None if end is None else end[0])
+                out.append(sum(1 for c in cells if (window & c) != m.bdd.false))
+        return out
 
     def bounds(self) -> list[tuple[int, int]]:
         edges = [0, *self._cuts, self.cells]
@@ -375,6 +395,7 @@ class DaskPredecessors:
             z = self._scatter(_dump(m, Z))
             o = None if outside is None else self._scatter(_dump(m, outside))
         bounds, starts = self.bounds(), self._starts()
+        self._last_starts = starts
         futures = []
         task = {"w": bad_part, "window": window_part}.get(self.cut, predecessors_part)
         extra = () if symmetry is None else (symmetry.classes,)

@@ -565,6 +565,9 @@ class ControllablePredecessor:
         timing = getattr(p, "timing", None)
         if timing:  # the cluster's breakdown (workers.dask_cpre)
             out["seconds"] = {k: round(v, 2) for k, v in timing.items()}
+        window_cells = getattr(p, "window_cells", None)
+        if window_cells:  # the cluster's window cut: ŵ cells the last call's parts ran the chain on
+            out["window_cells"] = {"parts": window_cells, "cells": int(getattr(p, "cells", 0))}
         if self._pool_error is not None:
             out["stopped"] = f"{self._pool_error}; the later calls ran in one process"
         return out
