@@ -121,6 +121,11 @@ def lines(rec: dict[str, Any]) -> list[str]:
                           "the last part ended)" if "last_start" in t else "")
                        + f", {t['exists_u']:.1f} s the ∃u "
                        f"step, {t['sending']:.1f} s sending the sets (in the job's process)")
+    for r in rec["rows"]:  # where the waiting for the last part to begin went, call by call
+        calls = r["parallel"].get("per_call")
+        if calls:
+            out.append(f"    {r['mode']}: per call, wall / slowest part / until the last part began: "
+                       + ", ".join(f"{c['wall']:.1f}/{c['slowest_part']:.1f}/{c['last_start']:.1f}" for c in calls))
     for r in rec["rows"]:
         w = r["parallel"].get("window_cells")
         if w and w["cells"]:

@@ -289,6 +289,8 @@ class DaskPredecessors:
         #: real cluster.
         self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0,
                        "last_start": 0.0, "after_last": 0.0}
+        #: The same per call, with the call's wall seconds and its parts' summed seconds, in call order.
+        self.history: list[dict[str, float]] = []
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
         self._max_memory = m.max_memory
@@ -438,10 +440,13 @@ class DaskPredecessors:
         self._seconds = seconds
         self._calls += 1
         t_end, slowest = time.perf_counter(), max(seconds, default=0.0)
-        for key, value in (("sending", t_sent - t_start), ("slowest_part", slowest),
-                           ("after_parts", t_parts - t_sent - slowest), ("exists_u", t_end - t_parts),
-                           ("last_start", max(0.0, last_start - sent_at)), ("after_last", max(0.0, joined_at - last_end))):
+        call = {"sending": t_sent - t_start, "slowest_part": slowest, "after_parts": t_parts - t_sent - slowest,
+                "exists_u": t_end - t_parts, "last_start": max(0.0, last_start - sent_at),
+                "after_last": max(0.0, joined_at - last_end)}
+        for key, value in call.items():
             self.timing[key] += value
+        self.history.append({"wall": round(t_end - t_start, 3), "parts_sum": round(sum(seconds), 3),
+                             **{k: round(v, 3) for k, v in call.items()}})
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
         log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "

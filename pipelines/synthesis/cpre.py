@@ -565,6 +565,7 @@ class ControllablePredecessor:
         timing = getattr(p, "timing", None)
         if timing:  # the cluster's breakdown (workers.dask_cpre)
             out["seconds"] = {k: round(v, 2) for k, v in timing.items()}
+            out["per_call"] = list(getattr(p, "history", []))
         window_cells = getattr(p, "window_cells", None)
         if window_cells:  # the cluster's window cut: ŵ cells the last call's parts ran the chain on
             out["window_cells"] = {"parts": window_cells, "cells": int(getattr(p, "cells", 0))}
