@@ -130,8 +130,10 @@ def lines(rec: dict[str, Any]) -> list[str]:
         w = r["parallel"].get("window_cells")
         if w and w["cells"]:
             total = sum(w["parts"])
+            why = ("the split cut: each cell once, then each range's states joined from the ranges they reach"
+                   if r["parallel"].get("cut") == "split" else "each window reaches past its range by the spread of M̂")
             out.append(f"    {r['mode']}: the last call's parts ran the chain on {total} cells of ŵ's {w['cells']} "
-                       f"({total / w['cells']:.2f}x: each window reaches past its range by the spread of M̂)")
+                       f"({total / w['cells']:.2f}x: {why})")
     for k, target in rec["targets"].items():  # keys are strings once read back from JSON
         row = next((r for r in rec["rows"] if r.get("workers") == int(k)), None)
         if row is not None:

@@ -17,7 +17,7 @@ from pipelines.synthesis.fixed_points import cobuchi, reach, reach_safe, safe
 from pipelines.synthesis.synthesize import synthesize
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 from workers.control import partitioning
-from workers.dask_cpre import DaskPartFailed, DaskPredecessors, cut_digits, on_cluster, parts_for
+from workers.dask_cpre import SPLIT_FROM, DaskPartFailed, DaskPredecessors, cut_digits, on_cluster, parts_for
 from workers.job import run_abstraction, run_job
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 
@@ -81,12 +81,12 @@ def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
         assert got == first, name
 
 
-@pytest.mark.parametrize("cut", ["window", "w", "x"])
+@pytest.mark.parametrize("cut", ["window", "split", "w", "x"])
 def test_every_cut_of_the_shared_cpre_is_exact(client, cut):
-    """The shared CPre cut along ``ŵ`` (windows: each part final on its states; or bad inputs joined before
-    ``∃u``) and along the states: the explicit predecessors, whole, ``within`` a set and on ``outside``, at random
-    cuts."""
-    rng = np.random.default_rng(7300 + ["window", "w", "x"].index(cut))
+    """The shared CPre cut along ``ŵ`` (windows: each part final on its states; split: bad inputs of exact ranges,
+    each window's states joined from the ranges it reaches on a worker; or bad inputs joined before ``∃u`` here)
+    and along the states: the explicit predecessors, whole, ``within`` a set and on ``outside``, at random cuts."""
+    rng = np.random.default_rng(7300 + ["window", "w", "x", "split"].index(cut))
     net = random_net(rng, True)
     ex = Explicit(net)
     game = build(net, "shared_top")
@@ -111,7 +111,7 @@ def test_every_cut_of_the_shared_cpre_is_exact(client, cut):
 def test_the_w_cut_needs_a_shared_internal_variable():
     game = build(random_net(np.random.default_rng(3), False), "interleaved")
     assert game.M is None
-    for cut in ("w", "window"):
+    for cut in ("w", "window", "split"):
         with pytest.raises(ValueError, match=f"{cut} cut needs the shared CPre"):
             cut_digits(game, cut)
     assert cut_digits(game)[0] == "x"
@@ -119,6 +119,19 @@ def test_the_w_cut_needs_a_shared_internal_variable():
         cut_digits(game, "diagonal")
     shared = build(random_net(np.random.default_rng(4), True), "shared_top")
     assert cut_digits(shared)[0] == "window"
+
+
+def test_auto_splits_the_shared_cpre_from_split_from_parts_on(client):
+    """``cut='auto'`` on the shared CPre: windows below :data:`SPLIT_FROM` parts, the split cut from there on (its
+    parts run the chain on each cell of ``ŵ`` once; the windows overlap)."""
+    game = build(random_net(np.random.default_rng(4), True), "shared_top")
+    pools = [DaskPredecessors(game, 2, client=client), DaskPredecessors(game, SPLIT_FROM, client=client),
+             DaskPredecessors(game, SPLIT_FROM, client=client, cut="window")]
+    try:
+        assert [p.cut for p in pools] == ["window", "split", "window"]
+    finally:
+        for p in pools:
+            p.close()
 
 
 def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here():

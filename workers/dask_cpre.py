@@ -10,9 +10,11 @@ like :class:`workers.processes.partitioned_cpre.PartitionedPredecessors`, with t
 * **Parts.** A call is cut into ``parts`` ranges (:mod:`pipelines.synthesis.partition`: exact, the union of the
   parts is the whole): for the shared CPre, ranges of the shared internal variable ``ŵ``, each part the
   ``∃u.CPre`` of the states whose lowest admissible ``ŵ`` lies in its range, the chain run on the ``ŵ`` cells
-  those states admit (:func:`cut_digits` says why); else ranges of the top two current-state digits, each part
-  its states' ``∃u.CPre``. Either way a part's answer is a set of states, final on its own: this process only
-  ORs them. Dask hands each worker the next
+  those states admit (:func:`cut_digits` says why); from :data:`SPLIT_FROM` parts on, where those windows overlap
+  much, in two phases (the split cut: :func:`core_part` runs the chain on each range's own cells once,
+  :func:`join_part` answers a range's states from the ranges they reach, on a worker); else ranges of the top
+  two current-state digits, each part its states' ``∃u.CPre``. Either way a part's answer is a set of states,
+  final on its own: this process only ORs them. Dask hands each worker the next
   part as it frees up, and the cuts move after every call towards equal measured work
   (:func:`~pipelines.synthesis.partition.update_density`).
 * **The same answer in every mode.** Each part is ``part ∧ ∃u.CPre(Z)`` computed by
@@ -67,12 +69,18 @@ cut loses sub-results the parts share: on consensus N = 6 the parts of one call 
 parts per worker than with one, while the cuts moved after every call (:func:`update_density`) kept two parts
 within 10 % of each other."""
 
+SPLIT_FROM = 4
+"""From this many parts of the shared CPre on, ``cut='auto'`` is the split cut, below it the window cut. Summed
+seconds of the parts over a Reach(Safe) of consensus N = 6 (two workers), window against split: 2 parts 28.3 and
+28.5 s, 4 parts 36.0 and 33.7, 8 parts 47.1 and 38.9, 16 parts 65.7 and 54.0: the windows overlap by ``M̂``'s
+spread (1.12x the cells of ``ŵ`` at 2 parts, 2.7x at 16 on N = 7), the split cut's second phase costs a transfer."""
+
 HELD_PROBLEMS = 2
 """Problems a worker keeps loaded (a safety loop's ``within`` problem and the plain one alternate in
 Reach(Safe)); older ones are dropped with their CUDD manager when no other problem of theirs is held."""
 
 
-CUTS = ("auto", "window", "w", "x")
+CUTS = ("auto", "window", "split", "w", "x")
 """What the parts of a call split (:func:`cut_digits`)."""
 
 
@@ -138,13 +146,14 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
 
 def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             compute: Callable[[tuple, Function, Function | None, Function | None], Function],
-            classes: Sequence[Sequence[int]] | None = None) -> Part:
+            classes: Sequence[Sequence[int]] | None = None, close: bool = True) -> Part:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
     outside, representatives)`` run under CUDD's memory guard, its result as DDDMP bytes, the seconds it took
     (the problem's loading not counted: it happens once per worker) and the wall-clock time it began (after the
     loading). With the ``classes`` of interchangeable subsystems (the sets of the call invariant under them)
     ``representatives`` are their orbit representatives (else ``None``) and the result is closed under them here,
-    on the worker."""
+    on the worker (unless ``close`` is false: the split cut's first phase, whose pairs are read on the
+    representatives only)."""
     held = _problem(key, problem)
     model = held[0]
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held[6])
@@ -154,7 +163,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
         result = compute(held, z, out, None if sym is None else sym.representatives)
-        if sym is not None:
+        if sym is not None and close:
             result = sym.close(result)
         blob = _dump(model, result)
     del z, out, result
@@ -215,6 +224,52 @@ def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | No
     return _answer(key, problem, Z, outside, compute, classes)
 
 
+def core_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+              start: Sequence[int], end: Sequence[int] | None,
+              classes: Sequence[Sequence[int]] | None = None) -> Part:
+    """The split cut's first phase, a Dask task: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some
+    admissible ``ŵ`` whose code of ``digits[0]`` lies in ``[start, end)`` exactly (the chain runs on those cells
+    only: no window reaches past them), as a :data:`Part`. With the ``classes`` of interchangeable subsystems, on
+    their representatives only (the second phase reads them there), not closed."""
+
+    def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
+        model, chain, _, M, _, w_bits, _ = held
+        care = out if reps is None else reps if out is None else out & reps
+        return bad_inputs(model, chain, M, w_bits, z, care, lexicographic_part(model, digits, start, end))
+
+    return _answer(key, problem, Z, outside, compute, classes, close=False)
+
+
+def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: Sequence[int],
+              end: Sequence[int] | None, classes: Sequence[Sequence[int]] | None, own: Part, *others: Part) -> Part:
+    """The split cut's second phase, a Dask task: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible
+    code of ``digits[0]`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.partition.w_window`), from the first
+    phase's bad pairs of the ranges of ``ŵ`` those states admit: ``own`` (the part's own range) and ``others`` (the
+    ranges its window reaches into), which Dask brings from the workers that computed them.
+
+    Exact: a state ``x̂`` of the part admits only ``ŵ`` of its window, so the pairs bad for ``x̂`` come from the
+    ranges the window meets, and ``∃u. adm ∧ states ∧ ¬(∨ bad)`` is the window cut's answer on these states.
+    Returns its answer (closed under the ``classes``, if given), the seconds of both phases of its own range, and
+    when its first phase began."""
+    held = _problem(key, problem)
+    model, _, admissible, M, u_bits, _, owner = held
+    sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=owner)
+    t0 = time.perf_counter()
+    with model.guard("joining a part of CPre on a Dask worker"):
+        states, _ = w_window(model, M, digits[0], start[0], None if end is None else end[0])
+        if sym is not None:
+            states &= sym.representatives
+        bad = model.bdd.false
+        for blob, _, _ in (own, *others):
+            bad |= _load(model, blob)
+        result = and_exists(admissible & states, ~bad, list(u_bits))
+        if sym is not None:
+            result = sym.close(result)
+        blob = _dump(model, result)
+    del states, bad, result
+    return blob, own[1] + time.perf_counter() - t0, own[2]
+
+
 def forget(model_key: str) -> int:
     """Drop every problem of one CPre this worker holds (run on every worker when the CPre closes)."""
     keys = [k for k, h in _HELD.items() if h[6] == model_key]
@@ -246,12 +301,14 @@ class DaskPredecessors:
         The job's client (its workers import ``workers.dask_cpre``, as they import ``workers.tasks``).
     retries : int
         Dask retries of a part that raised (a worker's death is retried by Dask itself).
-    cut : {'auto', 'window', 'w', 'x'}
+    cut : {'auto', 'window', 'split', 'w', 'x'}
         What the parts split (:func:`cut_digits`): ``x``, ranges of the top two current-state digits, each part
         ``part ∧ ∃u.CPre(Z)``; ``window``, ranges of the top shared internal variable, each part ``∃u.CPre(Z)``
-        on the states whose lowest admissible ``ŵ`` lies in its range (:func:`window_part`); ``w``, the same
-        ranges, each part the inputs that are bad for some ``ŵ`` of its range (:func:`bad_part`), joined here
-        before the one ``∃u`` step; ``auto``: ``window`` for the shared CPre, ``x`` otherwise.
+        on the states whose lowest admissible ``ŵ`` lies in its range (:func:`window_part`); ``split``, the same
+        answers in two phases, the bad inputs of each range's own ``ŵ`` cells (:func:`core_part`), then each
+        range's states from the ranges they admit (:func:`join_part`), on the workers; ``w``, the first phase
+        only, joined here before the one ``∃u`` step; ``auto``: for the shared CPre ``window`` below
+        :data:`SPLIT_FROM` parts and ``split`` from there on, ``x`` otherwise.
 
     Call it like :meth:`.ControllablePredecessor.predecessors`; :meth:`close` drops the workers' copies.
     """
@@ -273,6 +330,8 @@ class DaskPredecessors:
         self.client = client
         self.retries = retries
         self.cut, self.digits = cut_digits(cpre, cut)
+        if cut == "auto" and self.cut == "window" and parts >= SPLIT_FROM:
+            self.cut = "split"
         self.shape = tuple(int(m.sizes[d]) for d in self.digits)
         self.cells = math.prod(self.shape)
         self.parts = min(parts, self.cells)
@@ -298,6 +357,8 @@ class DaskPredecessors:
         self._problem_key = ""
         self._problem_future: Any = None
         self._last_starts: list[tuple[int, ...] | None] | None = None  # the parts of the last call
+        self._last_bounds: list[tuple[int, int]] | None = None
+        self._reach: np.ndarray | None = None  # the split cut's: highest ŵ admitted, by lowest (_reached)
         self._finalizer = weakref.finalize(self, _forget_everywhere, client, self._model_key)
 
     @property
@@ -324,14 +385,35 @@ class DaskPredecessors:
     def calls(self) -> int:
         return self._calls
 
+    def _reached(self, k: int, bounds: list[tuple[int, int]]) -> list[int]:
+        """Of the split cut: the ranges (indices into ``bounds``) of the ``ŵ`` cells that the states of range
+        ``k`` admit, ``k`` first (:func:`join_part`)."""
+        if self._reach is None:  # the highest ŵ a state admits, by its lowest: once, M̂ does not change
+            g, m = self.cpre, self.cpre.model
+            assert g.M is not None
+            digit, cells = self.digits[0], self.cells
+            highest = np.arange(cells)
+            with m.guard("finding how far the windows of ŵ reach"):
+                for c in range(cells):
+                    _, window = w_window(m, g.M, digit, c, c + 1)
+                    hits = [h for h in range(c, cells) if (window & m.interval(digit, h, h)) != m.bdd.false]
+                    highest[c] = max(hits, default=c)
+            self._reach = highest
+        lo, hi = bounds[k]
+        top = int(self._reach[lo:hi + 1].max())
+        return [k] + [j for j, (a, _) in enumerate(bounds) if j != k and a <= top and bounds[j][1] >= lo]
+
     @property
     def window_cells(self) -> list[int]:
         """Of the window cut, the ``ŵ`` cells each part of the last call ran the chain on (its window reaches past
         its range by the spread of ``M̂``, so with many parts the chain runs on the same cells more than once: on
         consensus N = 7, 1.12x the 33 cells with 2 parts, 2.70x with 16); empty for the other cuts or before a
         call. Computed here when asked (reports), not during the calls."""
-        if self.cut != "window" or self._last_starts is None:
+        if self.cut not in ("window", "split") or self._last_starts is None:
             return []
+        if self.cut == "split":  # the first phase runs the chain on each range's own cells only
+            return [b - a + 1 for a, b in self.bounds()] if self._last_bounds is None else \
+                [b - a + 1 for a, b in self._last_bounds]
         g, m = self.cpre, self.cpre.model
         digit, top = self.digits[0], self.cells
         cells = [m.interval(digit, k, k) for k in range(top)]
@@ -397,9 +479,9 @@ class DaskPredecessors:
             z = self._scatter(_dump(m, Z))
             o = None if outside is None else self._scatter(_dump(m, outside))
         bounds, starts = self.bounds(), self._starts()
-        self._last_starts = starts
+        self._last_starts, self._last_bounds = starts, bounds
         futures = []
-        task = {"w": bad_part, "window": window_part}.get(self.cut, predecessors_part)
+        task = {"w": bad_part, "window": window_part, "split": core_part}.get(self.cut, predecessors_part)
         extra = () if symmetry is None else (symmetry.classes,)
         for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
             assert start is not None
@@ -407,6 +489,15 @@ class DaskPredecessors:
                 task, self._problem_key, self._problem_future, z, o, list(self.digits), list(start),
                 None if end is None else list(end), *extra, pure=False, retries=self.retries,
                 key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
+        if self.cut == "split":  # the second phase: each range's states from the pairs of the ranges they admit
+            cores, futures = futures, []
+            classes = None if symmetry is None else symmetry.classes
+            for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
+                assert start is not None
+                futures.append(self.client.submit(
+                    join_part, self._problem_key, self._problem_future, list(self.digits), list(start),
+                    None if end is None else list(end), classes, *(cores[j] for j in self._reached(k, bounds)),
+                    pure=False, retries=self.retries, key=f"compabs-cpre-join-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
         index = {f.key: k for k, f in enumerate(futures)}
         seconds = [0.0] * len(futures)
         t_sent, sent_at = time.perf_counter(), time.time()
@@ -432,6 +523,9 @@ class DaskPredecessors:
         finally:
             for fut in futures:
                 fut.cancel()
+            if self.cut == "split":
+                for fut in cores:
+                    fut.cancel()
         t_parts, joined_at = time.perf_counter(), time.time()
         if self.cut == "w":  # the parts are the bad pairs: the one ∃u step, on the whole set, here
             admissible = g.admissible if within is None else within.admissible
@@ -479,7 +573,7 @@ def cut_digits(cpre: ControllablePredecessor, cut: str = "auto") -> tuple[str, t
     m = cpre.model
     w_digits = [d for d in dict.fromkeys(v.rsplit("_", 1)[0] for v in m.variables)
                 if d.startswith("w") and m.sizes[d] > 1]
-    if cut in ("w", "window") or (cut == "auto" and cpre.M is not None and w_digits):
+    if cut in ("w", "window", "split") or (cut == "auto" and cpre.M is not None and w_digits):
         if cpre.M is None or not w_digits:
             raise ValueError(f"the {cut} cut needs the shared CPre (a shared internal variable)")
         return ("window" if cut == "auto" else cut), (w_digits[0],)
@@ -500,5 +594,6 @@ def on_cluster(client: Any, retries: int = 1, cut: str = "auto"):
     return factory
 
 
-__all__ = ["CUTS", "HELD_PROBLEMS", "PARTS_PER_WORKER", "DaskPartFailed", "DaskPredecessors", "bad_part", "cut_digits",
-           "forget", "on_cluster", "parts_for", "predecessors_part", "window_part"]
+__all__ = ["CUTS", "HELD_PROBLEMS", "PARTS_PER_WORKER", "SPLIT_FROM", "DaskPartFailed", "DaskPredecessors", "bad_part",
+           "core_part", "cut_digits", "forget", "join_part", "on_cluster", "parts_for", "predecessors_part",
+           "window_part"]

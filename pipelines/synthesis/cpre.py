@@ -569,6 +569,9 @@ class ControllablePredecessor:
         window_cells = getattr(p, "window_cells", None)
         if window_cells:  # the cluster's window cut: ŵ cells the last call's parts ran the chain on
             out["window_cells"] = {"parts": window_cells, "cells": int(getattr(p, "cells", 0))}
+        cut = getattr(p, "cut", None)
+        if cut:  # the cluster's: what the parts split (workers.dask_cpre.cut_digits)
+            out["cut"] = cut
         if self._pool_error is not None:
             out["stopped"] = f"{self._pool_error}; the later calls ran in one process"
         return out
