@@ -200,10 +200,11 @@ class StageClock:
 
 
 def _jsonable(obj: Any, depth: int = 0) -> Any:
-    """Numbers, strings and small containers only (reports carry arrays and BDD sizes per layer)."""
+    """Numbers, strings and small containers only (reports carry arrays and BDD sizes per layer). Deep enough for
+    ``synthesis.results.<name>.local_games.groups`` (the lists of each group's subsystems)."""
     if isinstance(obj, (bool, int, float, str)) or obj is None:
         return obj
-    if depth > 4:
+    if depth > 8:
         return None
     if isinstance(obj, dict):
         return {str(k): _jsonable(v, depth + 1) for k, v in obj.items()}

@@ -142,3 +142,22 @@ def test_the_local_games_baseline_runs_both_ways_and_prints_its_ratio():
     record = {"status": "ok", "error": None, "runs": runs, "ratio": 2.0, "same_domains": True}
     (line,) = _local_games_lines(record)
     assert "from the local games' bound" in line and "2x, same domains: True" in line
+
+
+def test_the_bench_json_keeps_the_local_games_groups():
+    """``_jsonable`` keeps the depth of ``synthesis.results.<name>.local_games.groups`` (lists of subsystems) and
+    still cuts what is deeper."""
+    from bench.run import _jsonable
+
+    report = {"synthesis": {"results": {"reach_safe": {"local_games": {"groups": [[0, 1], [1, 2, 3]]}}}}}
+    assert _jsonable({"report": report})["report"] == report
+    deep: dict = {}
+    node = deep
+    for _ in range(12):
+        node["k"] = {}
+        node = node["k"]
+    cut = _jsonable(deep)
+    depth = 0
+    while isinstance(cut, dict):
+        cut, depth = cut["k"], depth + 1
+    assert cut is None and depth < 12
