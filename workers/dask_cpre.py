@@ -173,9 +173,10 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
                       start: Sequence[int], end: Sequence[int] | None,
                       classes: Sequence[Sequence[int]] | None = None) -> Part:
-    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as a :data:`Part`. With the ``classes`` of interchangeable subsystems (the sets of the call invariant under
-    them): the closure of the answer on the part's representatives (the parts' closures overlap; their union is
-    the whole, since closing distributes over unions)."""
+    """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as a :data:`Part`. With the
+    ``classes`` of interchangeable subsystems (the sets of the call invariant under them): the closure of the
+    answer on the part's representatives (the parts' closures overlap; their union is the whole, since closing
+    distributes over unions)."""
 
     def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
         model, chain, admissible, M, u_bits, w_bits, _ = held
@@ -405,15 +406,15 @@ class DaskPredecessors:
 
     @property
     def window_cells(self) -> list[int]:
-        """Of the window cut, the ``ŵ`` cells each part of the last call ran the chain on (its window reaches past
-        its range by the spread of ``M̂``, so with many parts the chain runs on the same cells more than once: on
-        consensus N = 7, 1.12x the 33 cells with 2 parts, 2.70x with 16); empty for the other cuts or before a
-        call. Computed here when asked (reports), not during the calls."""
-        if self.cut not in ("window", "split") or self._last_starts is None:
+        """Of the window and split cuts, the ``ŵ`` cells each part of the last call ran the chain on (a window
+        reaches past its range by the spread of ``M̂``, so with many windows the chain runs on the same cells more
+        than once: on consensus N = 7, 1.12x the 33 cells with 2 parts, 2.70x with 16; the split cut's first phase
+        runs on each range's own cells); empty for the other cuts or before a call. Computed here when asked
+        (reports), not during the calls."""
+        if self.cut not in ("window", "split") or self._last_starts is None or self._last_bounds is None:
             return []
         if self.cut == "split":  # the first phase runs the chain on each range's own cells only
-            return [b - a + 1 for a, b in self.bounds()] if self._last_bounds is None else \
-                [b - a + 1 for a, b in self._last_bounds]
+            return [b - a + 1 for a, b in self._last_bounds]
         g, m = self.cpre, self.cpre.model
         digit, top = self.digits[0], self.cells
         cells = [m.interval(digit, k, k) for k in range(top)]
