@@ -402,7 +402,8 @@ def _check_imports(client: Any, scheduler: bool) -> None:
 
     An external scheduler must import it too (ENGINEERING "Dask distributed"). On workers this is also a
     warm-up: the first task would otherwise pay ~0.4 s of imports (numpy, zarr, the method) and ~0.3 s CPU of
-    loading the compiled per-cell kernels from numba's disk cache inside the job (the scheduler runs no kernel).
+    loading the compiled per-cell kernels from numba's disk cache inside the job (the scheduler runs no kernel),
+    and the first partitioned CPre ~0.1 s more for the synthesis modules (``workers.dask_cpre``).
     """
 
     def probe() -> str:
@@ -414,6 +415,7 @@ def _check_imports(client: Any, scheduler: bool) -> None:
     def probe_and_warm() -> str:
         probe()
         import pipelines.abstraction.kernels as compiled
+        import workers.dask_cpre  # noqa: F401  (synthesis parts: imported here, not in the first call's parts)
 
         compiled.warm_up()
         return "ok"

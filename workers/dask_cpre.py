@@ -88,9 +88,10 @@ class DaskPartFailed(PartitionFailed):
     """A part of ``∃u.CPre`` failed on the cluster (the message says why); the CPre goes on in one process."""
 
 
-Part = tuple[bytes, float, float]
-"""What a part's task returns: its answer as DDDMP bytes, the seconds it computed, and the wall-clock time
-(``time.time()``) it began computing, after its worker loaded the problem."""
+Part = tuple[bytes, float, float, float]
+"""What a part's task returns: its answer as DDDMP bytes, the seconds it computed, the wall-clock time
+(``time.time()``) it began computing, after its worker loaded the problem, and the wall-clock time its task was
+entered on the worker (before the loading)."""
 
 # ====================================================================================== the worker's side
 #: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
@@ -154,6 +155,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     ``representatives`` are their orbit representatives (else ``None``) and the result is closed under them here,
     on the worker (unless ``close`` is false: the split cut's first phase, whose pairs are read on the
     representatives only)."""
+    entered = time.time()
     held = _problem(key, problem)
     model = held[0]
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held[6])
@@ -167,7 +169,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             result = sym.close(result)
         blob = _dump(model, result)
     del z, out, result
-    return blob, time.perf_counter() - t0, began
+    return blob, time.perf_counter() - t0, began, entered
 
 
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -251,7 +253,7 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
     Exact: a state ``x̂`` of the part admits only ``ŵ`` of its window, so the pairs bad for ``x̂`` come from the
     ranges the window meets, and ``∃u. adm ∧ states ∧ ¬(∨ bad)`` is the window cut's answer on these states.
     Returns its answer (closed under the ``classes``, if given), the seconds of both phases of its own range, and
-    when its first phase began."""
+    when its first phase began and was entered."""
     held = _problem(key, problem)
     model, _, admissible, M, u_bits, _, owner = held
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=owner)
@@ -261,14 +263,14 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
         if sym is not None:
             states &= sym.representatives
         bad = model.bdd.false
-        for blob, _, _ in (own, *others):
+        for blob, *_ in (own, *others):
             bad |= _load(model, blob)
         result = and_exists(admissible & states, ~bad, list(u_bits))
         if sym is not None:
             result = sym.close(result)
         blob = _dump(model, result)
     del states, bad, result
-    return blob, own[1] + time.perf_counter() - t0, own[2]
+    return blob, own[1] + time.perf_counter() - t0, own[2], own[3]
 
 
 def forget(model_key: str) -> int:
@@ -343,12 +345,14 @@ class DaskPredecessors:
         #: Seconds summed over the calls: sending the sets, the slower part of each call, reading and joining the
         #: parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time). Of
         #: ``after_parts``: ``last_start``, from sending the parts until the last of them began computing (Dask's
-        #: dispatch, a worker's first loading of the problem, parts queued behind others), and ``after_last``, from
+        #: dispatch, a worker's first loading of the problem, parts queued behind others), of which
+        #: ``last_entered``, until the last part's task was entered on its worker (the loading not counted), and
+        #: ``after_last``, from
         #: the end of the last part's computation until this process had joined every part (its bytes coming back
         #: and read here). Both from the workers' wall clocks: exact on one machine, off by the clocks' skew on a
         #: real cluster.
         self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0,
-                       "last_start": 0.0, "after_last": 0.0}
+                       "last_start": 0.0, "last_entered": 0.0, "after_last": 0.0}
         #: The same per call, with the call's wall seconds and its parts' summed seconds, in call order.
         self.history: list[dict[str, float]] = []
         self._model_key = uuid.uuid4().hex
@@ -502,7 +506,7 @@ class DaskPredecessors:
         index = {f.key: k for k, f in enumerate(futures)}
         seconds = [0.0] * len(futures)
         t_sent, sent_at = time.perf_counter(), time.time()
-        last_start = last_end = sent_at
+        last_start = last_end = last_entered = sent_at
         result = g.bdd.false
         try:
             # with_results: the client fetches each answer as its part ends, in its own thread, instead of one round
@@ -515,11 +519,12 @@ class DaskPredecessors:
                     raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
                 if fut.status != "finished":  # cancelled under us (the cluster is closing)
                     raise DaskPartFailed(f"a part of CPre on a Dask worker ended {fut.status}")
-                blob, s, began = answer
+                blob, s, began, entered = answer
                 with m.guard("reading a Dask worker's part of CPre"):
                     result |= _load(m, blob)
                 seconds[index[fut.key]] = s
                 last_start, last_end = max(last_start, began), max(last_end, began + s)
+                last_entered = max(last_entered, entered)
                 fut.release()
         finally:
             for fut in futures:
@@ -537,6 +542,7 @@ class DaskPredecessors:
         t_end, slowest = time.perf_counter(), max(seconds, default=0.0)
         call = {"sending": t_sent - t_start, "slowest_part": slowest, "after_parts": t_parts - t_sent - slowest,
                 "exists_u": t_end - t_parts, "last_start": max(0.0, last_start - sent_at),
+                "last_entered": max(0.0, last_entered - sent_at),
                 "after_last": max(0.0, joined_at - last_end)}
         for key, value in call.items():
             self.timing[key] += value
@@ -545,9 +551,10 @@ class DaskPredecessors:
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
         log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "
-                 "joining them %.2f (the last began after %.2f, joined %.2f after the last ended), the ∃u step %.2f",
-                 len(seconds), [round(s, 2) for s in seconds], sum(seconds), t_end - t_start, t_sent - t_start,
-                 t_parts - t_sent, last_start - sent_at, joined_at - last_end, t_end - t_parts)
+                 "joining them %.2f (the last was entered after %.2f, began after %.2f, joined %.2f after the last "
+                 "ended), the ∃u step %.2f", len(seconds), [round(s, 2) for s in seconds], sum(seconds),
+                 t_end - t_start, t_sent - t_start, t_parts - t_sent, last_entered - sent_at, last_start - sent_at,
+                 joined_at - last_end, t_end - t_parts)
         return result
 
     def close(self) -> None:
