@@ -134,9 +134,10 @@ def test_auto_splits_the_shared_cpre_from_split_from_parts_on(client):
             p.close()
 
 
-def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here():
+@pytest.mark.parametrize("cut", ["window", "split"])
+def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here(cut):
     """The cluster goes away between calls: the part fails as a PartitionFailed naming the cluster, and the
-    fixed point answers in this process, exactly."""
+    fixed point answers in this process, exactly (also where the parts are two phases, the split cut)."""
     from workers.cluster import connect
 
     rng = np.random.default_rng(17)
@@ -147,7 +148,7 @@ def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here():
     want = game.predecessors(Z)
     conn = connect(None, 1)
     try:
-        pool = DaskPredecessors(game, 2, client=conn.client)
+        pool = DaskPredecessors(game, 2, client=conn.client, cut=cut)
         assert pool(Z) == want
     finally:
         conn.close()
