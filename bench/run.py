@@ -53,7 +53,8 @@ Cases (``--cases``; default: all but ``consensus``):
     Consensus synthesis (``--synthesis-N``, default 8) on one abstraction in every mode: one process (also without
     the symmetry of interchangeable agents, to show what it buys), helper
     processes, and an embedded Dask cluster of 1, 2, 4, ... workers up to the cores present, with the speed-up
-    over one process and whether each domain is the one process's (:mod:`bench.synthesis`, in a child process).
+    over one process and whether each domain is the one process's; then the largest cluster with 8 parts per
+    worker in windows and by the split cut (:mod:`bench.synthesis`, in a child process).
 
 Measurement: every case (every N, every worker count) runs in a fresh child process (``--child``), whose
 stage events are written to a JSON-lines file as they happen, so a case killed at its timeout still reports
@@ -1285,7 +1286,8 @@ def bench_synthesis_case(args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "synthesis.json"
         proc = subprocess.run([sys.executable, str(ROOT / "bench" / "synthesis.py"), "--N", str(args.synthesis_N),
-                               "--no-symmetry", "--json", str(out)], cwd=ROOT, timeout=args.consensus_timeout * 8)
+                               "--no-symmetry", "--compare-cuts", "8", "--json", str(out)], cwd=ROOT,
+                              timeout=args.consensus_timeout * 8)
         if proc.returncode != 0 or not out.exists():
             return {"case": "synthesis", "status": f"failed (exit {proc.returncode})", "rows": []}
         return {"case": "synthesis", "status": "ok", **json.loads(out.read_text())}

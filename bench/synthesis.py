@@ -7,10 +7,12 @@ the cores present (:mod:`workers.dask_cpre`). Each row gives the wall seconds, t
 parts' summed seconds of the largest call against that call in one process (what cutting costs), and whether the
 domain is the one process's (it must be: every mode is exact).
 
-    python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1] [--no-symmetry] [--json OUT]
+    python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1] [--no-symmetry] [--compare-cuts P] [--json OUT]
 
 ``--no-symmetry`` adds one process and the largest cluster without the symmetry of the interchangeable agents
-(:mod:`pipelines.synthesis.symmetry`): what it buys in each.
+(:mod:`pipelines.synthesis.symmetry`): what it buys in each. ``--compare-cuts P`` adds the largest cluster with
+``P`` parts per worker, cut in windows and by the split cut (:mod:`workers.dask_cpre`), and prints the parts'
+summed seconds of each: what the split cut buys where there are many parts.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ def default_workers(cores: int) -> list[int]:
 
 
 def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: bool = False,
-            no_symmetry: bool = False) -> dict[str, Any]:
+            no_symmetry: bool = False, compare_cuts: int = 0) -> dict[str, Any]:
     import yaml
 
     from pipelines.spec.model import parse_spec
@@ -94,6 +96,12 @@ def measure(N: int, workers: list[int], per_worker: int, processes: int, quiet: 
             if no_symmetry and k == workers[-1]:  # what the symmetry buys on the cluster's parts
                 rows.append(run(f"cluster, {k} workers, no symmetry", processes="auto", symmetry=False,
                                 partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker)))
+            if compare_cuts and k == workers[-1]:  # many parts: what the split cut buys over the windows
+                parts = parts_for(client, compare_cuts)
+                for cut in ("window", "split"):
+                    rows.append(run(f"cluster, {k} workers, {parts} parts, {cut}", processes="auto",
+                                    partitioned=on_cluster(client, cut=cut), auto_parts=parts))
+                    rows[-1]["compare_cut"] = cut
         finally:
             conn.close()
     for r in rows:
@@ -135,6 +143,11 @@ def lines(rec: dict[str, Any]) -> list[str]:
                    if r["parallel"].get("cut") == "split" else "each window reaches past its range by the spread of M̂")
             out.append(f"    {r['mode']}: the last call's parts ran the chain on {total} cells of ŵ's {w['cells']} "
                        f"({total / w['cells']:.2f}x: {why})")
+    summed = {r["compare_cut"]: sum(c["parts_sum"] for c in r["parallel"].get("per_call", []))
+              for r in rec["rows"] if r.get("compare_cut")}
+    if len(summed) == 2 and summed["window"]:
+        out.append(f"    many parts: the parts' seconds summed over the calls, windows {summed['window']:.1f} s, split "
+                   f"{summed['split']:.1f} s ({summed['split'] / summed['window']:.2f}x)")
     for k, target in rec["targets"].items():  # keys are strings once read back from JSON
         row = next((r for r in rec["rows"] if r.get("workers") == int(k)), None)
         if row is not None:
@@ -152,10 +165,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--processes", type=int, default=2, help="helper processes for the local mode (1: skip it)")
     p.add_argument("--json", default=None, help="write the results here")
     p.add_argument("--no-symmetry", action="store_true", help="also run one process and the largest cluster without the symmetry")
+    p.add_argument("--compare-cuts", type=int, default=0, metavar="P",
+                   help="also run the largest cluster with P parts per worker, windows and split cut (0: not)")
     args = p.parse_args(argv)
     cores = os.cpu_count() or 1
     workers = [int(w) for w in args.workers.split(",")] if args.workers else default_workers(cores)
-    rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry)
+    rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry,
+                  compare_cuts=args.compare_cuts)
     print("\n".join(lines(rec)))
     if args.json:
         Path(args.json).write_text(json.dumps(rec, indent=1))

@@ -129,6 +129,27 @@ def test_the_synthesis_case_prints_its_own_table_and_targets():
     assert results["targets"]["consensus synthesis, 2 Dask workers / one process"] == (2.52, ">= 1.8", True)
 
 
+def test_the_synthesis_case_prints_what_the_split_cut_buys():
+    """With ``--compare-cuts`` the table ends its cluster rows with the parts' summed seconds of both cuts, their
+    ratio, and the cells of ``ŵ`` each ran the chain on."""
+    from bench.synthesis import lines
+
+    def row(cut: str, sums: list[float], cells: list[int]) -> dict:
+        calls = [{"wall": 1.0, "slowest_part": 0.5, "last_start": 0.1, "last_entered": 0.0, "parts_sum": x}
+                 for x in sums]
+        return {"mode": f"cluster, 2 workers, 16 parts, {cut}", "wall": 30.0, "speedup": 1.0, "same_domain": True,
+                "compare_cut": cut, "domain_states": 1, "iterations": 9,
+                "parallel": {"processes": 16, "calls": len(sums), "cut": cut, "per_call": calls,
+                             "window_cells": {"parts": cells, "cells": 33}}}
+
+    rec = {"N": 6, "cores": 2, "per_worker": 1, "targets": {},
+           "rows": [row("window", [30.0, 35.7], [6] * 15 + [0]), row("split", [24.0, 30.0], [2] * 15 + [3])]}
+    text = "\n".join(lines(rec))
+    assert "windows 65.7 s, split 54.0 s (0.82x)" in text
+    assert "ran the chain on 90 cells of ŵ's 33 (2.73x: each window reaches past" in text
+    assert "ran the chain on 33 cells of ŵ's 33 (1.00x: the split cut" in text
+
+
 def test_the_local_games_baseline_runs_both_ways_and_prints_its_ratio():
     """The tanks' local-games baseline (here on examples/small.yaml): one abstraction synthesized from the bound
     and from the safe set, the same domains, and a line with the ratio."""
