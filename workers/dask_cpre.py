@@ -154,8 +154,7 @@ class DaskPredecessors:
         self._problem: Any = None  # the Within (or "all") the workers hold
         self._problem_key = ""
         self._problem_future: Any = None
-        self._last_starts: list[tuple[int, ...] | None] | None = None  # the parts of the last call
-        self._last_bounds: list[tuple[int, int]] | None = None
+        self._last_bounds: list[tuple[int, int]] | None = None  # the parts of the last call
         self._reach: np.ndarray | None = None  # the split cut's: highest ŵ admitted, by lowest (_reached)
         self._finalizer = weakref.finalize(self, _forget_everywhere, client, self._model_key)
 
@@ -187,19 +186,20 @@ class DaskPredecessors:
         """Of the split cut: the ranges (indices into ``bounds``) of the ``ŵ`` cells that the states of range
         ``k`` admit, ``k`` first (:func:`join_part`)."""
         if self._reach is None:  # the highest ŵ a state admits, by its lowest: once, M̂ does not change
-            g, m = self.cpre, self.cpre.model
-            assert g.M is not None
-            digit, cells = self.digits[0], self.cells
-            highest = np.arange(cells)
-            with m.guard("finding how far the windows of ŵ reach"):
-                for c in range(cells):
-                    _, window = w_window(m, g.M, digit, c, c + 1)
-                    hits = [h for h in range(c, cells) if (window & m.interval(digit, h, h)) != m.bdd.false]
-                    highest[c] = max(hits, default=c)
-            self._reach = highest
+            self._reach = np.array([max(self._window_hits(c, c + 1), default=c) for c in range(self.cells)])
         lo, hi = bounds[k]
         top = int(self._reach[lo:hi + 1].max())
         return [k] + [j for j, (a, _) in enumerate(bounds) if j != k and a <= top and bounds[j][1] >= lo]
+
+    def _window_hits(self, start: int, end: int | None) -> list[int]:
+        """The ``ŵ`` cells admitted by the states whose lowest admissible ``ŵ`` lies in ``[start, end)``
+        (:func:`~pipelines.synthesis.partition.w_window`'s window, cell by cell)."""
+        g, m = self.cpre, self.cpre.model
+        assert g.M is not None
+        digit = self.digits[0]
+        with m.guard("finding the cells of a window of ŵ"):
+            _, window = w_window(m, g.M, digit, start, end)
+            return [c for c in range(self.cells) if (window & m.interval(digit, c, c)) != m.bdd.false]
 
     @property
     def window_cells(self) -> list[int]:
@@ -208,20 +208,13 @@ class DaskPredecessors:
         than once: on consensus N = 7, 1.12x the 33 cells with 2 parts, 2.70x with 16; the split cut's first phase
         runs on each range's own cells); empty for the other cuts or before a call. Computed here when asked
         (reports), not during the calls."""
-        if self.cut not in ("window", "split") or self._last_starts is None or self._last_bounds is None:
+        bounds = self._last_bounds
+        if self.cut not in ("window", "split") or bounds is None:
             return []
         if self.cut == "split":  # the first phase runs the chain on each range's own cells only
-            return [b - a + 1 for a, b in self._last_bounds]
-        g, m = self.cpre, self.cpre.model
-        digit, top = self.digits[0], self.cells
-        cells = [m.interval(digit, k, k) for k in range(top)]
-        out = []
-        with m.guard("counting the windows of the cluster's parts"):
-            for start, end in zip(self._last_starts[:-1], self._last_starts[1:]):
-                assert start is not None and g.M is not None
-                _, window = w_window(m, g.M, digit, start[0], None if end is None else end[0])
-                out.append(sum(1 for c in cells if (window & c) != m.bdd.false))
-        return out
+            return [b - a + 1 for a, b in bounds]
+        # the last part has no upper end (as in the calls: codes past the grid belong to it)
+        return [len(self._window_hits(a, None if k == len(bounds) - 1 else b + 1)) for k, (a, b) in enumerate(bounds)]
 
     def bounds(self) -> list[tuple[int, int]]:
         edges = [0, *self._cuts, self.cells]
@@ -277,7 +270,7 @@ class DaskPredecessors:
             z = self._scatter(_dump(m, Z))
             o = None if outside is None else self._scatter(_dump(m, outside))
         bounds, starts = self.bounds(), self._starts()
-        self._last_starts, self._last_bounds = starts, bounds
+        self._last_bounds = bounds
         futures = []
         task = {"w": bad_part, "window": window_part, "split": core_part}.get(self.cut, predecessors_part)
         extra = () if symmetry is None else (symmetry.classes,)
