@@ -173,10 +173,15 @@ class StageClock:
     A stage is complete at its first event with ``done >= total``; it is charged the wall and CPU time since the
     previous completion (the first event of the run closes a ``startup`` segment). ``mark(name)`` closes a
     segment by hand. Each closed segment is emitted at once (so a killed child has reported it).
+
+    Only events from the thread that made the clock count: an audit beside synthesis reports from its relay
+    thread, and its segments would both race this thread's (a negative wall) and steal the time of the stage
+    running meanwhile. Such a stage is charged where the main thread waits for it (``finish_audit``).
     """
 
     def __init__(self, emit: Callable[[dict], None]) -> None:
         self.emit = emit
+        self.thread = threading.get_ident()
         self.last = (time.perf_counter(), tree_cpu())
         self.started = False
         self.closed: set[str] = set()
@@ -193,6 +198,8 @@ class StageClock:
         self.emit({"type": "stage", "stage": stage, "wall": wall, "cpu": cpu, "self_peak_mb": self_peak_mb()})
 
     def __call__(self, stage: str, done: int, total: int, message: str = "") -> None:
+        if threading.get_ident() != self.thread:
+            return
         if not self.started:
             self.mark("startup")
         if done >= total and stage not in self.closed:

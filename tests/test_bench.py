@@ -182,3 +182,23 @@ def test_the_bench_json_keeps_the_local_games_groups():
     while isinstance(cut, dict):
         cut, depth = cut["k"], depth + 1
     assert cut is None and depth < 12
+
+
+def test_the_stage_clock_ignores_events_from_other_threads():
+    """An audit beside synthesis reports its progress from a relay thread; were those events timed, they would
+    race the main thread's marks (a negative wall once) and steal the time of the stage running meanwhile."""
+    import threading
+
+    from bench.run import StageClock
+
+    events: list[dict] = []
+    clock = StageClock(events.append)
+    clock("subsystems", 1, 1)
+    t = threading.Thread(target=clock, args=("audit", 1, 1))
+    t.start()
+    t.join()
+    clock("synthesis", 1, 1)
+    clock("audit", 1, 1)  # the main thread's wait for the audit (finish_audit) is what the stage is charged
+    stages = [e["stage"] for e in events]
+    assert stages == ["startup", "subsystems", "synthesis", "audit"]
+    assert all(e["wall"] >= 0 for e in events)
