@@ -202,3 +202,16 @@ def test_the_stage_clock_ignores_events_from_other_threads():
     stages = [e["stage"] for e in events]
     assert stages == ["startup", "subsystems", "synthesis", "audit"]
     assert all(e["wall"] >= 0 for e in events)
+
+
+@pytest.mark.parametrize("argv", [["--N", "-1"], ["--workers", "2,-1"], ["--workers", "x"], ["--per-worker", "0"],
+                                  ["--processes", "0"], ["--compare-cuts", "-8"]])
+def test_the_synthesis_bench_refuses_counts_below_one(argv, capsys):
+    """A negative or zero count is a typo: argparse's usage error (exit 2), before any cluster starts."""
+    from bench.synthesis import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "must be at least" in err or "not an integer" in err
