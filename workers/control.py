@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.synthesis.synthesize import synthesize
 from pipelines.verification.closed_loop import run_closed_loop
 from workers import jobdir
+from workers.checkpoint_store import DirectoryCheckpoints, problem_key
 from workers.dask_cpre import on_cluster, parts_for
 from workers.figures import draw_figures
 from workers.processes.partitioned_cpre import PartitionedPredecessors
@@ -72,10 +74,18 @@ def run_synthesis(
         events += 1
         progress("synthesis", events, events + 1, message)
 
+    store = None
+    if out_dir is not None:  # a job stopped during a long safety fixed point resumes from its last iterate
+        key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
+                          abstraction.interconnection.nodes)
+        store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=CHECKPOINT_EVERY)
     cpre, results, syn_report = synthesize(
         network, abstraction.relations, abstraction.interconnection, spec.specification,
-        reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, **partitioning(opts, client),
+        reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
+        **partitioning(opts, client),
     )
+    if store is not None:
+        syn_report["checkpoints"] = store.describe()
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
     main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))
@@ -98,6 +108,8 @@ def run_synthesis(
                 controller_of(cpre, r, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
                     out_dir, f"{jobdir.CONTROLLER}_{key}"
                 )
+    if store is not None:
+        store.clear()  # the controller files hold what the iterates were kept for
 
     # Closed loop (Theorem 4.2): from the spec's initial states in the domain, and from random domain states.
     t0 = time.perf_counter()
@@ -124,8 +136,13 @@ def run_synthesis(
         "figures": figures,
         "stage_seconds": seconds,
         "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
-                                       loop.initial_states, has_safe=spec.specification.safe is not None),
+                                       loop.initial_states, has_safe=spec.specification.safe is not None)
+        + ([] if store is None else store.warnings),
     }
+
+
+#: Least seconds between two stored safety iterates (:mod:`workers.checkpoint_store`).
+CHECKPOINT_EVERY = 60.0
 
 
 def partitioning(options: Any, client: Any = None) -> dict[str, Any]:

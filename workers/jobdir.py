@@ -10,6 +10,8 @@
     DIR/trajectory.png, phase_plane.png, closed_loop_example.json   the figures and the runs they show
     DIR/report.json                  written last, atomically: a report means the job's files are complete
     DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
+    DIR/checkpoints/                 the safety fixed points' last iterates while synthesis runs, removed once the
+                                     controller is written (:mod:`workers.checkpoint_store` reads and writes them)
 
 :func:`load_job` rebuilds the network from ``spec.json`` and reads every stored relation exactly as stored;
 nothing is recomputed, so an audit of what it returns checks what a controller was synthesized from. Every
@@ -57,6 +59,8 @@ INTERCONNECTION_META = "interconnection.json"
 INTERCONNECTION_ARRAYS = "interconnection.npz"
 #: Name (without suffix) of the controller files.
 CONTROLLER = "controller"
+#: Directory of the synthesis checkpoints (:mod:`workers.checkpoint_store`).
+CHECKPOINTS = "checkpoints"
 EXAMPLE_RUN = "closed_loop_example.json"
 AUDIT = "audit.json"
 #: Version of the interconnection files' layout.

@@ -8,6 +8,8 @@ Modules, by the paper's concepts:
 * :mod:`.partition` — where to cut the state space for ``∃u.CPre`` in parts, and why the parts are exact.
 * :mod:`.local_games` — safety games on small groups of subsystems: a superset of the maximal controlled
   invariant that the safety fixed points start from.
+* :mod:`.checkpoints` — what a safety fixed point asks of a store of its iterates (resuming a stopped job), and
+  why resuming cannot make a controller unsound.
 * :mod:`.fixed_points` — the fixed points of the specifications (safety, reachability, reach-avoid,
   reach-and-stay as co-Büchi and as Reach(Safe)) and :class:`~.fixed_points.SynthesisResult`.
 * :mod:`.synthesize` — a job's synthesis: encode the abstraction, solve its specification, report.

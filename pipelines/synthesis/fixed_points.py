@@ -27,6 +27,7 @@ from typing import Any, Concatenate, ParamSpec, TypeVar
 
 from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.local_games import invariant_bound
 
@@ -206,7 +207,7 @@ def _result(
 @_guarded
 def safe(
     cpre: ControllablePredecessor, S: Function, *, layered: bool = False, progress: IterationProgress | None = None,
-    local_games: bool = True,
+    local_games: bool = True, checkpoints: Checkpoints | None = None, name: str = "safe",
 ) -> SynthesisResult:
     """Safety ``□S``: ``νZ. S ∧ ∃u.CPre(Z)`` (the invariance game of Algorithm 5, SCOTS's
     ``solve_invariance_game``); the controller allows every input that keeps the state in the invariant.
@@ -218,13 +219,23 @@ def safe(
     that stays between the invariant and those sets, so it stops at the invariant.
     ``layered``: return the invariant as a one-layer controller (``stay``) instead of ``Z ∧ CPre(Z)``.
     ``progress``: see :data:`IterationProgress`.
+
+    ``checkpoints``: a store of this problem's iterates under ``name`` (:mod:`~.checkpoints`): the loop starts
+    from a stored iterate (intersected with ``S``; ``details["resumed_at_iteration"]``), the local games then
+    skipped, and hands the store every iterate. Any start inside ``S`` gives a controlled invariant inside ``S``;
+    an iterate of the same problem gives the same one.
     """
-    meter = _Meter(cpre.model, "safe", progress)
-    S = S & cpre.model.x_domain
+    m = cpre.model
+    meter = _Meter(m, "safe", progress)
+    S = S & m.x_domain
     inside = cpre.within(S)  # every iterate is inside S
     details: dict[str, Any] = {}
     Z = S
-    if local_games:
+    resumed = None if checkpoints is None else checkpoints.resume(m, name)
+    if resumed is not None:
+        Z, meter.iterations = resumed[0] & S, resumed[1]
+        details["resumed_at_iteration"] = resumed[1]
+    elif local_games:
         said = None if progress is None else functools.partial(_prefixed, progress, "safe ", 0)
         bound = invariant_bound(cpre, S, progress=said)
         Z = bound.start
@@ -235,6 +246,10 @@ def safe(
         if Zn == Z:
             break
         Z = Zn
+        if checkpoints is not None:
+            checkpoints.iterate(m, name, Z, meter.iterations)
+    if checkpoints is not None:
+        checkpoints.converged(m, name, Z, meter.iterations)
     if layered:
         return _result(cpre, "safe", Z, None, meter, layers=(Z,), stay=True, **details)
     return _result(cpre, "safe", Z, Z & cpre.cpre(Z, inside), meter, **details)
@@ -350,7 +365,7 @@ def cobuchi(
 @_guarded
 def reach_safe(
     cpre: ControllablePredecessor, phi: Function, *, layered: bool = False, safe_set: Function | None = None,
-    progress: IterationProgress | None = None, local_games: bool = True,
+    progress: IterationProgress | None = None, local_games: bool = True, checkpoints: Checkpoints | None = None,
 ) -> SynthesisResult:
     """``◇□φ`` as ``Reach(Safe(φ))``: inside the safe set the safety controller, outside the reach controller.
 
@@ -359,20 +374,22 @@ def reach_safe(
 
     ``layered``: the reach iterates over the safe set, with ``stay`` (layer 0 is the invariant).
     ``progress``: see :data:`IterationProgress`; the safety part's calls come first (``reach_safe/safe``).
-    ``local_games``: for the safety part (:func:`safe`).
+    ``local_games``, ``checkpoints``: for the safety part (:func:`safe`, whose iterates are stored as
+    ``reach_safe/safe``).
     """
     meter = _Meter(cpre.model, "reach_safe")
 
     named = None if progress is None else functools.partial(_prefixed, progress, "reach_safe/")
     s = safe(cpre, phi if safe_set is None else phi & safe_set, layered=layered, progress=named,
-             local_games=local_games)
+             local_games=local_games, checkpoints=checkpoints, name="reach_safe/safe")
     r = reach(cpre, s.domain, layered=layered, safe=safe_set, progress=named)
     meter.iterations = r.iterations
     meter.inner = s.iterations
     meter.peak = max(s.peak_nodes, r.peak_nodes)
     extra: dict[str, Any] = dict(safe_states=s.domain_states, safe_seconds=s.seconds, reach_seconds=r.seconds)
-    if "local_games" in s.details:
-        extra["local_games"] = s.details["local_games"]
+    for key in ("local_games", "resumed_at_iteration"):
+        if key in s.details:
+            extra[key] = s.details[key]
     if layered:
         return _result(cpre, "reach_and_stay/reach_safe", r.domain, None, meter, layers=r.layers, stay=True, **extra)
     controller = (s.domain & s.controller) | (~s.domain & r.controller)
@@ -385,20 +402,20 @@ REACH_AND_STAY = {"cobuchi": cobuchi, "reach_safe": reach_safe}
 def reach_and_stay(
     cpre: ControllablePredecessor, phi: Function, methods: Sequence[str] = ("cobuchi", "reach_safe"), *,
     layered: bool = False, safe: Function | None = None, progress: IterationProgress | None = None,
-    local_games: bool = True,
+    local_games: bool = True, checkpoints: Checkpoints | None = None,
 ) -> dict[str, SynthesisResult]:
     """``◇□φ`` (``□S ∧ ◇□φ`` with a safe set ``safe``) by each of ``methods`` (METHOD §6 asks for both domains to
     be reported).
 
     ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit. ``progress``: see
-    :data:`IterationProgress`, the methods' calls one after the other. ``local_games``: see :func:`safe`
-    (Reach(Safe)'s safety part).
+    :data:`IterationProgress`, the methods' calls one after the other. ``local_games``, ``checkpoints``: see
+    :func:`safe` (Reach(Safe)'s safety part).
     """
     out: dict[str, SynthesisResult] = {}
     for name in methods:
         if name == "reach_safe":
             out[name] = reach_safe(cpre, phi, layered=layered, safe_set=safe, progress=progress,
-                                   local_games=local_games)
+                                   local_games=local_games, checkpoints=checkpoints)
         elif name == "cobuchi":
             out[name] = cobuchi(cpre, phi, safe=safe, progress=progress)
         else:

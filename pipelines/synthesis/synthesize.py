@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from pipelines.spec.regions import abstract_region
 from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
+from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
 from pipelines.synthesis.fixed_points import (
     IterationProgress,
@@ -53,6 +54,7 @@ def synthesize(
     progress: IterationProgress | None = None,
     symmetry: bool = True,
     local_games: bool = True,
+    checkpoints: Checkpoints | None = None,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -88,6 +90,8 @@ def synthesize(
     local_games : bool
         Start safety fixed points from the bound of :mod:`~.local_games` (the same results, faster where
         subsystems read few others).
+    checkpoints : Checkpoints, optional
+        Where the safety fixed points store their iterates and resume from (:mod:`~.checkpoints`).
 
     Returns
     -------
@@ -121,7 +125,7 @@ def synthesize(
         S = states("safe") if kind != "safe" and specification.safe is not None else None
         if kind == "safe":
             results = {"safe": safe(cpre, states("safe"), layered=layered, progress=progress,
-                                    local_games=local_games)}
+                                    local_games=local_games, checkpoints=checkpoints)}
         elif kind == "reach":
             results = {"reach": reach(cpre, states("target"), layered=layered, safe=S, progress=progress)}
         elif kind == "reach_avoid":
@@ -129,7 +133,7 @@ def synthesize(
                                                   progress=progress)}
         else:
             results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered, safe=S,
-                                     progress=progress, local_games=local_games)
+                                     progress=progress, local_games=local_games, checkpoints=checkpoints)
     finally:
         cpre.close()
     report = {
