@@ -329,6 +329,9 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
         if fixed and others:
             parts.append(f"{fixed} fixed point (" + "; ".join(f"{k}: {n:,}" for k, n in others.items()) + ")")
         lines.append(_line("domain", *parts))
+        resumed = ((report.get("synthesis") or {}).get("checkpoints") or {}).get("resumed_at_iteration") or {}
+        if resumed:
+            lines.append(_line("resumed", *(f"{k} from iteration {n}" for k, n in resumed.items())))
     else:
         lines.append(_line("domain", "not synthesized"))
     loop = report.get("closed_loop")

@@ -198,3 +198,14 @@ def test_a_failing_progress_callback_stops_the_relay_not_the_audit(abstraction):
                               np.random.default_rng(0), progress=cancelled)
     report, _, _ = pending.result()
     assert len(seen) == 1 and report["transitions_checked"] > 1_000
+
+
+def test_the_summary_says_when_synthesis_resumed_from_a_checkpoint(small_job):
+    from service.cli import summary_lines
+
+    job, out, _, report = small_job
+    assert "resumed" not in _labelled(out)
+    report = {**report, "synthesis": {**report["synthesis"],
+                                      "checkpoints": {"resumed_at_iteration": {"reach_safe/safe": 9}}}}
+    text = "\n".join(summary_lines(report, job))
+    assert _labelled(text)["resumed"].strip() == "reach_safe/safe from iteration 9"
