@@ -13,8 +13,8 @@ iterate of the same problem (each lies between ``W`` and ``S``). A store therefo
 iterate belongs to the same problem (the same relations, interconnection and variables) and is intact: a wrong
 one could only make the domain smaller, never the controller wrong.
 
-Only safety iterates are stored: the reach fixed point's progress controller needs every layer, and its
-iterations were minutes where the safety part's are hours (tanks, spacing 1.25).
+Only safety iterates are stored. A reach iterate has no such property: a state wrongly in it would count as won
+without a strategy, so resuming from one would mean trusting the store, or recomputing what it claims.
 """
 
 from __future__ import annotations
