@@ -13,7 +13,8 @@ the job's outstanding Dask tasks.
 
 Restart: jobs the store shows as ``running`` when an API starts were interrupted (the process died or was
 stopped mid-job). :meth:`JobManager.recover` puts them back in the queue; the runner then reuses every chunk
-already marked done in the job's relation store. A job interrupted more than ``max_resumes`` times, or whose
+already marked done in the job's relation store, and synthesis starts its safety fixed point from the last
+iterate it stored (:mod:`workers.checkpoint_store`). A job interrupted more than ``max_resumes`` times, or whose
 cancel was requested before the API died, is ended (failed, with the reason, or cancelled) instead: a job is
 never left ``running`` without a thread running it.
 """
