@@ -101,13 +101,12 @@ class InvariantBound:
                 "seconds": round(self.seconds, 3), "share_of_safe_set": self.share, "used": self.used}
 
 
-def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
-    """One group per subsystem: it and the subsystems whose state its relation reads (module docstring), groups of
-    more than half the network or more than :data:`MAX_GROUP_BITS` state bits left out, repeated groups once, in
-    network order."""
+def reading(cpre: ControllablePredecessor) -> tuple[dict[int, tuple[Function, list[str]]], dict[int, set[int]]]:
+    """Each subsystem's chain entry (its relation and next-state bits) and the other subsystems whose states it
+    reads (its relation's support, and for the shared CPre the parts of ``M̂`` it reads); two empty dicts when the
+    chain is not one relation per subsystem (never seen)."""
     m, bdd = cpre.model, cpre.bdd
     subs = m.subsystems
-    xu = frozenset([*m.x_bits, *m.u_bits])
     owner_of_x = {b: k for k, s in enumerate(subs) for b in m.bits_of(m.subsystem_digits(s)["x"])}
     next_bits = [set(m.bits_of(m.subsystem_digits(s)["xn"])) for s in subs]
     owner_of_xn = {b: k for k, bits in enumerate(next_bits) for b in bits}
@@ -115,9 +114,9 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
     for rel, xn_bits in cpre.chain:
         k = owner_of_xn.get(xn_bits[0]) if xn_bits else None
         if k is not None and set(xn_bits) == next_bits[k]:
-            entry[k] = (rel, xn_bits)
-    if len(entry) != len(subs):  # not one relation per subsystem: no local games (never seen)
-        return []
+            entry[k] = (rel, list(xn_bits))
+    if len(entry) != len(subs):
+        return {}, {}
     reads_of: dict[int, set[int]] = {}
     for k, s in enumerate(subs):
         support = set(bdd.support(entry[k][0]))
@@ -125,28 +124,53 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
             for j in s.reads:
                 support |= set(bdd.support(cpre.parts[j]))
         reads_of[k] = {owner_of_x[b] for b in support if b in owner_of_x} - {k}
+    return entry, reads_of
+
+
+def make_group(cpre: ControllablePredecessor, members: tuple[int, ...],
+               entry: dict[int, tuple[Function, list[str]]]) -> LocalGroup:
+    """The fixed ingredients of the local game of ``members`` (positions in ``model.subsystems``)."""
+    m, bdd = cpre.model, cpre.bdd
+    subs = m.subsystems
+    xu = frozenset([*m.x_bits, *m.u_bits])
+    xn_start = set(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["xn"]]))
+    chain = schedule([entry[i] for i in members], xn_start, bdd, cpre.chain_order)
+    M: Function | None = None
+    w_bits: tuple[str, ...] = ()
+    read: set[str] = set().union(*(bdd.support(rel) for rel, _ in chain))
+    if cpre.M is not None:
+        reads = sorted({j for i in members for j in subs[i].reads})
+        M = bdd.true
+        for j in reads:
+            M &= cpre.parts[j]
+        w_bits = tuple(m.bits_of([f"w{j}" for j in reads]))
+        read |= set(bdd.support(M))
+    own = frozenset(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["x"]]))
+    return LocalGroup(members, chain, M, w_bits, own, frozenset(read) & xu)
+
+
+def group_bits(cpre: ControllablePredecessor, members: tuple[int, ...]) -> int:
+    """Current-state bits of a group's members."""
+    m = cpre.model
+    return sum(len(m.bits_of(m.subsystem_digits(m.subsystems[i])["x"])) for i in members)
+
+
+def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
+    """One group per subsystem: it and the subsystems whose state its relation reads (module docstring), groups of
+    more than half the network or more than :data:`MAX_GROUP_BITS` state bits left out, repeated groups once, in
+    network order."""
+    entry, reads_of = reading(cpre)
+    if not entry:  # not one relation per subsystem: no local games
+        return []
+    n = len(cpre.model.subsystems)
     groups: list[LocalGroup] = []
     seen: set[tuple[int, ...]] = set()
-    for k in range(len(subs)):
+    for k in range(n):
         members = tuple(sorted({k} | reads_of[k]))
-        bits = sum(len(m.bits_of(m.subsystem_digits(subs[i])["x"])) for i in members)
-        if 2 * len(members) > len(subs) or bits > MAX_GROUP_BITS or members in seen:
+        if 2 * len(members) > n or group_bits(cpre, members) > MAX_GROUP_BITS or members in seen:
             continue
         seen.add(members)
-        xn_start = set(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["xn"]]))
-        chain = schedule([entry[i] for i in members], xn_start, bdd, cpre.chain_order)
-        M: Function | None = None
-        w_bits: tuple[str, ...] = ()
-        read: set[str] = set().union(*(bdd.support(rel) for rel, _ in chain))
-        if cpre.M is not None:
-            reads = sorted({j for i in members for j in subs[i].reads})
-            M = bdd.true
-            for j in reads:
-                M &= cpre.parts[j]
-            w_bits = tuple(m.bits_of([f"w{j}" for j in reads]))
-            read |= set(bdd.support(M))
-        own = frozenset(m.bits_of([d for i in members for d in m.subsystem_digits(subs[i])["x"]]))
-        groups.append(LocalGroup(members, chain, M, w_bits, own, frozenset(read) & xu))
+        groups.append(make_group(cpre, members, entry))
     return groups
 
 
