@@ -117,3 +117,31 @@ def test_tree_over_more_bits_than_a_key_is_split_by_digit(monkeypatch, order, ma
                 point.update({b: bool((w >> (len(bits) - 1 - k)) & 1) for k, b in enumerate(bits)})
                 inside = x in member and member[x][0] <= w <= member[x][1]
                 assert (m.bdd.let(point, split) == m.bdd.true) == inside, (x, w)
+
+
+@pytest.mark.slow
+def test_the_papers_initial_state_is_outside_the_fine_domain():
+    """Issue 24's question, answered without the hours-long fixed point (pipelines/synthesis/domain_bound.py):
+    tanks 4, 5 and 7 read no other tank, so the domain's projection on them lies in their own game's
+    Reach(Safe), and from the paper's (7, 7.5, 8) that game cannot win. A state near the middle of the target
+    is inside every group's game (the bound rules out only what it must)."""
+    from pipelines.symbolic.relations import region, state_set
+    from pipelines.synthesis.cpre import ControllablePredecessor
+    from pipelines.synthesis.domain_bound import reach_and_stay_bound
+    from workers.job import run_abstraction
+
+    spec = load_spec(EXAMPLES / "tanks_fine.yaml")
+    r = run_abstraction(spec, audit=False)
+    cpre = ControllablePredecessor.from_network(r.network, r.relations, r.interconnection)
+    try:
+        m = cpre.model
+        grid = r.network.composed_state_grid()
+        bound = reach_and_stay_bound(cpre, region(m, abstract_region(spec.specification.target, grid, "target")))
+        x0 = np.array(spec.options.initial_states)
+        first, last = grid.cells_touching(x0, x0)
+        assert (first == last).all()  # the paper's state is on no cell boundary
+        assert bound.ruled_out_by(state_set(m, first)) == (3, 4, 6)
+        middle, _ = grid.cell_of(np.full((1, 10), 36.25))
+        assert bound.ruled_out_by(state_set(m, middle)) is None
+    finally:
+        cpre.close()

@@ -79,10 +79,12 @@ def run_synthesis(
         key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
                           abstraction.interconnection.nodes)
         store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=CHECKPOINT_EVERY)
+    initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
+    first, last = network.composed_state_grid().cells_touching(initial, initial)
     cpre, results, syn_report = synthesize(
         network, abstraction.relations, abstraction.interconnection, spec.specification,
         reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
-        **partitioning(opts, client),
+        initial_cells=list(zip(first.tolist(), last.tolist())), **partitioning(opts, client),
     )
     if store is not None:
         syn_report["checkpoints"] = store.describe()

@@ -17,6 +17,7 @@ from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
+from pipelines.synthesis.domain_bound import reach_and_stay_bound
 from pipelines.synthesis.fixed_points import (
     IterationProgress,
     SynthesisResult,
@@ -55,6 +56,7 @@ def synthesize(
     symmetry: bool = True,
     local_games: bool = True,
     checkpoints: Checkpoints | None = None,
+    initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]] = (),
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -92,6 +94,11 @@ def synthesize(
         subsystems read few others).
     checkpoints : Checkpoints, optional
         Where the safety fixed points store their iterates and resume from (:mod:`~.checkpoints`).
+    initial_cells : sequence of (first, last) index vectors
+        Per initial state of the spec, the box of cells that contain it (a point on a boundary is in several). For
+        reach-and-stay, :mod:`~.domain_bound` is computed before the
+        fixed points, and ``report["domain_bound"]["initial_states_outside"]`` (and a progress line) names those
+        it proves outside the domain, long before a large fixed point ends.
 
     Returns
     -------
@@ -121,6 +128,7 @@ def synthesize(
 
     layered = controller_form == "layered" or (controller_form == "auto" and cpre.method == "shared")
     kind = specification.kind
+    bound_report: dict[str, Any] | None = None
     try:
         S = states("safe") if kind != "safe" and specification.safe is not None else None
         if kind == "safe":
@@ -132,6 +140,7 @@ def synthesize(
             results = {"reach_avoid": reach_avoid(cpre, states("target"), states("avoid"), layered=layered, safe=S,
                                                   progress=progress)}
         else:
+            bound_report = _domain_bound(cpre, states("target"), S, initial_cells, progress)
             results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered, safe=S,
                                      progress=progress, local_games=local_games, checkpoints=checkpoints)
     finally:
@@ -150,4 +159,37 @@ def synthesize(
         "symmetry": None if cpre.symmetry is None else cpre.symmetry.describe(),
         "bdd": m.stats(),
     }
+    if bound_report is not None:
+        report["domain_bound"] = bound_report
     return cpre, results, report
+
+
+def _domain_bound(
+    cpre: ControllablePredecessor, phi: Function, safe_set: Function | None,
+    initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]],
+    progress: IterationProgress | None,
+) -> dict[str, Any] | None:
+    """:func:`~.domain_bound.reach_and_stay_bound` and the initial states it rules out (JSON-ready; ``None`` for a
+    network without upstream-closed groups)."""
+    bound = reach_and_stay_bound(cpre, phi, safe_set)
+    if not bound.groups:
+        return None
+    m = cpre.model
+    names = [s.name for s in m.subsystems]
+    outside = []
+    for k, (first, last) in enumerate(initial_cells):
+        box = [(max(0, int(a)), min(int(b), size - 1)) for a, b, size in zip(first, last, m.state_sizes)]
+        if any(a > b for a, b in box):
+            continue  # off the grid: the closed loop's own warning says so
+        cells = m.bdd.true
+        for i, (a, b) in enumerate(box):
+            cells &= m.interval(f"x{i}", a, b)
+        members = bound.ruled_out_by(cells)
+        if members is not None:
+            group = [names[i] for i in members]
+            outside.append({"index": k, "group": group})
+            if progress is not None:
+                progress(0, f"domain bound: initial state {k} is outside the domain (the game of "
+                            f"{', '.join(group)} alone cannot win from it)")
+    return {**bound.summary(), "groups": [[names[i] for i in g] for g in bound.groups],
+            "initial_states_outside": outside}
