@@ -1,4 +1,4 @@
-"""An outer bound of the reach-and-stay domain from the network's upstream-closed groups, in seconds.
+"""An outer bound of a specification's domain from the network's upstream-closed groups, in seconds.
 
 Issue 24 asks whether the paper's initial state of the tanks is in the domain at spacing 1.25, where the fixed
 point takes hours. The answer does not need the fixed point when the state is *outside*: a set of subsystems
@@ -20,7 +20,8 @@ state bits: the tanks' groups of three and four tanks take under two seconds at 
 The bound is the conjunction of those sets over the upstream-closed groups other than the whole network (none
 for a network whose subsystems all read each other, such as consensus). It is an *outer* bound: a state inside
 it may still be outside ``D``; a state outside it is certainly outside, which is what :func:`reach_and_stay_bound`
-reports for given states (``outside``), naming the group that rules each out.
+reports for given states (``outside``), naming the group that rules each out. :func:`domain_bound` makes the
+same argument for the other kinds (safety, reachability, reach-avoid).
 """
 
 from __future__ import annotations
@@ -104,9 +105,33 @@ def reach_and_stay_bound(cpre: ControllablePredecessor, phi: Function, safe: Fun
     """An outer bound of the domain of ``◇□φ`` (``□S ∧ ◇□φ`` with ``safe``), from the upstream-closed groups of
     at most :data:`~.local_games.MAX_GROUP_BITS` state bits (module docstring). ``bound`` is everything (no
     group) for a network without such groups."""
+    return domain_bound(cpre, "reach_and_stay", phi, safe=safe)
+
+
+#: The specification kinds :func:`domain_bound` bounds, and what each group's game is.
+KINDS = ("safe", "reach", "reach_avoid", "reach_and_stay")
+
+
+def domain_bound(cpre: ControllablePredecessor, kind: str, region: Function, *, safe: Function | None = None,
+                 avoid: Function | None = None) -> DomainBound:
+    """An outer bound of the domain of any specification kind, from the upstream-closed groups (module docstring;
+    the argument is the same for each, the projection of a run winning the whole game winning the group's):
+
+    * ``safe`` (``region`` the safe set ``S``): the group's ``Safe_I(S_I)``;
+    * ``reach``, ``reach_avoid`` (``region`` the target ``T``; ``safe``, ``avoid`` optional): the group's
+      attractor of ``T_I`` while staying in the projection of ``S ∧ ¬A`` (a run that never enters ``A`` has a
+      projection that never leaves the projection of ``¬A``);
+    * ``reach_and_stay`` (``region`` ``φ``): ``Reach_I(Safe_I(φ_I))`` inside the projection of ``S``.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"no domain bound for a {kind!r} specification (one of {', '.join(KINDS)})")
     t0 = time.perf_counter()
     m = cpre.model
-    keep = m.x_domain if safe is None else m.x_domain & safe
+    keep = m.x_domain
+    if safe is not None:
+        keep &= safe
+    if avoid is not None:
+        keep &= ~avoid
     out = DomainBound(bound=m.bdd.true)
     entry, reads_of = reading(cpre)
     if not entry:
@@ -115,8 +140,14 @@ def reach_and_stay_bound(cpre: ControllablePredecessor, phi: Function, safe: Fun
         if group_bits(cpre, members) > MAX_GROUP_BITS:
             continue
         group = make_group(cpre, members, entry)
-        invariant, _ = local_game(cpre, group, phi & keep)
-        won = local_reach(cpre, group, invariant, keep)
+        if kind == "safe":
+            won, _ = local_game(cpre, group, region & keep)
+        elif kind == "reach_and_stay":
+            invariant, _ = local_game(cpre, group, region & keep)
+            won = local_reach(cpre, group, invariant, keep)
+        else:
+            start = cpre.bdd.exist([b for b in m.x_bits if b not in group.own], region & keep)
+            won = local_reach(cpre, group, start, keep)
         out.groups.append(members)
         out.winning.append(won)
         out.bound &= won

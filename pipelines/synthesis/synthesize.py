@@ -17,7 +17,7 @@ from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
-from pipelines.synthesis.domain_bound import reach_and_stay_bound
+from pipelines.synthesis.domain_bound import domain_bound
 from pipelines.synthesis.fixed_points import (
     IterationProgress,
     SynthesisResult,
@@ -95,9 +95,9 @@ def synthesize(
     checkpoints : Checkpoints, optional
         Where the safety fixed points store their iterates and resume from (:mod:`~.checkpoints`).
     initial_cells : sequence of (first, last) index vectors
-        Per initial state of the spec, the box of cells that contain it (a point on a boundary is in several). For
-        reach-and-stay, :mod:`~.domain_bound` is computed before the
-        fixed points, and ``report["domain_bound"]["initial_states_outside"]`` (and a progress line) names those
+        Per initial state of the spec, the box of cells that contain it (a point on a boundary is in several).
+        :mod:`~.domain_bound` is computed before the fixed points, and
+        ``report["domain_bound"]["initial_states_outside"]`` (and a progress line) names those
         it proves outside the domain, long before a large fixed point ends.
 
     Returns
@@ -131,6 +131,8 @@ def synthesize(
     bound_report: dict[str, Any] | None = None
     try:
         S = states("safe") if kind != "safe" and specification.safe is not None else None
+        bound_report = _domain_bound(cpre, kind, states("safe" if kind == "safe" else "target"), S,
+                                     states("avoid") if kind == "reach_avoid" else None, initial_cells, progress)
         if kind == "safe":
             results = {"safe": safe(cpre, states("safe"), layered=layered, progress=progress,
                                     local_games=local_games, checkpoints=checkpoints)}
@@ -140,7 +142,6 @@ def synthesize(
             results = {"reach_avoid": reach_avoid(cpre, states("target"), states("avoid"), layered=layered, safe=S,
                                                   progress=progress)}
         else:
-            bound_report = _domain_bound(cpre, states("target"), S, initial_cells, progress)
             results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered, safe=S,
                                      progress=progress, local_games=local_games, checkpoints=checkpoints)
     finally:
@@ -165,13 +166,13 @@ def synthesize(
 
 
 def _domain_bound(
-    cpre: ControllablePredecessor, phi: Function, safe_set: Function | None,
-    initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]],
+    cpre: ControllablePredecessor, kind: str, region_set: Function, safe_set: Function | None,
+    avoid: Function | None, initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]],
     progress: IterationProgress | None,
 ) -> dict[str, Any] | None:
-    """:func:`~.domain_bound.reach_and_stay_bound` and the initial states it rules out (JSON-ready; ``None`` for a
-    network without upstream-closed groups)."""
-    bound = reach_and_stay_bound(cpre, phi, safe_set)
+    """:func:`~.domain_bound.domain_bound` and the initial states it rules out (JSON-ready; ``None`` for a network
+    without upstream-closed groups)."""
+    bound = domain_bound(cpre, kind, region_set, safe=safe_set, avoid=avoid)
     if not bound.groups:
         return None
     m = cpre.model
