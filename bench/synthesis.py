@@ -22,13 +22,14 @@ import json
 import os
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+from service.arguments import count  # noqa: E402  (the CLI's own integer type, after the path is set)
 
 #: Issue 24's targets: 2 workers against one process on a 2-core machine; 16 workers on a 16-core one.
 TARGETS = {2: 1.8, 16: 8.0}
@@ -158,33 +159,20 @@ def lines(rec: dict[str, Any]) -> list[str]:
     return out
 
 
-def _at_least(low: int) -> Callable[[str], int]:
-    """An argparse type: an integer of at least ``low`` (a negative count is a typo, not a request)."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
-        return value
-    return parse
-
-
 def _worker_counts(text: str) -> list[int]:
     """``--workers``: comma-separated counts, each at least 1."""
-    return [_at_least(1)(w.strip()) for w in text.split(",")]
+    return [count(1)(w.strip()) for w in text.split(",")]
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--N", type=_at_least(1), default=8, help="agents (default 8, the paper's case)")
+    p.add_argument("--N", type=count(1), default=8, help="agents (default 8, the paper's case)")
     p.add_argument("--workers", type=_worker_counts, default=None, help="comma-separated worker counts (default 1, 2, 4, ... up to the cores)")
-    p.add_argument("--per-worker", type=_at_least(1), default=1, help="parts per worker (workers.dask_cpre.PARTS_PER_WORKER)")
-    p.add_argument("--processes", type=_at_least(1), default=2, help="helper processes for the local mode (1: skip it)")
+    p.add_argument("--per-worker", type=count(1), default=1, help="parts per worker (workers.dask_cpre.PARTS_PER_WORKER)")
+    p.add_argument("--processes", type=count(1), default=2, help="helper processes for the local mode (1: skip it)")
     p.add_argument("--json", default=None, help="write the results here")
     p.add_argument("--no-symmetry", action="store_true", help="also run one process and the largest cluster without the symmetry")
-    p.add_argument("--compare-cuts", type=_at_least(0), default=0, metavar="P",
+    p.add_argument("--compare-cuts", type=count(0), default=0, metavar="P",
                    help="also run the largest cluster with P parts per worker, windows and split cut (0: not)")
     args = p.parse_args(argv)
     cores = os.cpu_count() or 1

@@ -214,4 +214,4 @@ def test_the_synthesis_bench_refuses_counts_below_one(argv, capsys):
         main(argv)
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert "must be at least" in err or "not an integer" in err
+    assert "is less than" in err or "is not an integer" in err

@@ -14,7 +14,7 @@ from pipelines.spec.model import load_spec
 from pipelines.spec.regions import abstract_region
 from pipelines.symbolic.relations import region, state_set
 from pipelines.synthesis.cpre import ControllablePredecessor
-from pipelines.synthesis.domain_bound import domain_bound, reach_and_stay_bound, upstream_closed
+from pipelines.synthesis.domain_bound import domain_bound, upstream_closed
 from pipelines.synthesis.fixed_points import reach, reach_and_stay, safe
 from workers.control import run_synthesis
 from workers.job import run_abstraction
@@ -31,23 +31,28 @@ def test_upstream_closed_groups_are_closures_smallest_first_without_the_whole_ne
     assert upstream_closed({0: {1}, 1: {0}}) == []  # everything reads everything: no group
 
 
+def _random_game(seed: int):
+    """A random coupled network (shared internal variables on odd seeds), its game and its explicit solver."""
+    rng = np.random.default_rng(seed)
+    shared = bool(seed % 2)
+    net = coupled_net(rng, shared)
+    game = build(net, ["interleaved", "shared_top"][seed % 2], "shared" if shared else "auto")
+    return rng, game, Explicit(net)
+
+
 def test_the_domain_lies_inside_the_bound_on_random_networks():
     """Over 40 random coupled networks (sources, chains, trees, rings; some internal variables shared): the
     reach-and-stay domain, which the explicit solver gives, lies inside the bound; some bound cuts states off
     (else nothing here would test the games)."""
     cut = grouped = 0
     for seed in range(40):
-        rng = np.random.default_rng(9100 + seed)
-        shared = bool(seed % 2)
-        net = coupled_net(rng, shared)
-        game = build(net, ["interleaved", "shared_top"][seed % 2], "shared" if shared else "auto")
+        rng, game, ex = _random_game(9100 + seed)
         m = game.model
-        ex = Explicit(net)
         phi = random_set(rng, ex, 0.75)
         bphi = state_set(m, np.array(ex.states)[phi])
         domain = reach_and_stay(game, bphi, ("reach_safe",))["reach_safe"].domain
         np.testing.assert_array_equal(states_vector(m, domain, ex), ex.reach(ex.safe(phi)))
-        bound = reach_and_stay_bound(game, bphi)
+        bound = domain_bound(game, "reach_and_stay", bphi)
         assert domain & ~bound.bound == game.bdd.false, f"seed {seed}: the bound cut off a domain state"
         grouped += bool(bound.groups)
         cut += (m.x_domain & ~bound.bound) != game.bdd.false
@@ -59,12 +64,8 @@ def test_the_other_kinds_domains_lie_inside_their_bounds_on_random_networks():
     the explicit solver gives, lies inside its bound; some bounds cut states off."""
     cut = {"safe": 0, "reach": 0, "reach_avoid": 0}
     for seed in range(30):
-        rng = np.random.default_rng(9300 + seed)
-        shared = bool(seed % 2)
-        net = coupled_net(rng, shared)
-        game = build(net, ["interleaved", "shared_top"][seed % 2], "shared" if shared else "auto")
+        rng, game, ex = _random_game(9300 + seed)
         m = game.model
-        ex = Explicit(net)
         S, T, A = random_set(rng, ex, 0.85), random_set(rng, ex, 0.3), random_set(rng, ex, 0.1)
         bS, bT, bA = (state_set(m, np.array(ex.states)[v]) for v in (S, T, A))
         cases = {
@@ -94,7 +95,7 @@ def test_on_the_tanks_the_domain_is_inside_and_the_papers_initial_state_outside(
         m = cpre.model
         grid = net.composed_state_grid()
         T = region(m, abstract_region(spec.specification.target, grid, "target"))
-        bound = reach_and_stay_bound(cpre, T)
+        bound = domain_bound(cpre, "reach_and_stay", T)
         # the cascade's closures: tanks 1, 4, 1-2, 4-5, 1-3, 4-5-7, 1-3-8 (tanks 1-7 has 42 bits: left out)
         assert bound.groups == [(0,), (3,), (0, 1), (3, 4), (0, 1, 2), (3, 4, 6), (0, 1, 2, 7)]
         domain = reach_and_stay(cpre, T, ("reach_safe",))["reach_safe"].domain

@@ -127,7 +127,7 @@ def test_the_papers_initial_state_is_outside_the_fine_domain():
     is inside every group's game (the bound rules out only what it must)."""
     from pipelines.symbolic.relations import region, state_set
     from pipelines.synthesis.cpre import ControllablePredecessor
-    from pipelines.synthesis.domain_bound import reach_and_stay_bound
+    from pipelines.synthesis.domain_bound import domain_bound
     from workers.job import run_abstraction
 
     spec = load_spec(EXAMPLES / "tanks_fine.yaml")
@@ -136,7 +136,8 @@ def test_the_papers_initial_state_is_outside_the_fine_domain():
     try:
         m = cpre.model
         grid = r.network.composed_state_grid()
-        bound = reach_and_stay_bound(cpre, region(m, abstract_region(spec.specification.target, grid, "target")))
+        target = region(m, abstract_region(spec.specification.target, grid, "target"))
+        bound = domain_bound(cpre, "reach_and_stay", target)
         x0 = np.array(spec.options.initial_states)
         first, last = grid.cells_touching(x0, x0)
         assert (first == last).all()  # the paper's state is on no cell boundary

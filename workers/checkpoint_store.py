@@ -180,4 +180,4 @@ class DirectoryCheckpoints:
     def describe(self) -> dict[str, Any]:
         """JSON-ready, for the report."""
         return {"directory": str(self.root), "resumed_at_iteration": dict(self.resumed),
-                "iterations_written": {k: v for k, v in self.written.items()}, "warnings": list(self.warnings)}
+                "iterations_written": dict(self.written), "warnings": list(self.warnings)}

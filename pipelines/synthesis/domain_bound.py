@@ -19,9 +19,9 @@ state bits: the tanks' groups of three and four tanks take under two seconds at 
 
 The bound is the conjunction of those sets over the upstream-closed groups other than the whole network (none
 for a network whose subsystems all read each other, such as consensus). It is an *outer* bound: a state inside
-it may still be outside ``D``; a state outside it is certainly outside, which is what :func:`reach_and_stay_bound`
-reports for given states (``outside``), naming the group that rules each out. :func:`domain_bound` makes the
-same argument for the other kinds (safety, reachability, reach-avoid).
+it may still be outside ``D``; a state outside it is certainly outside, and :meth:`DomainBound.ruled_out_by`
+names the group that rules it out. :func:`domain_bound` computes it, and makes the same argument for the other
+kinds (safety, reachability, reach-avoid).
 """
 
 from __future__ import annotations
@@ -32,7 +32,16 @@ from typing import TYPE_CHECKING, Any
 
 from pipelines.symbolic.model import Function, and_exists
 from pipelines.synthesis.cpre import bad_inputs
-from pipelines.synthesis.local_games import MAX_GROUP_BITS, LocalGroup, group_bits, local_game, make_group, reading
+from pipelines.synthesis.local_games import (
+    MAX_GROUP_BITS,
+    LocalGroup,
+    game_care,
+    group_bits,
+    local_game,
+    make_group,
+    reading,
+    restricted,
+)
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.synthesis.cpre import ControllablePredecessor
@@ -40,7 +49,7 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
 
 @dataclass
 class DomainBound:
-    """What :func:`reach_and_stay_bound` found: ``bound`` (``D ⊆ bound``), per group its members and the local
+    """What :func:`domain_bound` found: ``bound`` (``D ⊆ bound``), per group its members and the local
     ``Reach(Safe)`` over the members' state bits, and the time it took."""
 
     bound: Function
@@ -83,15 +92,10 @@ def local_reach(cpre: ControllablePredecessor, group: LocalGroup, start: Functio
     the attractor of ``start`` while staying in the projection of ``keep`` (the state space, or the safe set).
     Inputs count where some state of the others makes them admissible (an over-approximation of what the whole
     network allows, as a bound needs)."""
-    m, bdd = cpre.model, cpre.bdd
-    xu = [*m.x_bits, *m.u_bits]
-    care = bdd.exist([b for b in xu if b not in group.support], cpre.admissible & keep)
-    keep_I = bdd.exist([b for b in m.x_bits if b not in group.own], keep)
-    chain = [(rel & bdd.exist([b for b in xu if b not in bdd.support(rel)], care), xn) for rel, xn in group.chain]
-    M = group.M
-    if M is not None:
-        M &= bdd.exist([b for b in xu if b not in bdd.support(M)], care)
-    angelic = [b for b in xu if b in group.support and b not in group.own]
+    m = cpre.model
+    care = game_care(cpre, group, keep)
+    keep_I = cpre.bdd.exist([b for b in m.x_bits if b not in group.own], keep)
+    chain, M, angelic = restricted(cpre, group, care)
     Y = start
     while True:
         bad = bad_inputs(m, chain, M, group.w_bits, Y)
@@ -99,13 +103,6 @@ def local_reach(cpre: ControllablePredecessor, group: LocalGroup, start: Functio
         if Yn == Y:
             return Y
         Y = Yn
-
-
-def reach_and_stay_bound(cpre: ControllablePredecessor, phi: Function, safe: Function | None = None) -> DomainBound:
-    """An outer bound of the domain of ``◇□φ`` (``□S ∧ ◇□φ`` with ``safe``), from the upstream-closed groups of
-    at most :data:`~.local_games.MAX_GROUP_BITS` state bits (module docstring). ``bound`` is everything (no
-    group) for a network without such groups."""
-    return domain_bound(cpre, "reach_and_stay", phi, safe=safe)
 
 
 #: The specification kinds :func:`domain_bound` bounds, and what each group's game is.

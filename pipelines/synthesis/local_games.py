@@ -174,6 +174,28 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
     return groups
 
 
+def game_care(cpre: ControllablePredecessor, group: LocalGroup, within: Function) -> Function:
+    """The pairs of the members' states and inputs a local game may use: ``adm ∧ within`` projected on what the
+    group reads (some state and input of the others makes them admissible)."""
+    m = cpre.model
+    return cpre.bdd.exist([b for b in [*m.x_bits, *m.u_bits] if b not in group.support], cpre.admissible & within)
+
+
+def restricted(cpre: ControllablePredecessor, group: LocalGroup,
+               care: Function) -> tuple[list[tuple[Function, list[str]]], Function | None, list[str]]:
+    """A local game's chain and ``M̂`` part, each conjoined with the projection of ``care`` on the state and input
+    bits it does not read (module docstring, "Cost"), and the bits the game quantifies existentially (the
+    members' inputs and the others' states it reads)."""
+    m, bdd = cpre.model, cpre.bdd
+    xu = [*m.x_bits, *m.u_bits]
+    chain = [(rel & bdd.exist([b for b in xu if b not in bdd.support(rel)], care), xn) for rel, xn in group.chain]
+    M = group.M
+    if M is not None:
+        M &= bdd.exist([b for b in xu if b not in bdd.support(M)], care)
+    angelic = [b for b in xu if b in group.support and b not in group.own]
+    return chain, M, angelic
+
+
 def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function,
                memo: dict[tuple[int, ...], tuple[Function, Function, Function]] | None = None) -> tuple[Function, int]:
     """The greatest fixed point of the local game of ``group`` inside ``bound`` (``O`` of the module docstring), over
@@ -184,18 +206,13 @@ def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function
     bound changed elsewhere then costs each group two quantifications.
     """
     m, bdd = cpre.model, cpre.bdd
-    own, support, M = group.own, group.support, group.M
-    xu = [*m.x_bits, *m.u_bits]
-    care = bdd.exist([b for b in xu if b not in support], cpre.admissible & bound)
-    Y = start = bdd.exist([b for b in m.x_bits if b not in own], bound)
+    care = game_care(cpre, group, bound)
+    Y = start = bdd.exist([b for b in m.x_bits if b not in group.own], bound)
     if memo is not None and group.members in memo:
         was_care, was_start, answer = memo[group.members]
         if was_care == care and was_start == start:
             return answer, 0
-    chain = [(rel & bdd.exist([b for b in xu if b not in bdd.support(rel)], care), xn) for rel, xn in group.chain]
-    if M is not None:
-        M &= bdd.exist([b for b in xu if b not in bdd.support(M)], care)
-    angelic = [b for b in xu if b in support and b not in own]
+    chain, M, angelic = restricted(cpre, group, care)
     iterations = 0
     while True:
         bad = bad_inputs(m, chain, M, group.w_bits, Y)
