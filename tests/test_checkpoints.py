@@ -18,7 +18,7 @@ from pipelines.spec.regions import abstract_region
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.fixed_points import safe
-from workers import control, jobdir
+from workers import checkpoint_store, jobdir
 from workers.checkpoint_store import DirectoryCheckpoints, problem_key
 from workers.control import run_synthesis
 from workers.job import run_abstraction
@@ -49,7 +49,7 @@ def fresh(tanks, tmp_path_factory):
 @pytest.fixture
 def every_iterate(monkeypatch):
     """Store every iterate (the default waits a minute between writes); monkeypatch undoes it."""
-    monkeypatch.setattr(control, "CHECKPOINT_EVERY", 0.0)
+    monkeypatch.setattr(checkpoint_store, "EVERY", 0.0)
 
 
 def _stop_at(message: str):

@@ -21,7 +21,7 @@ from pipelines.errors import SpecError
 from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.synthesis.synthesize import synthesize
 from pipelines.verification.closed_loop import run_closed_loop
-from workers import jobdir
+from workers import checkpoint_store, jobdir
 from workers.checkpoint_store import DirectoryCheckpoints, problem_key
 from workers.dask_cpre import on_cluster, parts_for
 from workers.figures import draw_figures
@@ -78,7 +78,7 @@ def run_synthesis(
     if out_dir is not None:  # a job stopped during a long safety fixed point resumes from its last iterate
         key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
                           abstraction.interconnection.nodes)
-        store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=CHECKPOINT_EVERY)
+        store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
     initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
     first, last = network.composed_state_grid().cells_touching(initial, initial)
     cpre, results, syn_report = synthesize(
@@ -141,10 +141,6 @@ def run_synthesis(
                                        loop.initial_states, has_safe=spec.specification.safe is not None)
         + ([] if store is None else store.warnings),
     }
-
-
-#: Least seconds between two stored safety iterates (:mod:`workers.checkpoint_store`).
-CHECKPOINT_EVERY = 60.0
 
 
 def partitioning(options: Any, client: Any = None) -> dict[str, Any]:

@@ -12,7 +12,9 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
-from pipelines.spec.regions import abstract_region
+import numpy as np
+
+from pipelines.spec.regions import AbstractRegion, abstract_region
 from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.checkpoints import Checkpoints
@@ -179,12 +181,9 @@ def _domain_bound(
     names = [s.name for s in m.subsystems]
     outside = []
     for k, (first, last) in enumerate(initial_cells):
-        box = [(max(0, int(a)), min(int(b), size - 1)) for a, b, size in zip(first, last, m.state_sizes)]
-        if any(a > b for a, b in box):
+        cells = region(m, AbstractRegion(((np.asarray(first), np.asarray(last)),)))
+        if cells == m.bdd.false:
             continue  # off the grid: the closed loop's own warning says so
-        cells = m.bdd.true
-        for i, (a, b) in enumerate(box):
-            cells &= m.interval(f"x{i}", a, b)
         members = bound.ruled_out_by(cells)
         if members is not None:
             group = [names[i] for i in members]
