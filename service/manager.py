@@ -38,6 +38,7 @@ from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, Unsupporte
 from service.models import job_json, summarize
 from service.settings import Settings
 from service.store import ACTIVE, JobRecord, JobStatus, JobStore
+from workers import checkpoint_store, jobdir
 from workers.job import JobCancelled, run_job
 
 log = logging.getLogger("compabs.service")
@@ -226,7 +227,7 @@ class JobManager:
                 return rec
             entry = self._running.get(job_id)
             if rec.status == JobStatus.QUEUED or entry is None:  # running with no thread here: nothing to stop
-                return self.store.set_status(job_id, JobStatus.CANCELLED) or rec
+                return self._end(job_id, JobStatus.CANCELLED) or rec
             self.store.request_cancel(job_id)
             entry.flag.set("cancelled by request")
             return self.store.get(job_id) or rec
@@ -238,9 +239,9 @@ class JobManager:
             if rec.id in self._running:
                 continue
             if rec.cancel_requested:
-                self.store.set_status(rec.id, JobStatus.CANCELLED)
+                self._end(rec.id, JobStatus.CANCELLED)
             elif rec.attempts > self.settings.max_resumes:
-                self.store.set_status(
+                self._end(
                     rec.id, JobStatus.FAILED,
                     error=f"the API stopped {rec.attempts} times while this job was running, so it is not resumed "
                     f"again (max_resumes = {self.settings.max_resumes}); its finished chunks are kept in the job's "
@@ -278,6 +279,12 @@ class JobManager:
     def running_ids(self) -> list[str]:
         with self._lock:
             return list(self._running)
+
+    def _end(self, job_id: str, status: JobStatus, **fields: Any) -> JobRecord | None:
+        """End a job ``cancelled`` or ``failed``; its synthesis checkpoints go (:func:`workers.checkpoint_store.remove`:
+        such a job is never resumed, and a large case's iterates take hundreds of MB). Its other files stay."""
+        checkpoint_store.remove(self.settings.jobs_dir / job_id / jobdir.CHECKPOINTS)
+        return self.store.set_status(job_id, status, **fields)
 
     def _kick(self) -> None:
         """Start queued jobs, oldest first, while fewer than ``max_running`` run."""
@@ -341,12 +348,12 @@ class JobManager:
                 log.info("job %s interrupted by the API stopping (%s); re-queued", job_id, type(exc).__name__)
                 self.store.set_status(job_id, JobStatus.QUEUED, attempts_delta=-1)
             elif isinstance(exc, JobCancelled):
-                self.store.set_status(job_id, JobStatus.CANCELLED)
+                self._end(job_id, JobStatus.CANCELLED)
             elif isinstance(exc, CompabsError):
-                self.store.set_status(job_id, JobStatus.FAILED, error=str(exc))
+                self._end(job_id, JobStatus.FAILED, error=str(exc))
             else:
                 log.exception("job %s failed with an internal error", job_id)
-                self.store.set_status(
+                self._end(
                     job_id, JobStatus.FAILED,
                     error=f"internal error ({type(exc).__name__}: {exc}); the server log has the details. "
                     "Please report it with the spec.",
@@ -361,7 +368,7 @@ class JobManager:
         elif closed.get("violations"):
             error = f"{closed['violations']} closed-loop runs violated the specification: {closed.get('first_violation')}"
         if error:
-            self.store.set_status(job_id, JobStatus.FAILED, error=error, summary=summary, figures=[])
+            self._end(job_id, JobStatus.FAILED, error=error, summary=summary, figures=[])
         else:
             self.store.set_status(job_id, JobStatus.SUCCEEDED, summary=summary, figures=list(report.get("figures", [])))
 

@@ -25,6 +25,7 @@ from service.app import create_app
 from service.cli import main
 from service.manager import new_store
 from service.settings import Settings
+from workers import jobdir
 
 from .conftest import EXAMPLES
 
@@ -400,6 +401,14 @@ def test_jobs_left_running_are_requeued_or_ended_at_start_up(tmp_path, make_clie
             store.request_cancel(label)
         ids[label] = label
     store.close()
+    # The synthesis iterates a stopped job left (workers.checkpoint_store) go with a job that ends there, its other
+    # files stay.
+    for label in ("given-up", "cancelled"):
+        checkpoints = settings.jobs_dir / label / jobdir.CHECKPOINTS
+        checkpoints.mkdir(parents=True)
+        (checkpoints / "reach_safe-safe.dddmp").write_bytes(b"iterate")
+        (checkpoints / "reach_safe-safe.json").write_text("{}")
+        (settings.jobs_dir / label / "chunk.npy").write_bytes(b"kept")
 
     c = make_client(max_resumes=2)
     resumed = wait_for(c, "resume", {"succeeded", "failed", "cancelled"})
@@ -407,6 +416,9 @@ def test_jobs_left_running_are_requeued_or_ended_at_start_up(tmp_path, make_clie
     gave_up = c.get("/jobs/given-up", headers=AUTH).json()
     assert gave_up["status"] == "failed" and "max_resumes = 2" in gave_up["error"]
     assert c.get("/jobs/cancelled", headers=AUTH).json()["status"] == "cancelled"
+    for label in ("given-up", "cancelled"):
+        assert not (settings.jobs_dir / label / jobdir.CHECKPOINTS).exists()
+        assert (settings.jobs_dir / label / "chunk.npy").read_bytes() == b"kept"
     statuses = [e["data"]["status"] for e in read_events(c, "resume") if e["event"] == "status"]
     assert statuses == ["queued", "running", "queued", "running", "succeeded"]
     db = sqlite3.connect(settings.database_url.removeprefix("sqlite:///"))

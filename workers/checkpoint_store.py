@@ -80,6 +80,23 @@ def _stem(name: str) -> str:
     return name.replace("/", "-")
 
 
+def remove(root: str | os.PathLike[str]) -> None:
+    """Remove a store's files from ``root`` (a job's ``checkpoints/``), and ``root`` if nothing else is in it.
+
+    After a synthesis the controller holds what they were kept for; a job that ended cancelled or failed is never
+    resumed (a new submission is a new job, in a directory of its own), and its iterates can be hundreds of MB.
+    """
+    root = Path(root)
+    if root.is_dir():
+        for path in root.iterdir():
+            if path.suffix in (".dddmp", ".json"):
+                path.unlink(missing_ok=True)
+        try:
+            root.rmdir()
+        except OSError:
+            pass  # something else in it: not ours to remove
+
+
 class DirectoryCheckpoints:
     """Safety iterates in ``root`` (a job's ``checkpoints/``) for the problem ``key`` (:func:`problem_key`).
 
@@ -168,14 +185,7 @@ class DirectoryCheckpoints:
 
     def clear(self) -> None:
         """Remove the store's files (after the synthesis: the controller holds what they were for)."""
-        if self.root.is_dir():
-            for path in self.root.iterdir():
-                if path.suffix in (".dddmp", ".json"):
-                    path.unlink(missing_ok=True)
-            try:
-                self.root.rmdir()
-            except OSError:
-                pass  # something else in it: not ours to remove
+        remove(self.root)
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready, for the report."""

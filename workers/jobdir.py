@@ -11,7 +11,8 @@
     DIR/report.json                  written last, atomically: a report means the job's files are complete
     DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
     DIR/checkpoints/                 the safety fixed points' last iterates while synthesis runs, removed once the
-                                     controller is written (:mod:`workers.checkpoint_store` reads and writes them)
+                                     controller is written or the service ends the job cancelled or failed
+                                     (:mod:`workers.checkpoint_store` reads and writes them)
 
 :func:`load_job` rebuilds the network from ``spec.json`` and reads every stored relation exactly as stored;
 nothing is recomputed, so an audit of what it returns checks what a controller was synthesized from. Every
