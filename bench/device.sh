@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Issue 24's measurement on a lent 16-core machine in one device call (docs/benchmarks.md, "On 16 cores"):
+# consensus synthesis in one process against Dask with 16 and 2 workers, the same domain, each call's parts timed
+# (parallel.per_call says when the last part of a call began and why a call waited).
+#
+#   here, once:      bash bench/device.sh prepare
+#                    fills .whl/ with ../shared/tools/device-wheels.sh and keeps what bench/synthesis.py needs
+#                    (about 27 MB; a device call carries at most 64 MiB)
+#   on the device:   the `run` tool with command "bash bench/device.sh measure", carry [".whl"], timeout_s 480
+#                    (N = 7: about 4 minutes there; N, WORKERS and PER_WORKER override the defaults)
+#
+# The results come back as $OUT/synthesis.json. Quote the ratios of one run, never a time from one machine against
+# a time from another.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+case "${1:-}" in
+  prepare)
+    bash ../shared/tools/device-wheels.sh
+    # not imported by bench/synthesis.py (the API, the convex programs, the figures), or already on the machine
+    (cd .whl && rm -f scs-* scipy-* sparsediffpy-* pillow-* bokeh-* sqlalchemy-* cvxpy-* clarabel-* osqp-* qdldl-* \
+      highspy-* fastapi* starlette-* uvicorn-* python_multipart-* narwhals-* xyzservices-* networkx-* jinja2-* \
+      markupsafe-* h11-* anyio-* idna-* annotated_doc-*)
+    du -sh .whl
+    ;;
+  measure)
+    if ! ls .whl/*.whl > /dev/null 2>&1; then
+      echo "error: no .whl/ here: run 'bash bench/device.sh prepare' on the development machine and carry .whl" >&2
+      exit 2
+    fi
+    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
+    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+    lscpu | grep -E '^CPU\(s\)|per core|Model name' || true
+    python3 bench/synthesis.py --N "${N:-7}" --workers "${WORKERS:-16,2}" --per-worker "${PER_WORKER:-1}" \
+      --processes 1 --json "${OUT:-/tmp}/synthesis.json"
+    ;;
+  *)
+    echo "usage: bash bench/device.sh prepare|measure" >&2
+    exit 2
+    ;;
+esac
