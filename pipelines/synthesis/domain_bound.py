@@ -39,6 +39,7 @@ from pipelines.synthesis.local_games import (
     group_bits,
     local_game,
     make_group,
+    own_projection,
     reading,
     restricted,
 )
@@ -94,7 +95,7 @@ def local_reach(cpre: ControllablePredecessor, group: LocalGroup, start: Functio
     network allows, as a bound needs)."""
     m = cpre.model
     care = game_care(cpre, group, keep)
-    keep_I = cpre.bdd.exist([b for b in m.x_bits if b not in group.own], keep)
+    keep_I = own_projection(cpre, group, keep)
     chain, M, angelic = restricted(cpre, group, care)
     Y = start
     while True:
@@ -143,7 +144,7 @@ def domain_bound(cpre: ControllablePredecessor, kind: str, region: Function, *, 
             invariant, _ = local_game(cpre, group, region & keep)
             won = local_reach(cpre, group, invariant, keep)
         else:
-            start = cpre.bdd.exist([b for b in m.x_bits if b not in group.own], region & keep)
+            start = own_projection(cpre, group, region & keep)
             won = local_reach(cpre, group, start, keep)
         out.groups.append(members)
         out.winning.append(won)

@@ -174,6 +174,11 @@ def local_groups(cpre: ControllablePredecessor) -> list[LocalGroup]:
     return groups
 
 
+def own_projection(cpre: ControllablePredecessor, group: LocalGroup, f: Function) -> Function:
+    """``f`` projected on the group's own state bits (the other subsystems' states quantified existentially)."""
+    return cpre.bdd.exist([b for b in cpre.model.x_bits if b not in group.own], f)
+
+
 def game_care(cpre: ControllablePredecessor, group: LocalGroup, within: Function) -> Function:
     """The pairs of the members' states and inputs a local game may use: ``adm ∧ within`` projected on what the
     group reads (some state and input of the others makes them admissible)."""
@@ -205,9 +210,9 @@ def local_game(cpre: ControllablePredecessor, group: LocalGroup, bound: Function
     earlier call, by group; a call whose inputs are the same returns that answer (0 iterations). A round after the
     bound changed elsewhere then costs each group two quantifications.
     """
-    m, bdd = cpre.model, cpre.bdd
+    m = cpre.model
     care = game_care(cpre, group, bound)
-    Y = start = bdd.exist([b for b in m.x_bits if b not in group.own], bound)
+    Y = start = own_projection(cpre, group, bound)
     if memo is not None and group.members in memo:
         was_care, was_start, answer = memo[group.members]
         if was_care == care and was_start == start:

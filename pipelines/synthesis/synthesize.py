@@ -122,11 +122,15 @@ def synthesize(
     m = cpre.model
     grid = network.composed_state_grid()
 
+    built: dict[str, Function] = {}
+
     def states(name: str) -> Function:
         # Targets and safe sets from inside, avoid sets from outside (METHOD §1): an abstract winning run then
-        # satisfies the concrete specification.
-        return region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}",
-                                         outer=(name == "avoid")))
+        # satisfies the concrete specification. Built once: the domain bound and the fixed points both read them.
+        if name not in built:
+            built[name] = region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}",
+                                                    outer=(name == "avoid")))
+        return built[name]
 
     layered = controller_form == "layered" or (controller_form == "auto" and cpre.method == "shared")
     kind = specification.kind
