@@ -15,6 +15,11 @@ Cases (``--cases``; default: all but ``consensus``):
     abstract and domain states, and ratios to the paper's figures (:data:`PAPER`). ``--quick`` runs
     ``examples/small.yaml`` instead of the tanks and never the consensus case. The consensus case has a
     timeout (``--consensus-timeout``) and then reports the stages that finished.
+``tanks_fine`` (issue 24; not under ``--quick``)
+    ``examples/tanks_fine.yaml`` (the tanks at spacing 1.25, ``80^10`` cells) end to end as ``tanks``, with the
+    quotient the example sets (``options.synthesis_quotient``); its peak RSS against issue 24's 12 GB, and a line
+    saying what the domain is (from the quotient, sound and not maximal), the outer bound of the maximal domain
+    and the initial states that bound proves outside.
 ``scalability``
     ``examples/scalability.yaml --set N=...`` for N = 4 ... 1024, doubling (``--quick``: 4, 8, 16): the abstraction stages
     (audit off, as in the paper's Fig. 3) and the composition, i.e. building the symbolic model from the
@@ -132,6 +137,7 @@ TARGETS = {
     "tanks_peak_rss_mb": 1536.0,  # <= 1.5 GB
     "tanks_end_to_end_seconds": 16.0,  # issue 24, on the 2-core machine
     "consensus_end_to_end_seconds": 120.0,  # issue 24, on the 2-core machine
+    "tanks_fine_peak_rss_mb": 12288.0,  # issue 24: the tanks at spacing 1.25 end to end within 12 GB
 }
 STAGE_ORDER = ("startup", "plan", "lipschitz", "subsystems", "interconnection", "audit", "composition",
                "synthesis", "closed_loop", "other")
@@ -268,7 +274,8 @@ def _end_to_end_synthesis(r, out: str, clock: StageClock, emit: Callable[[dict],
     rel = syn.get("relation_seconds") or {}
     emit({"type": "info", "stage_seconds": extra.get("stage_seconds", {}), "domain_states": extra.get("domain_states"),
           "synthesis": _jsonable({
-              **{k: syn.get(k) for k in ("order", "method", "build_seconds", "cpre_setup_seconds", "results", "bdd", "parallel")},
+              **{k: syn.get(k) for k in ("order", "method", "build_seconds", "cpre_setup_seconds", "results", "bdd", "parallel",
+                                         "quotient", "domain_bound")},
               "relation_build_seconds": sum(v for k, v in rel.items() if k.startswith("T")),
               "interconnection_build_seconds": rel.get("interconnection"),
           }),
@@ -1134,6 +1141,21 @@ def _fmt(v: Any, digits: int = 3) -> str:
     return str(v)
 
 
+def _domain_line(domain: int | None, syn: dict) -> str:
+    """What a case's domain is: exact or from a quotient (pipelines/synthesis/quotient.py), the outer bound of the
+    maximal one, and the initial states the bound proves outside."""
+    q, bound = syn.get("quotient"), syn.get("domain_bound") or {}
+    parts = [f"domain {_fmt(domain)}" + (f" from the quotient of level {q['level']} (blocks of {q['cells_per_block']}"
+                                         " cells per coordinate; sound, not maximal)" if q else " (maximal)")]
+    if bound.get("domain_states_at_most") is not None:
+        parts.append(f"maximal domain <= {_fmt(bound['domain_states_at_most'])} (domain bound)")
+    outside = bound.get("initial_states_outside") or []
+    if outside:
+        parts.append("initial states outside every domain: " + ", ".join(
+            f"#{o['index']} ({'+'.join(o['group'])})" for o in outside))
+    return "; ".join(parts)
+
+
 def _stage_line(stages: dict) -> str:
     return "  ".join(f"{k} {s['wall']:.2f}/{s['cpu']:.2f}" for k, s in stages.items())
 
@@ -1160,6 +1182,9 @@ def print_table(results: dict, out=sys.stdout) -> None:
                 w(f"    stages wall/CPU s: {_stage_line(r['stages'])}")
             if r.get("error"):
                 w(f"    {r['status']}: {r['error'][:300]}")
+            syn = (r.get("details") or {}).get("synthesis") or {}
+            if syn.get("quotient") or syn.get("domain_bound"):
+                w(f"    {_domain_line(r['domain_states'], syn)}")
     w()
     w("baselines (same run)")
     if (results["cases"].get("tanks") or {}).get("local_games"):
@@ -1248,6 +1273,11 @@ def targets(results: dict) -> dict[str, tuple]:
             if name == "tanks":
                 m = c[name]["peak_rss_mb"]
                 put("tanks peak RSS MB", m, f"<= {TARGETS['tanks_peak_rss_mb']:.0f}", m <= TARGETS["tanks_peak_rss_mb"])
+    if "tanks_fine" in c:
+        r = c["tanks_fine"]
+        m = r["peak_rss_mb"] if r["status"] == "ok" else None
+        put("tanks at 1.25 end to end, peak RSS MB", m, f"<= {TARGETS['tanks_fine_peak_rss_mb']:.0f}",
+            m is not None and m <= TARGETS["tanks_fine_peak_rss_mb"])
     if "scalability" in c:
         s = c["scalability"]
         reached = max((p["N"] for p in s["points"] if p["status"] == "ok"), default=None)
@@ -1351,7 +1381,8 @@ def meta(args) -> dict:
     }
 
 
-ALL_CASES = ("tanks", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general", "synthesis")
+ALL_CASES = ("tanks", "tanks_fine", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general",
+             "synthesis")
 DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general", "synthesis"))
 
 
@@ -1395,6 +1426,13 @@ def main(argv: list[str] | None = None) -> int:
             _progress(rec)
             if not args.quick:
                 rec["local_games"] = bench_local_games(spec, args)
+        elif case == "tanks_fine":
+            if args.quick:
+                results["skipped"]["tanks_fine"] = "not run under --quick"
+                continue
+            rec = bench_end_to_end("tanks_fine", EXAMPLES / "tanks_fine.yaml", args, args.tanks_timeout)
+            results["cases"]["tanks_fine"] = rec
+            _progress(rec)
         elif case == "consensus":
             if args.quick:
                 results["skipped"]["consensus"] = "not run under --quick"

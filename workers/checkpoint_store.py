@@ -38,13 +38,17 @@ FORMAT = "compabs-checkpoint/1"
 EVERY = 60.0
 
 
-def problem_key(specification: Mapping[str, Any], relations: Mapping[str, Any], nodes: Iterable[Any]) -> str:
+def problem_key(specification: Mapping[str, Any], relations: Mapping[str, Any], nodes: Iterable[Any],
+                quotient: int = 0) -> str:
     """A hash of what the safety iterates are computed from: the spec's ``specification`` section (its regions,
-    JSON-ready), every subsystem relation's arrays (by key) and every node relation's arrays (the stored iterate
-    also records the BDD variables, :func:`variables_key`). Timing options, worker counts and the variable order
-    are not in it: the iterates are the same sets under all of them."""
+    JSON-ready), every subsystem relation's arrays (by key), every node relation's arrays and the quotient's level
+    (``options.synthesis_quotient``: its iterates are another game's; the stored iterate also records the BDD
+    variables, :func:`variables_key`). Timing options, worker counts and the variable order are not in it: the
+    iterates are the same sets under all of them."""
     h = hashlib.blake2b(digest_size=20)
     h.update(json.dumps(specification, sort_keys=True).encode())
+    if quotient:  # the exact game's keys are the ones written before quotients existed
+        h.update(f"|quotient|{int(quotient)}|".encode())
 
     def add(label: str, a: np.ndarray) -> None:
         a = np.ascontiguousarray(a)

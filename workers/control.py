@@ -77,14 +77,15 @@ def run_synthesis(
     store = None
     if out_dir is not None:  # a job stopped during a long safety fixed point resumes from its last iterate
         key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
-                          abstraction.interconnection.nodes)
+                          abstraction.interconnection.nodes, quotient=opts.synthesis_quotient)
         store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
     initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
     first, last = network.composed_state_grid().cells_touching(initial, initial)
     cpre, results, syn_report = synthesize(
         network, abstraction.relations, abstraction.interconnection, spec.specification,
         reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
-        initial_cells=list(zip(first.tolist(), last.tolist())), **partitioning(opts, client),
+        initial_cells=list(zip(first.tolist(), last.tolist())), quotient_level=opts.synthesis_quotient,
+        **partitioning(opts, client),
     )
     if store is not None:
         syn_report["checkpoints"] = store.describe()
@@ -138,7 +139,8 @@ def run_synthesis(
         "figures": figures,
         "stage_seconds": seconds,
         "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
-                                       loop.initial_states, has_safe=spec.specification.safe is not None)
+                                       loop.initial_states, has_safe=spec.specification.safe is not None,
+                                       quotient=opts.synthesis_quotient)
         + ([] if store is None else store.warnings),
     }
 
@@ -171,10 +173,10 @@ EMPTY_DOMAIN = ("the winning domain is empty: no controller exists on this abstr
 
 def synthesis_warnings(
     kind: str, main_key: str, domain_states: dict[str, int], initial_states: list[dict[str, Any]], *,
-    has_safe: bool = False,
+    has_safe: bool = False, quotient: int = 0,
 ) -> list[str]:
     """What a user should know about a synthesis that ran: an empty winning domain, a reach-and-stay fixed point
-    other than the saved one that found a domain, initial states outside the domain.
+    other than the saved one that found a domain, initial states outside the domain, a domain from a quotient.
 
     Parameters
     ----------
@@ -189,6 +191,8 @@ def synthesis_warnings(
         order of ``options.initial_states``.
     has_safe : bool
         Whether the specification restricts runs to a safe set (then that set is one to enlarge).
+    quotient : int
+        ``options.synthesis_quotient`` (0: the exact fixed points).
 
     Returns
     -------
@@ -214,4 +218,9 @@ def synthesis_warnings(
         more = f" and {len(outside) - 10} more" if len(outside) > 10 else ""
         out.append(f"{len(outside)} of {len(initial_states)} initial states lie outside the winning domain, so no "
                    f"controller run starts from them and nothing is guaranteed there: {named}{more}")
+    if quotient:
+        out.append(f"options.synthesis_quotient is {quotient}: the fixed points ran on blocks of {2 ** quotient} cells "
+                   "per state coordinate, so the controller is sound but its domain may be smaller than the "
+                   "abstraction's maximal one (synthesis.domain_bound bounds that from above); 0 computes the "
+                   "maximal domain")
     return out

@@ -324,6 +324,14 @@ class OptionsSpec(_Model):
         "costs about a second; small games never need them). Not part of the spec's hash",
     )
 
+    synthesis_quotient: int = Field(
+        default=0, ge=0, le=16,
+        description="k > 0: solve the fixed points on the quotient that merges 2^k neighbouring cells per state "
+        "coordinate (pipelines/synthesis/quotient.py): a sound controller in far less time and memory, whose domain "
+        "may be smaller than the abstraction's maximal one (the report's synthesis.quotient and domain_bound say "
+        "so); 0 = the exact fixed points. Not part of the spec's hash: the abstraction is the same",
+    )
+
     @field_validator("synthesis_processes")
     @classmethod
     def _processes(cls, v):
@@ -545,7 +553,9 @@ def spec_hash(spec: JobSpec) -> str:
 
     # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
     # timed out must resume.
-    timing_only = {"options": {"task_timeout", "synthesis_processes", "synthesis_on", "synthesis_parallel_after"}}
+    # synthesis_quotient changes the synthesis only: the stored abstraction is reused.
+    timing_only = {"options": {"task_timeout", "synthesis_processes", "synthesis_on", "synthesis_parallel_after",
+                               "synthesis_quotient"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 

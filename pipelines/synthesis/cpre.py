@@ -282,7 +282,11 @@ class ControllablePredecessor:
         Pairs ``(x̂, û)`` with ``M̂(x̂) ≠ ∅`` at which no admissible ``ŵ`` blocks a subsystem.
     M : Function or None
         ``M̂(x, w)`` for the shared CPre, ``None`` for the per-subsystem one (``w`` is inside the chain).
+    level : int
+        0; ``k`` for the game on blocks of ``2^k`` cells per coordinate (:func:`~.quotient.quotient`).
     """
+
+    level: int = 0
 
     def __init__(
         self,

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipelines.spec.regions import AbstractRegion, abstract_region
+from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.checkpoints import Checkpoints
@@ -28,6 +29,7 @@ from pipelines.synthesis.fixed_points import (
     reach_avoid,
     safe,
 )
+from pipelines.synthesis.quotient import quotient
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -59,6 +61,7 @@ def synthesize(
     local_games: bool = True,
     checkpoints: Checkpoints | None = None,
     initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]] = (),
+    quotient_level: int = 0,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -101,11 +104,16 @@ def synthesize(
         :mod:`~.domain_bound` is computed before the fixed points, and
         ``report["domain_bound"]["initial_states_outside"]`` (and a progress line) names those
         it proves outside the domain, long before a large fixed point ends.
+    quotient_level : int
+        Solve the fixed points on the quotient that merges ``2^k`` neighbouring cells per state coordinate
+        (:mod:`~.quotient`): sound controllers whose domains may be smaller than the maximal ones, for cases whose
+        exact fixed points are too large. ``0``: the exact game. The domain bound is the fine game's either way.
 
     Returns
     -------
     cpre : ControllablePredecessor
-        The model and the CPre ingredients the controllers are made of (:func:`pipelines.controller.controller_of`).
+        The model and the CPre ingredients the controllers are made of (:func:`pipelines.controller.controller_of`):
+        the fine game's, also with a quotient (its ``CPre`` holds the quotient's, see :mod:`~.quotient`).
     results : dict of str to SynthesisResult
         One entry (``safe``, ``reach``, ``reach_avoid``) or one per reach-and-stay method.
     report : dict
@@ -120,6 +128,13 @@ def synthesize(
                                                 parallel_after=parallel_after, symmetry=symmetry)
     build = time.perf_counter() - t0
     m = cpre.model
+    t0 = time.perf_counter()
+    try:
+        game = quotient(cpre, quotient_level)
+    except BaseException:
+        cpre.close()
+        raise
+    quotient_seconds = time.perf_counter() - t0
     grid = network.composed_state_grid()
 
     built: dict[str, Function] = {}
@@ -140,17 +155,19 @@ def synthesize(
         bound_report = _domain_bound(cpre, kind, states("safe" if kind == "safe" else "target"), S,
                                      states("avoid") if kind == "reach_avoid" else None, initial_cells, progress)
         if kind == "safe":
-            results = {"safe": safe(cpre, states("safe"), layered=layered, progress=progress,
+            results = {"safe": safe(game, states("safe"), layered=layered, progress=progress,
                                     local_games=local_games, checkpoints=checkpoints)}
         elif kind == "reach":
-            results = {"reach": reach(cpre, states("target"), layered=layered, safe=S, progress=progress)}
+            results = {"reach": reach(game, states("target"), layered=layered, safe=S, progress=progress)}
         elif kind == "reach_avoid":
-            results = {"reach_avoid": reach_avoid(cpre, states("target"), states("avoid"), layered=layered, safe=S,
+            results = {"reach_avoid": reach_avoid(game, states("target"), states("avoid"), layered=layered, safe=S,
                                                   progress=progress)}
         else:
-            results = reach_and_stay(cpre, states("target"), reach_and_stay_methods, layered=layered, safe=S,
+            results = reach_and_stay(game, states("target"), reach_and_stay_methods, layered=layered, safe=S,
                                      progress=progress, local_games=local_games, checkpoints=checkpoints)
     finally:
+        if game is not cpre:
+            game.close()
         cpre.close()
     report = {
         "order": m.order,
@@ -162,12 +179,16 @@ def synthesize(
         "relation_nodes": [t.dag_size for t in cpre.T],
         "interconnection_nodes": {f"w{j}": p.dag_size for j, p in cpre.parts.items()},
         "results": {k: r.summary() for k, r in results.items()},
-        "parallel": cpre.parallel,
-        "symmetry": None if cpre.symmetry is None else cpre.symmetry.describe(),
+        "parallel": game.parallel,
+        "symmetry": None if game.symmetry is None else game.symmetry.describe(),
         "bdd": m.stats(),
     }
     if bound_report is not None:
         report["domain_bound"] = bound_report
+    if game is not cpre:
+        report["quotient"] = {"level": game.level, "cells_per_block": 2 ** game.level,
+                              "seconds": quotient_seconds, "relation_nodes": [t.dag_size for t in game.T],
+                              "maximal": False}
     return cpre, results, report
 
 
@@ -196,4 +217,4 @@ def _domain_bound(
                 progress(0, f"domain bound: initial state {k} is outside the domain (the game of "
                             f"{', '.join(group)} alone cannot win from it)")
     return {**bound.summary(), "groups": [[names[i] for i in g] for g in bound.groups],
-            "initial_states_outside": outside}
+            "domain_states_at_most": count_states(m, bound.bound & m.x_domain), "initial_states_outside": outside}

@@ -1,0 +1,102 @@
+"""The quotient game: the fixed points on blocks of ``2^k`` neighbouring cells per coordinate, a sound controller
+for the fine abstraction when its exact fixed points are too large.
+
+Issue 24 asks for the ten tanks at spacing 1.25 (``80^10`` cells) end to end within 12 GB. The exact safety fixed
+point of Reach(Safe) there removes about 1 % of the target per iteration while its iterates grow past ``2·10^7``
+BDD nodes (docs/benchmarks.md): hours, and more memory than that. This module gives up the *maximal* domain, not
+soundness.
+
+**The quotient.** Merge the cells of each state coordinate in blocks of ``2^k`` (the ``k`` lowest bits of its
+code; cell codes are plain binary, most significant bit first) and let
+
+    T^q_i = ∃ low(x̂), low(x̂'). T_i          adm^q = ∀ low(x̂). adm          M̂^q_j = ∃ low(x̂). M̂_j
+
+(``T_i`` the chain's relations, ``T̃_i`` or ``T_i``; ``adm`` the admissible pairs of
+:class:`~.cpre.ControllablePredecessor`; ``M̂`` the interconnection for the shared CPre). A block's successors are
+every block some cell of it reaches, and an input counts at a block only where it is admissible at each of its
+cells: the quotient abstraction (the coarse system's abstraction built from the fine one's transitions).
+
+**Why the results are sound.** ``T_i ⊆ T^q_i``, ``M̂_j ⊆ M̂^q_j`` and ``adm^q ⊆ adm``, and the bad pairs
+``∃ŵ. M̂ ∧ ∃x̂'.(∧_i T_i ∧ ¬Z')`` only grow with the relations, so for *every* set ``Z``
+
+    CPre^q(Z)  ⊆  CPre(Z).
+
+Every fixed point here is monotone in ``CPre``: the quotient's safety invariant is a controlled invariant of the
+fine abstraction (``Z = S ∧ ∃u.CPre^q(Z) ⊆ S ∧ ∃u.CPre(Z)``), its attractors are attractors of the fine one
+layer by layer, and so on for reach-avoid and both reach-and-stay forms. Each result's domain is a subset of the
+fine abstraction's maximal domain, and an input the quotient's controller allows is one the fine abstraction's
+allows (the layered controllers evaluate the *fine* ``CPre`` of each layer at run time, which holds at least the
+quotient's inputs). By Theorem 4.2 they refine to the concrete network like any other controller of it.
+
+**What it costs and what it gives** (the tanks at 1.25, one process on a 2-core machine): the quotient with
+``k = 1`` (blocks of two cells) solves Reach(Safe) in about 17 s (27 safety iterations of at most 8·10^4 nodes,
+then 10 reach iterations) where the exact safety fixed point had not converged after 25 iterations and hours;
+its invariant holds 14 % of the target and its domain 2.7·10^14 cells. The maximal domain lies between that and
+the outer bound of :mod:`~.domain_bound` (reported beside it): the quotient is an *under*-approximation, and the
+report says so. On cases the exact fixed points solve, it only costs domain (tests compare the two).
+
+``k = 0`` is the fine game itself (:func:`quotient` returns ``cpre``).
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.symbolic.model import SymbolicModel
+    from pipelines.synthesis.cpre import ControllablePredecessor
+
+
+def merged_bits(model: SymbolicModel, k: int) -> tuple[list[str], list[str]]:
+    """The current- and next-state bits that the quotient of level ``k`` forgets: the ``k`` lowest bits of every
+    state coordinate (all of a coordinate's bits where it has fewer)."""
+    low: list[str] = []
+    low_next: list[str] = []
+    for x, xn in zip(model.x_digits(), model.xn_digits()):
+        bits, bits_next = model.bits[x], model.bits[xn]
+        take = min(k, len(bits))
+        if take:
+            low += bits[-take:]
+            low_next += bits_next[-take:]
+    return low, low_next
+
+
+def quotient(cpre: ControllablePredecessor, k: int) -> ControllablePredecessor:
+    """The :class:`~.cpre.ControllablePredecessor` of the quotient that merges ``2^k`` neighbouring cells per state
+    coordinate (module docstring): the same model, variables and options, its relations, admissible pairs and
+    interconnection parts replaced. Its parts (helper processes, the cluster) and its symmetry are its own; close
+    it as well as ``cpre``. ``k = 0``: ``cpre`` itself.
+
+    A block that the grid cuts short (a coordinate of 81 cells: the last block holds one) stands for the cells it
+    has: the relations are cut to the grid's codes before the merged bits are quantified, and an input is
+    admissible at a block where it is at each of its cells on the grid. Without it such a block would lose every
+    input, and every state leading into it.
+    """
+    if k < 0:
+        raise ValueError(f"the quotient's level must be at least 0, got {k}")
+    if k == 0:
+        return cpre
+    m, bdd = cpre.model, cpre.bdd
+    low, low_next = merged_bits(m, k)
+    both = low + low_next
+    merged = set(low)
+    owner = {b: d for d in m.x_digits() for b in m.bits[d]}
+
+    def on_grid(f):  # f cut to the grid's codes of the merged coordinates it reads
+        digits = {owner[b] for b in bdd.support(f) if b in owner and any(c in merged for c in m.bits[owner[b]])}
+        return f & m.domain(sorted(digits)) if digits else f
+
+    q = copy.copy(cpre)
+    with m.guard(f"building the quotient of level {k}"):
+        q.T = [bdd.exist(both, on_grid(t)) for t in cpre.T]
+        q.NB = [bdd.forall(low, ~on_grid(~nb)) for nb in cpre.NB]
+        q.parts = {j: bdd.exist(low, on_grid(p)) for j, p in cpre.parts.items()}
+        q.M = None if cpre.M is None else bdd.exist(low, on_grid(cpre.M))
+        q.admissible = m.x_domain & bdd.forall(low, ~m.x_domain | cpre.admissible)
+        q.chain = [(bdd.exist(both, on_grid(rel)), list(xn_bits)) for rel, xn_bits in cpre.chain]
+    # A copy shares the fine game's parts and symmetry until reset: both are computed from the relations.
+    q._pool, q._last_pool, q._pool_error = None, None, None
+    q._symmetry = False
+    q.level = k
+    return q
