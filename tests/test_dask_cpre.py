@@ -14,6 +14,7 @@ from pipelines.spec.model import parse_spec
 from pipelines.symbolic.relations import state_set
 from pipelines.synthesis.cpre import PartitionFailed
 from pipelines.synthesis.fixed_points import cobuchi, reach, reach_safe, safe
+from pipelines.synthesis.quotient import quotient
 from pipelines.synthesis.synthesize import synthesize
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 from workers.control import partitioning
@@ -54,7 +55,8 @@ def test_parts_on_the_cluster_equal_the_explicit_predecessors(client, shared):
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
 def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
     """One process, helper processes and the cluster (two and five parts): the same safe, reach and co-Büchi
-    domains, on one model, so the BDDs themselves are compared."""
+    domains, on one model, so the BDDs themselves are compared; and the same for the quotient of level 1
+    (pipelines/synthesis/quotient.py), whose parts carry its own relations."""
     rng = np.random.default_rng(91 + shared)
     net = random_net(rng, shared)
     ex = Explicit(net)
@@ -66,17 +68,22 @@ def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
     domains = {}
     for name, (parts, factory) in modes.items():
         game.processes, game.parallel_after, game.partitioned = parts, 0.0, factory
+        q = quotient(game, 1)
         try:
             domains[name] = [safe(game, S, layered=True).domain, reach(game, T, layered=True).domain,
-                             cobuchi(game, phi).domain]
+                             cobuchi(game, phi).domain, safe(q, S, layered=True).domain,
+                             reach(q, T, layered=True).domain, cobuchi(q, phi).domain]
             if factory is not None:
-                assert game.parallel["calls"] > 0, name
-                assert game.parallel["on"] == ("processes" if factory is PartitionedPredecessors else "cluster")
+                for g in (game, q):
+                    assert g.parallel["calls"] > 0, name
+                    assert g.parallel["on"] == ("processes" if factory is PartitionedPredecessors else "cluster")
         finally:
+            q.close()
             game.close()
             game._last_pool = None
     first = domains.pop("one process")
     assert states_vector(game.model, first[0], ex).any()  # a game worth comparing
+    assert states_vector(game.model, first[4], ex).any() and first[4] != first[1]  # and a quotient that differs
     for name, got in domains.items():
         assert got == first, name
 
