@@ -114,6 +114,8 @@ def test_the_synthesis_report_names_the_initial_states_the_bound_rules_out(tanks
     bound = report["synthesis"]["domain_bound"]
     assert bound["initial_states_outside"] == [{"index": 0, "group": ["tank1", "tank2"]}]
     assert bound["groups"][0] == ["tank1"]
+    # the bound's states: more than the domain has (the local groups leave tanks 9 and 10 free), fewer than all
+    assert report["domain_states"] < bound["domain_states_at_most"] < tanks.report["abstract_states"]
     assert any(t.startswith("domain bound: initial state 0 is outside the domain (the game of tank1, tank2")
                for t in lines)
     assert report["closed_loop"]["initial_states"][0]["in_domain"] is False  # what the fixed point then found

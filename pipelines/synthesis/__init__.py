@@ -10,6 +10,9 @@ Modules, by the paper's concepts:
   invariant that the safety fixed points start from.
 * :mod:`.checkpoints` — what a safety fixed point asks of a store of its iterates (resuming a stopped job), and
   why resuming cannot make a controller unsound.
+* :mod:`.domain_bound` — an outer bound of any specification's domain from the upstream-closed groups.
+* :mod:`.quotient` — the game on blocks of ``2^k`` cells per coordinate: sound controllers when the exact fixed
+  points are too large, domains that may be smaller than the maximal ones.
 * :mod:`.fixed_points` — the fixed points of the specifications (safety, reachability, reach-avoid,
   reach-and-stay as co-Büchi and as Reach(Safe)) and :class:`~.fixed_points.SynthesisResult`.
 * :mod:`.synthesize` — a job's synthesis: encode the abstraction, solve its specification, report.
