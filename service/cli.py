@@ -328,6 +328,12 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
         others = {k: n for k, n in (report.get("domain_states_by_fixed_point") or {}).items() if k != fixed}
         if fixed and others:
             parts.append(f"{fixed} fixed point (" + "; ".join(f"{k}: {n:,}" for k, n in others.items()) + ")")
+        syn = report.get("synthesis") or {}
+        if syn.get("quotient"):  # a sound domain, not the maximal one: say so where the number is read
+            q = syn["quotient"]
+            at_most = (syn.get("domain_bound") or {}).get("domain_states_at_most")
+            parts.append(f"from the quotient of level {q['level']}, not maximal"
+                         + (f" (the maximal one has at most {at_most:,})" if at_most is not None else ""))
         lines.append(_line("domain", *parts))
         resumed = ((report.get("synthesis") or {}).get("checkpoints") or {}).get("resumed_at_iteration") or {}
         if resumed:

@@ -209,3 +209,14 @@ def test_the_summary_says_when_synthesis_resumed_from_a_checkpoint(small_job):
                                       "checkpoints": {"resumed_at_iteration": {"reach_safe/safe": 9}}}}
     text = "\n".join(summary_lines(report, job))
     assert _labelled(text)["resumed"].strip() == "reach_safe/safe from iteration 9"
+
+
+def test_the_summary_says_a_domain_from_a_quotient_is_not_maximal(small_job):
+    from service.cli import summary_lines
+
+    job, out, _, report = small_job
+    assert "quotient" not in _labelled(out)["domain"]
+    report = {**report, "synthesis": {**report["synthesis"], "quotient": {"level": 1, "cells_per_block": 2},
+                                      "domain_bound": {"domain_states_at_most": 123_456}}}
+    domain = _labelled("\n".join(summary_lines(report, job)))["domain"]
+    assert "from the quotient of level 1, not maximal (the maximal one has at most 123,456)" in domain
