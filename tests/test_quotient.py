@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 import yaml
 
+from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.errors import SpecError
 from pipelines.spec.model import load_spec, parse_spec, spec_hash
+from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import state_set
 from pipelines.synthesis.fixed_points import reach, reach_and_stay, reach_avoid, safe
 from pipelines.synthesis.quotient import merged_bits, quotient
@@ -28,6 +30,7 @@ from workers.processes.partitioned_cpre import PartitionedPredecessors
 from .conftest import EXAMPLES
 from .test_synthesis import (
     Explicit,
+    Net,
     build,
     check_progress,
     check_stay,
@@ -76,14 +79,17 @@ def test_the_quotient_contains_the_fine_relations_and_forgets_the_merged_bits(sh
             # each coordinate's k lowest bits (all of them where it has fewer), next-state bits alike
             want = [b for d in m.x_digits() for b in m.bits[d][-k:]]
             assert low == want and low_next == [b.replace("x", "xn", 1) for b in want]
-            forgotten = set(low) | set(low_next)
             for (rel, xn), (rq, xnq) in zip(game.chain, q.chain):
-                assert xn == xnq and _subset(rel, rq) and not forgotten & set(bdd.support(rq))
+                # containing the fine relation, reading no merged current bit, the same on every successor cell
+                # of a block on the grid
+                assert xn == xnq and _subset(rel, rq) and not set(low) & set(bdd.support(rq))
+                own = [d for d in m.xn_digits() if set(m.bits[d]) & set(xn)]
+                assert rq == bdd.exist(low_next, rq) & m.domain(own)
             # inside the fine admissible pairs, and the same at every cell of a block on the grid
             assert _subset(q.admissible, game.admissible)
             assert q.admissible == m.x_domain & bdd.exist(low, q.admissible)
             if game.M is not None:
-                assert q.M is not None and _subset(game.M, q.M) and not forgotten & set(bdd.support(q.M))
+                assert q.M is not None and _subset(game.M, q.M) and not set(low) & set(bdd.support(q.M))
             assert q.level == k and game.level == 0 and q.model is m
             # CPre^q(Z) ⊆ CPre(Z) for any Z, blocks or not
             for _ in range(3):
@@ -132,6 +138,22 @@ def test_the_quotients_controllers_win_the_fine_game(shared):
                 assert not np.any(dom & ~ex.reach(ex.safe(phi))), name
                 check_stay(ex, controller_matrix(m, res.controller, ex), dom, phi)
     assert nonempty >= 8 and smaller >= 10, (nonempty, smaller)
+
+
+def test_a_block_the_grid_cuts_short_keeps_its_cells():
+    """Two subsystems of 5 and 7 cells that stay where they are: every cell is invariant, in the fine game and in
+    the quotients of levels 1 and 2, whose last blocks hold 1 and 3 of their codes (the others are off the grid)."""
+    layouts, relations = [], {}
+    for i, n in enumerate((5, 7)):
+        here = np.arange(n, dtype=np.int32).reshape(-1, 1, 1, 1)
+        relations[f"k{i}"] = SubsystemRelation("test", here.copy(), here.copy(), np.zeros((n, 1, 1), bool), 1, 1)
+        layouts.append(SubsystemLayout(i, (n,), 1, (), f"k{i}", i))
+    net = Net(layouts, relations, [], [], (5, 7), (1, 1))
+    ex = Explicit(net)
+    game = build(net, "interleaved")
+    everything = state_set(game.model, np.array(ex.states))
+    for k in (0, 1, 2):
+        assert safe(quotient(game, k), everything).domain_states == 35, k
 
 
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])

@@ -70,10 +70,11 @@ def quotient(cpre: ControllablePredecessor, k: int) -> ControllablePredecessor:
     interconnection parts replaced. Its parts (helper processes, the cluster) and its symmetry are its own; close
     it as well as ``cpre``. ``k = 0``: ``cpre`` itself.
 
-    A block that the grid cuts short (a coordinate of 81 cells: the last block holds one) stands for the cells it
-    has: the relations are cut to the grid's codes before the merged bits are quantified, and an input is
-    admissible at a block where it is at each of its cells on the grid. Without it such a block would lose every
-    input, and every state leading into it.
+    A block that the grid cuts short (a coordinate of 81 cells: the last block holds one code on the grid) stands
+    for the cells it has: the relations are cut to the grid's codes before the merged bits are quantified and
+    their successors after (the fine relations' successors are on the grid, so this keeps ``T ⊆ T^q``), and an
+    input is admissible at a block where it is at each of its cells on the grid. Without it such a block would
+    lose every input, and every state leading into it.
     """
     if k < 0:
         raise ValueError(f"the quotient's level must be at least 0, got {k}")
@@ -82,21 +83,26 @@ def quotient(cpre: ControllablePredecessor, k: int) -> ControllablePredecessor:
     m, bdd = cpre.model, cpre.bdd
     low, low_next = merged_bits(m, k)
     both = low + low_next
-    merged = set(low)
-    owner = {b: d for d in m.x_digits() for b in m.bits[d]}
+    owner = {b: d for d in [*m.x_digits(), *m.xn_digits()] for b in m.bits[d]}
+    merged = {owner[b] for b in both}  # the coordinates with merged cells, current and next
 
-    def on_grid(f):  # f cut to the grid's codes of the merged coordinates it reads
-        digits = {owner[b] for b in bdd.support(f) if b in owner and any(c in merged for c in m.bits[owner[b]])}
-        return f & m.domain(sorted(digits)) if digits else f
+    def on_grid(f, next_only=False):  # the grid's codes of the merged coordinates f reads
+        digits = sorted({owner[b] for b in bdd.support(f) if b in owner} & merged)
+        if next_only:
+            digits = [d for d in digits if d.startswith("xn")]
+        return m.domain(digits) if digits else bdd.true
+
+    def merge(f):  # f's quotient: cut to the grid, merged bits quantified, successors cut to the grid again
+        return bdd.exist(both, f & on_grid(f)) & on_grid(f, next_only=True)
 
     q = copy.copy(cpre)
     with m.guard(f"building the quotient of level {k}"):
-        q.T = [bdd.exist(both, on_grid(t)) for t in cpre.T]
-        q.NB = [bdd.forall(low, ~on_grid(~nb)) for nb in cpre.NB]
-        q.parts = {j: bdd.exist(low, on_grid(p)) for j, p in cpre.parts.items()}
-        q.M = None if cpre.M is None else bdd.exist(low, on_grid(cpre.M))
+        q.T = [merge(t) for t in cpre.T]
+        q.NB = [bdd.forall(low, nb | ~on_grid(nb)) for nb in cpre.NB]
+        q.parts = {j: merge(p) for j, p in cpre.parts.items()}
+        q.M = None if cpre.M is None else merge(cpre.M)
         q.admissible = m.x_domain & bdd.forall(low, ~m.x_domain | cpre.admissible)
-        q.chain = [(bdd.exist(both, on_grid(rel)), list(xn_bits)) for rel, xn_bits in cpre.chain]
+        q.chain = [(merge(rel), list(xn_bits)) for rel, xn_bits in cpre.chain]
     # A copy shares the fine game's parts and symmetry until reset: both are computed from the relations.
     q._pool, q._last_pool, q._pool_error = None, None, None
     q._symmetry = False
