@@ -85,7 +85,7 @@ def run_synthesis(
         network, abstraction.relations, abstraction.interconnection, spec.specification,
         reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
         initial_cells=list(zip(first.tolist(), last.tolist())), quotient_level=opts.synthesis_quotient,
-        **partitioning(opts, client),
+        refine_rounds=opts.synthesis_refine, **partitioning(opts, client),
     )
     if store is not None:
         syn_report["checkpoints"] = store.describe()

@@ -30,6 +30,7 @@ from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.local_games import invariant_bound
+from pipelines.synthesis.quotient import Refinement
 
 log = logging.getLogger(__name__)
 P = ParamSpec("P")
@@ -208,6 +209,7 @@ def _result(
 def safe(
     cpre: ControllablePredecessor, S: Function, *, layered: bool = False, progress: IterationProgress | None = None,
     local_games: bool = True, checkpoints: Checkpoints | None = None, name: str = "safe",
+    refine: Refinement | None = None,
 ) -> SynthesisResult:
     """Safety ``□S``: ``νZ. S ∧ ∃u.CPre(Z)`` (the invariance game of Algorithm 5, SCOTS's
     ``solve_invariance_game``); the controller allows every input that keeps the state in the invariant.
@@ -224,6 +226,10 @@ def safe(
     from a stored iterate (intersected with ``S``; ``details["resumed_at_iteration"]``), the local games then
     skipped, and hands the store every iterate. Any start inside ``S`` gives a controlled invariant inside ``S``;
     an iterate of the same problem gives the same one.
+
+    ``refine``: ``cpre`` is a quotient (:mod:`~.quotient`) and its invariant is grown on the fine game
+    (:class:`~.quotient.Refinement`, ``details["refinement"]``) before the controller, which then comes from the
+    fine ``CPre``.
     """
     m = cpre.model
     meter = _Meter(m, "safe", progress)
@@ -250,9 +256,14 @@ def safe(
             checkpoints.iterate(m, name, Z, meter.iterations)
     if checkpoints is not None:
         checkpoints.converged(m, name, Z, meter.iterations)
+    stay = cpre
+    if refine is not None:
+        said = None if progress is None else functools.partial(_prefixed, progress, "safe ")
+        Z, details["refinement"] = refine.grow(Z, S, progress=said)
+        stay, inside = refine.fine, refine.fine.within(S)
     if layered:
         return _result(cpre, "safe", Z, None, meter, layers=(Z,), stay=True, **details)
-    return _result(cpre, "safe", Z, Z & cpre.cpre(Z, inside), meter, **details)
+    return _result(cpre, "safe", Z, Z & stay.cpre(Z, inside), meter, **details)
 
 
 @_guarded
@@ -366,6 +377,7 @@ def cobuchi(
 def reach_safe(
     cpre: ControllablePredecessor, phi: Function, *, layered: bool = False, safe_set: Function | None = None,
     progress: IterationProgress | None = None, local_games: bool = True, checkpoints: Checkpoints | None = None,
+    refine: Refinement | None = None,
 ) -> SynthesisResult:
     """``◇□φ`` as ``Reach(Safe(φ))``: inside the safe set the safety controller, outside the reach controller.
 
@@ -374,20 +386,20 @@ def reach_safe(
 
     ``layered``: the reach iterates over the safe set, with ``stay`` (layer 0 is the invariant).
     ``progress``: see :data:`IterationProgress`; the safety part's calls come first (``reach_safe/safe``).
-    ``local_games``, ``checkpoints``: for the safety part (:func:`safe`, whose iterates are stored as
-    ``reach_safe/safe``).
+    ``local_games``, ``checkpoints``, ``refine``: for the safety part (:func:`safe`, whose iterates are stored as
+    ``reach_safe/safe``); the reach runs on ``cpre`` from the (grown) invariant.
     """
     meter = _Meter(cpre.model, "reach_safe")
 
     named = None if progress is None else functools.partial(_prefixed, progress, "reach_safe/")
     s = safe(cpre, phi if safe_set is None else phi & safe_set, layered=layered, progress=named,
-             local_games=local_games, checkpoints=checkpoints, name="reach_safe/safe")
+             local_games=local_games, checkpoints=checkpoints, name="reach_safe/safe", refine=refine)
     r = reach(cpre, s.domain, layered=layered, safe=safe_set, progress=named)
     meter.iterations = r.iterations
     meter.inner = s.iterations
     meter.peak = max(s.peak_nodes, r.peak_nodes)
     extra: dict[str, Any] = dict(safe_states=s.domain_states, safe_seconds=s.seconds, reach_seconds=r.seconds)
-    for key in ("local_games", "resumed_at_iteration"):
+    for key in ("local_games", "resumed_at_iteration", "refinement"):
         if key in s.details:
             extra[key] = s.details[key]
     if layered:
@@ -402,20 +414,20 @@ REACH_AND_STAY = {"cobuchi": cobuchi, "reach_safe": reach_safe}
 def reach_and_stay(
     cpre: ControllablePredecessor, phi: Function, methods: Sequence[str] = ("cobuchi", "reach_safe"), *,
     layered: bool = False, safe: Function | None = None, progress: IterationProgress | None = None,
-    local_games: bool = True, checkpoints: Checkpoints | None = None,
+    local_games: bool = True, checkpoints: Checkpoints | None = None, refine: Refinement | None = None,
 ) -> dict[str, SynthesisResult]:
     """``◇□φ`` (``□S ∧ ◇□φ`` with a safe set ``safe``) by each of ``methods`` (METHOD §6 asks for both domains to
     be reported).
 
     ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit. ``progress``: see
-    :data:`IterationProgress`, the methods' calls one after the other. ``local_games``, ``checkpoints``: see
-    :func:`safe` (Reach(Safe)'s safety part).
+    :data:`IterationProgress`, the methods' calls one after the other. ``local_games``, ``checkpoints``,
+    ``refine``: see :func:`safe` (Reach(Safe)'s safety part; the co-Büchi fixed point is not refined).
     """
     out: dict[str, SynthesisResult] = {}
     for name in methods:
         if name == "reach_safe":
             out[name] = reach_safe(cpre, phi, layered=layered, safe_set=safe, progress=progress,
-                                   local_games=local_games, checkpoints=checkpoints)
+                                   local_games=local_games, checkpoints=checkpoints, refine=refine)
         elif name == "cobuchi":
             out[name] = cobuchi(cpre, phi, safe=safe, progress=progress)
         else:

@@ -43,10 +43,16 @@ it gives little or nothing (the tanks at spacing 2.5, level 1: an empty domain).
 from __future__ import annotations
 
 import copy
-from typing import TYPE_CHECKING
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from pipelines.symbolic.counting import count_states
+from pipelines.symbolic.model import and_exists
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
-    from pipelines.symbolic.model import SymbolicModel
+    from pipelines.symbolic.model import Function, SymbolicModel
     from pipelines.synthesis.cpre import ControllablePredecessor
 
 
@@ -108,3 +114,92 @@ def quotient(cpre: ControllablePredecessor, k: int) -> ControllablePredecessor:
     q._symmetry = False
     q.level = k
     return q
+
+
+def increment(model: SymbolicModel, digit: str, other: str) -> Function:
+    """``code(other) = code(digit) + 1`` over the two digits' bits (most significant first): some bit of
+    ``digit`` is 0 and 1 in ``other``, every lower bit 1 and 0, every higher bit the same."""
+    bdd = model.bdd
+    a, b = model.bits[digit], model.bits[other]
+    out = bdd.false
+    for i in range(len(a)):
+        term = ~model.var(a[i]) & model.var(b[i])
+        for j in range(i + 1, len(a)):
+            term &= model.var(a[j]) & ~model.var(b[j])
+        for j in range(i):
+            term &= _same(model.var(a[j]), model.var(b[j]))
+        out |= term
+    return out
+
+
+def _same(p: Function, q: Function) -> Function:
+    return (p & q) | (~p & ~q)
+
+
+def neighbours(model: SymbolicModel) -> list[tuple[Function, list[str]]]:
+    """Per state coordinate, ``|code(x_i) - code(x'_i)| <= 1`` with both on the grid, and the next-state bits it
+    lets quantify: :func:`dilate`'s chain."""
+    out = []
+    for x, xn in zip(model.x_digits(), model.xn_digits()):
+        same = model.bdd.true
+        for a, b in zip(model.bits[x], model.bits[xn]):
+            same &= _same(model.var(a), model.var(b))
+        near = same | increment(model, x, xn) | increment(model, xn, x)
+        out.append((near & model.domain([x, xn]), list(model.bits[xn])))
+    return out
+
+
+def dilate(model: SymbolicModel, chain: list[tuple[Function, list[str]]], Z: Function) -> Function:
+    """The states within one cell of ``Z`` in every coordinate (``chain``: :func:`neighbours`)."""
+    acc = model.to_next(Z)
+    for near, xn_bits in chain:
+        acc = and_exists(acc, near, xn_bits)
+    return acc
+
+
+@dataclass
+class Refinement:
+    """Growing a quotient's safety invariant on the fine game (``fine``), ``rounds`` times at most.
+
+    A round takes the fine safety fixed point inside ``S ∧ dilate(W)``, the safe set cut to the states within one
+    cell of the invariant ``W``. ``W`` is a controlled invariant of the fine game inside that set (a quotient's
+    invariant is one, and so is each round's result), so the round's greatest fixed point contains it: every round
+    gives a controlled invariant of the fine game inside ``S`` at least as large as the last, and the rounds stop
+    when one adds nothing. The controller of the grown invariant comes from the fine ``CPre``.
+
+    Measured on the tanks at spacing 1.25 (2-core machine): one round from the quotient of level 1 took 44
+    iterations and 916 s and grew the invariant from 2.08·10^14 to 3.72·10^14 states (+79 %), 4·10^5 BDD nodes.
+    """
+
+    fine: ControllablePredecessor
+    rounds: int
+
+    def grow(self, W: Function, S: Function,
+             progress: Callable[[int, str], None] | None = None) -> tuple[Function, dict[str, Any]]:
+        """The grown invariant (``W ⊆ result ⊆ S``) and what each round did (JSON-ready)."""
+        m = self.fine.model
+        chain = neighbours(m)
+        report: dict[str, Any] = {"rounds": [], "states_before": count_states(m, W)}
+        iteration = 0
+        for k in range(self.rounds):
+            t0 = time.perf_counter()
+            near = S & dilate(m, chain, W)
+            inside = self.fine.within(near)
+            Z, iterations = near, 0
+            while True:
+                Zn = Z & self.fine.predecessors(Z, within=inside)
+                iterations += 1
+                iteration += 1
+                if progress is not None:
+                    progress(iteration, f"refinement round {k + 1} iteration {iterations}")
+                if Zn == Z:
+                    break
+                Z = Zn
+            grew = Z != W
+            W = Z
+            report["rounds"].append({"iterations": iterations, "seconds": round(time.perf_counter() - t0, 3),
+                                     "states": count_states(m, W), "nodes": W.dag_size})
+            if not grew:
+                break
+        report["states_after"] = count_states(m, W)
+        return W, report

@@ -29,7 +29,7 @@ from pipelines.synthesis.fixed_points import (
     reach_avoid,
     safe,
 )
-from pipelines.synthesis.quotient import quotient
+from pipelines.synthesis.quotient import Refinement, quotient
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -62,6 +62,7 @@ def synthesize(
     checkpoints: Checkpoints | None = None,
     initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]] = (),
     quotient_level: int = 0,
+    refine_rounds: int = 0,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -108,6 +109,9 @@ def synthesize(
         Solve the fixed points on the quotient that merges ``2^k`` neighbouring cells per state coordinate
         (:mod:`~.quotient`): sound controllers whose domains may be smaller than the maximal ones, for cases whose
         exact fixed points are too large. ``0``: the exact game. The domain bound is the fine game's either way.
+    refine_rounds : int
+        With a quotient: rounds of growing its safety invariant on the fine game (:class:`~.quotient.Refinement`;
+        ``safe`` and Reach(Safe)); ``0``: none.
 
     Returns
     -------
@@ -121,6 +125,8 @@ def synthesize(
     """
     if controller_form not in CONTROLLER_FORMS:
         raise ValueError(f"controller_form must be auto, explicit or layered, got {controller_form!r}")
+    if refine_rounds and not quotient_level:
+        raise ValueError("refine_rounds grows a quotient's invariant: it needs quotient_level > 0")
     t0 = time.perf_counter()
     cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=order, method=method,
                                                 max_memory=max_memory, chain_order=chain_order, processes=processes,
@@ -135,6 +141,7 @@ def synthesize(
         cpre.close()
         raise
     quotient_seconds = time.perf_counter() - t0
+    refine = Refinement(cpre, refine_rounds) if refine_rounds and game is not cpre else None
     grid = network.composed_state_grid()
 
     built: dict[str, Function] = {}
@@ -156,7 +163,7 @@ def synthesize(
                                      states("avoid") if kind == "reach_avoid" else None, initial_cells, progress)
         if kind == "safe":
             results = {"safe": safe(game, states("safe"), layered=layered, progress=progress,
-                                    local_games=local_games, checkpoints=checkpoints)}
+                                    local_games=local_games, checkpoints=checkpoints, refine=refine)}
         elif kind == "reach":
             results = {"reach": reach(game, states("target"), layered=layered, safe=S, progress=progress)}
         elif kind == "reach_avoid":
@@ -164,7 +171,8 @@ def synthesize(
                                                   progress=progress)}
         else:
             results = reach_and_stay(game, states("target"), reach_and_stay_methods, layered=layered, safe=S,
-                                     progress=progress, local_games=local_games, checkpoints=checkpoints)
+                                     progress=progress, local_games=local_games, checkpoints=checkpoints,
+                                     refine=refine)
     finally:
         if game is not cpre:
             game.close()
@@ -188,7 +196,7 @@ def synthesize(
     if game is not cpre:
         report["quotient"] = {"level": game.level, "cells_per_block": 2 ** game.level,
                               "seconds": quotient_seconds, "relation_nodes": [t.dag_size for t in game.T],
-                              "maximal": False}
+                              "refine_rounds": refine_rounds, "maximal": False}
     return cpre, results, report
 
 
