@@ -332,7 +332,9 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
         if syn.get("quotient"):  # a sound domain, not the maximal one: say so where the number is read
             q = syn["quotient"]
             at_most = (syn.get("domain_bound") or {}).get("domain_states_at_most")
-            parts.append(f"from the quotient of level {q['level']}, not maximal"
+            rounds = q.get("refine_rounds") or 0
+            grown = f", grown on the fine grid ({rounds} round{'s' * (rounds != 1)} at most)" if rounds else ""
+            parts.append(f"from the quotient of level {q['level']}{grown}, not maximal"
                          + (f" (the maximal one has at most {at_most:,})" if at_most is not None else ""))
         lines.append(_line("domain", *parts))
         resumed = ((report.get("synthesis") or {}).get("checkpoints") or {}).get("resumed_at_iteration") or {}

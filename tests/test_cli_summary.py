@@ -220,3 +220,6 @@ def test_the_summary_says_a_domain_from_a_quotient_is_not_maximal(small_job):
                                       "domain_bound": {"domain_states_at_most": 123_456}}}
     domain = _labelled("\n".join(summary_lines(report, job)))["domain"]
     assert "from the quotient of level 1, not maximal (the maximal one has at most 123,456)" in domain
+    report["synthesis"]["quotient"]["refine_rounds"] = 2
+    domain = _labelled("\n".join(summary_lines(report, job)))["domain"]
+    assert "from the quotient of level 1, grown on the fine grid (2 rounds at most), not maximal" in domain
