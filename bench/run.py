@@ -1426,19 +1426,13 @@ def main(argv: list[str] | None = None) -> int:
             _progress(rec)
             if not args.quick:
                 rec["local_games"] = bench_local_games(spec, args)
-        elif case == "tanks_fine":
+        elif case in ("tanks_fine", "consensus"):  # too large for --quick
             if args.quick:
-                results["skipped"]["tanks_fine"] = "not run under --quick"
+                results["skipped"][case] = "not run under --quick"
                 continue
-            rec = bench_end_to_end("tanks_fine", EXAMPLES / "tanks_fine.yaml", args, args.tanks_timeout)
-            results["cases"]["tanks_fine"] = rec
-            _progress(rec)
-        elif case == "consensus":
-            if args.quick:
-                results["skipped"]["consensus"] = "not run under --quick"
-                continue
-            rec = bench_end_to_end("consensus", EXAMPLES / "consensus.yaml", args, args.consensus_timeout)
-            results["cases"]["consensus"] = rec
+            timeout = args.consensus_timeout if case == "consensus" else args.tanks_timeout
+            rec = bench_end_to_end(case, EXAMPLES / f"{case}.yaml", args, timeout)
+            results["cases"][case] = rec
             _progress(rec)
         elif case == "scalability":
             results["cases"]["scalability"] = bench_scalability(args)
