@@ -263,3 +263,7 @@ def test_refinement_needs_a_quotient():
         parse_spec(data)
     data["options"]["synthesis_quotient"] = 1
     assert parse_spec(data).options.synthesis_refine == 1
+    for bad in (-1, 101, "two"):
+        data["options"]["synthesis_refine"] = bad
+        with pytest.raises(SpecError, match="synthesis_refine"):
+            parse_spec(data)
