@@ -135,8 +135,9 @@ def lines(rec: dict[str, Any]) -> list[str]:
         calls = r["parallel"].get("per_call")
         if calls:
             out.append(f"    {r['mode']}: per call, wall / slowest part / until the last part began / until its "
-                       "task was entered: " + ", ".join(f"{c['wall']:.1f}/{c['slowest_part']:.1f}/{c['last_start']:.1f}/"
-                                                      f"{c.get('last_entered', 0):.1f}" for c in calls))
+                       "task was entered / most parts on one worker: "
+                       + ", ".join(f"{c['wall']:.1f}/{c['slowest_part']:.1f}/{c['last_start']:.1f}/"
+                                   f"{c.get('last_entered', 0):.1f}/{c.get('most_on_one_worker', '?')}" for c in calls))
     for r in rec["rows"]:
         w = r["parallel"].get("window_cells")
         if w and w["cells"]:

@@ -205,6 +205,8 @@ def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
             assert t["slowest_part"] > 0 and t["last_start"] >= t["last_entered"] >= 0 and t["after_last"] >= 0
             calls = report["parallel"]["per_call"]
             assert len(calls) == report["parallel"]["calls"] and all(c["wall"] >= c["slowest_part"] for c in calls)
+            # each call's parts spread over the workers (DaskPredecessors._placed), none queued behind another's
+            assert [c["most_on_one_worker"] for c in calls] == [per_worker] * len(calls)
             # the window cut's parts cover every cell of ŵ, some twice (the windows overlap by M̂'s spread)
             w = report["parallel"]["window_cells"]
             assert len(w["parts"]) == 2 * per_worker and w["cells"] == 33

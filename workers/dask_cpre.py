@@ -146,7 +146,8 @@ class DaskPredecessors:
         #: real cluster.
         self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0,
                        "last_start": 0.0, "last_entered": 0.0, "after_last": 0.0}
-        #: The same per call, with the call's wall seconds and its parts' summed seconds, in call order.
+        #: The same per call, with the call's wall seconds, its parts' summed seconds and the most of its parts that
+        #: ran on one worker (of the split cut, of its second phase), in call order.
         self.history: list[dict[str, float]] = []
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
@@ -246,6 +247,24 @@ class DaskPredecessors:
         self._problem_key = f"{self._model_key}-{uuid.uuid4().hex}"
         self._problem = key
 
+    def _slots(self) -> list[str]:
+        """The workers' addresses, one per thread, in a fixed order: part ``k`` of a call goes to slot ``k``
+        (:meth:`_placed`)."""
+        return [addr for addr, n in sorted(self.client.nthreads().items()) for _ in range(n)]
+
+    @staticmethod
+    def _placed(slots: list[str], k: int) -> dict[str, Any]:
+        """Where part ``k`` runs: slot ``k``'s worker, or another if that one is gone (a loose restriction).
+
+        Why not leave it to Dask: its scheduler placed the parts of a call by its estimates of their durations, and
+        on 16 workers (2-core machine, consensus N = 5, split cut) one call's 16 parts went to 6 workers, five
+        of them one after another on one worker, so the call took the time of five parts; pinned, every call of
+        the same runs had each part on a worker of its own. The split cut's second phase of range ``k`` goes where
+        its first phase ran: its largest input is there."""
+        if not slots:
+            return {}
+        return {"workers": [slots[k % len(slots)]], "allow_other_workers": True}
+
     def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None,
                  symmetry: Symmetry | None = None) -> Function:
         if symmetry is not None and not self.takes_symmetry:
@@ -272,6 +291,7 @@ class DaskPredecessors:
         bounds, starts = self.bounds(), self._starts()
         self._last_bounds = bounds
         futures = []
+        slots = self._slots()
         task = {"w": bad_part, "window": window_part, "split": core_part}.get(self.cut, predecessors_part)
         extra = () if symmetry is None else (symmetry.classes,)
         for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
@@ -279,7 +299,7 @@ class DaskPredecessors:
             futures.append(self.client.submit(
                 task, self._problem_key, self._problem_future, z, o, list(self.digits), list(start),
                 None if end is None else list(end), *extra, pure=False, retries=self.retries,
-                key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
+                key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}", **self._placed(slots, k)))
         if self.cut == "split":  # the second phase: each range's states from the pairs of the ranges they admit
             cores, futures = futures, []
             classes = None if symmetry is None else symmetry.classes
@@ -288,11 +308,13 @@ class DaskPredecessors:
                 futures.append(self.client.submit(
                     join_part, self._problem_key, self._problem_future, list(self.digits), list(start),
                     None if end is None else list(end), classes, *(cores[j] for j in self._reached(k, bounds)),
-                    pure=False, retries=self.retries, key=f"compabs-cpre-join-{self._calls}-{k}-{uuid.uuid4().hex[:8]}"))
+                    pure=False, retries=self.retries, key=f"compabs-cpre-join-{self._calls}-{k}-{uuid.uuid4().hex[:8]}",
+                    **self._placed(slots, k)))
         index = {f.key: k for k, f in enumerate(futures)}
         seconds = [0.0] * len(futures)
         t_sent, sent_at = time.perf_counter(), time.time()
         last_start = last_end = last_entered = sent_at
+        ran_on: dict[str, int] = {}
         result = g.bdd.false
         try:
             # with_results: the client fetches each answer as its part ends, in its own thread, instead of one round
@@ -305,7 +327,8 @@ class DaskPredecessors:
                     raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
                 if fut.status != "finished":  # cancelled under us (the cluster is closing)
                     raise DaskPartFailed(f"a part of CPre on a Dask worker ended {fut.status}")
-                blob, s, began, entered = answer
+                blob, s, began, entered, where = answer
+                ran_on[where] = ran_on.get(where, 0) + 1
                 with m.guard("reading a Dask worker's part of CPre"):
                     result |= _load(m, blob)
                 seconds[index[fut.key]] = s
@@ -333,6 +356,7 @@ class DaskPredecessors:
         for key, value in call.items():
             self.timing[key] += value
         self.history.append({"wall": round(t_end - t_start, 3), "parts_sum": round(sum(seconds), 3),
+                             "most_on_one_worker": max(ran_on.values(), default=0),
                              **{k: round(v, 3) for k, v in call.items()}})
         self._density = update_density(self._density, bounds, seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))

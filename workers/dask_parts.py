@@ -26,10 +26,10 @@ HELD_PROBLEMS = 2
 Reach(Safe)); older ones are dropped with their CUDD manager when no other problem of theirs is held."""
 
 
-Part = tuple[bytes, float, float, float]
+Part = tuple[bytes, float, float, float, str]
 """What a part's task returns: its answer as DDDMP bytes, the seconds it computed, the wall-clock time
-(``time.time()``) it began computing, after its worker loaded the problem, and the wall-clock time its task was
-entered on the worker (before the loading)."""
+(``time.time()``) it began computing, after its worker loaded the problem, the wall-clock time its task was
+entered on the worker (before the loading), and the worker's address (empty outside a Dask task)."""
 
 #: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
 _HELD: OrderedDict[str, tuple] = OrderedDict()
@@ -82,6 +82,16 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
     return held
 
 
+def _where() -> str:
+    """The address of the Dask worker running this task, ``""`` outside one (a part called directly)."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except ValueError:
+        return ""
+
+
 def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             compute: Callable[[tuple, Function, Function | None, Function | None], Function],
             classes: Sequence[Sequence[int]] | None = None, close: bool = True) -> Part:
@@ -106,7 +116,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             result = sym.close(result)
         blob = _dump(model, result)
     del z, out, result
-    return blob, time.perf_counter() - t0, began, entered
+    return blob, time.perf_counter() - t0, began, entered, _where()
 
 
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -189,8 +199,8 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
 
     Exact: a state ``x̂`` of the part admits only ``ŵ`` of its window, so the pairs bad for ``x̂`` come from the
     ranges the window meets, and ``∃u. adm ∧ states ∧ ¬(∨ bad)`` is the window cut's answer on these states.
-    Returns its answer (closed under the ``classes``, if given), the seconds of both phases of its own range, and
-    when its first phase began and was entered."""
+    Returns its answer (closed under the ``classes``, if given), the seconds of both phases of its own range,
+    when its first phase began and was entered, and where it ran."""
     held = _problem(key, problem)
     model, _, admissible, M, u_bits, _, owner = held
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=owner)
@@ -207,7 +217,7 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
             result = sym.close(result)
         blob = _dump(model, result)
     del states, bad, result
-    return blob, own[1] + time.perf_counter() - t0, own[2], own[3]
+    return blob, own[1] + time.perf_counter() - t0, own[2], own[3], _where()
 
 
 def forget(model_key: str) -> int:
