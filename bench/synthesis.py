@@ -125,12 +125,21 @@ def lines(rec: dict[str, Any]) -> list[str]:
     for r in rec["rows"]:
         t = r["parallel"].get("seconds")
         if t:
-            out.append(f"    {r['mode']}: of the partitioned calls, {t['slowest_part']:.1f} s the slower part of each, "
+            cpu = f" ({t['slowest_part_cpu']:.1f} s of CPU)" if "slowest_part_cpu" in t else ""
+            out.append(f"    {r['mode']}: of the partitioned calls, {t['slowest_part']:.1f} s the slower part of each{cpu}, "
                        f"{t['after_parts']:.1f} s reading and joining the parts after it"
                        + (f" (of which {t['last_start']:.1f} s until the last part began, {t['after_last']:.1f} s after "
                           "the last part ended)" if "last_start" in t else "")
                        + f", {t['exists_u']:.1f} s the ∃u "
                        f"step, {t['sending']:.1f} s sending the sets (in the job's process)")
+    for r in rec["rows"]:  # more workers than cores: what a core per worker would give, from the parts' CPU seconds
+        t = r["parallel"].get("seconds") or {}
+        if r.get("workers", 0) > rec["cores"] and "slowest_part_cpu" in t:
+            est = r["wall"] - t["slowest_part"] + t["slowest_part_cpu"]
+            out.append(f"    {r['mode']}: {r['workers']} workers share {rec['cores']} cores; with a core each the slower "
+                       f"parts would take their CPU seconds: about {est:.1f} s, "
+                       f"{rec['rows'][0]['wall'] / est:.2f}x one process (an estimate: the waiting and the job's "
+                       "process are counted as measured here, on shared cores)")
     for r in rec["rows"]:  # where the waiting for the last part to begin went, call by call
         calls = r["parallel"].get("per_call")
         if calls:

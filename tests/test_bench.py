@@ -150,6 +150,27 @@ def test_the_synthesis_case_prints_what_the_split_cut_buys():
     assert "ran the chain on 33 cells of ŵ's 33 (1.00x: the split cut" in text
 
 
+def test_the_synthesis_case_estimates_a_core_per_worker_from_the_parts_cpu_seconds():
+    """With more workers than cores the table says what a core per worker would give: the wall seconds with each
+    call's slower part at its CPU seconds, and the ratio to one process; it prints the most parts that ran on one
+    worker per call."""
+    from bench.synthesis import lines
+
+    seconds = {"sending": 1.0, "slowest_part": 30.0, "slowest_part_cpu": 5.0, "after_parts": 3.0, "exists_u": 0.0,
+               "last_start": 1.0, "last_entered": 1.0, "after_last": 1.0}
+    calls = [{"wall": 4.0, "slowest_part": 3.0, "last_start": 0.5, "last_entered": 0.4, "parts_sum": 20.0,
+              "most_on_one_worker": 1}]
+    rec = {"N": 6, "cores": 2, "per_worker": 1, "targets": {},
+           "rows": [{"mode": "one process", "wall": 25.0, "speedup": 1.0, "same_domain": True, "parallel": {}},
+                    {"mode": "cluster, 16 workers", "wall": 38.0, "speedup": 0.66, "same_domain": True, "workers": 16,
+                     "parallel": {"processes": 16, "calls": 1, "seconds": seconds, "per_call": calls}}]}
+    text = "\n".join(lines(rec))
+    assert "30.0 s the slower part of each (5.0 s of CPU)" in text
+    assert "16 workers share 2 cores; with a core each the slower parts would take their CPU seconds: about 13.0 s, " \
+           "1.92x one process" in text
+    assert "most parts on one worker: 4.0/3.0/0.5/0.4/1" in text
+
+
 def test_the_local_games_baseline_runs_both_ways_and_prints_its_ratio():
     """The tanks' local-games baseline (here on examples/small.yaml): one abstraction synthesized from the bound
     and from the safe set, the same domains, and a line with the ratio."""

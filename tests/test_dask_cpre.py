@@ -200,9 +200,11 @@ def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
             assert report["parallel"]["on"] == "cluster" and report["parallel"]["processes"] == 2 * per_worker
             assert report["parallel"]["calls"] > 0
             t = report["parallel"]["seconds"]  # the breakdown bench/synthesis.py prints
-            assert set(t) == {"sending", "slowest_part", "after_parts", "exists_u", "last_start", "last_entered",
-                              "after_last"}
+            assert set(t) == {"sending", "slowest_part", "slowest_part_cpu", "after_parts", "exists_u", "last_start",
+                              "last_entered", "after_last"}
             assert t["slowest_part"] > 0 and t["last_start"] >= t["last_entered"] >= 0 and t["after_last"] >= 0
+            # CPU seconds of the parts' threads: some, and (thread time) not more than their wall seconds
+            assert 0 < t["slowest_part_cpu"] <= t["slowest_part"] * 1.05 + 0.05
             calls = report["parallel"]["per_call"]
             assert len(calls) == report["parallel"]["calls"] and all(c["wall"] >= c["slowest_part"] for c in calls)
             # each call's parts spread over the workers (DaskPredecessors._placed), none queued behind another's

@@ -44,6 +44,7 @@ from pipelines.synthesis.partition import damped_cuts, equal_work_cuts, split_di
 from pipelines.synthesis.symmetry import Symmetry
 from workers.dask_parts import (
     HELD_PROBLEMS,
+    Part,
     _dump,
     _load,
     bad_part,
@@ -135,8 +136,9 @@ class DaskPredecessors:
         self._cuts = equal_work_cuts(self._density, self.parts)
         self._seconds: list[float] = []
         self._calls = 0
-        #: Seconds summed over the calls: sending the sets, the slower part of each call, reading and joining the
-        #: parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time). Of
+        #: Seconds summed over the calls: sending the sets, the slower part of each call (and the most CPU seconds a
+        #: part of each call took: on a machine with fewer cores than workers, what the slower part would take on a
+        #: core of its own), reading and joining the parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time). Of
         #: ``after_parts``: ``last_start``, from sending the parts until the last of them began computing (Dask's
         #: dispatch, a worker's first loading of the problem, parts queued behind others), of which
         #: ``last_entered``, until the last part's task was entered on its worker (the loading not counted), and
@@ -144,10 +146,10 @@ class DaskPredecessors:
         #: the end of the last part's computation until this process had joined every part (its bytes coming back
         #: and read here). Both from the workers' wall clocks: exact on one machine, off by the clocks' skew on a
         #: real cluster.
-        self.timing = {"sending": 0.0, "slowest_part": 0.0, "after_parts": 0.0, "exists_u": 0.0,
-                       "last_start": 0.0, "last_entered": 0.0, "after_last": 0.0}
-        #: The same per call, with the call's wall seconds, its parts' summed seconds and the most of its parts that
-        #: ran on one worker (of the split cut, of its second phase), in call order.
+        self.timing = {"sending": 0.0, "slowest_part": 0.0, "slowest_part_cpu": 0.0, "after_parts": 0.0,
+                       "exists_u": 0.0, "last_start": 0.0, "last_entered": 0.0, "after_last": 0.0}
+        #: The same per call, with the call's wall seconds, its parts' summed seconds (wall and CPU) and the most of
+        #: its parts that ran on one worker (of the split cut, of its second phase), in call order.
         self.history: list[dict[str, float]] = []
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
@@ -311,7 +313,7 @@ class DaskPredecessors:
                     pure=False, retries=self.retries, key=f"compabs-cpre-join-{self._calls}-{k}-{uuid.uuid4().hex[:8]}",
                     **self._placed(slots, k)))
         index = {f.key: k for k, f in enumerate(futures)}
-        seconds = [0.0] * len(futures)
+        seconds, cpu = [0.0] * len(futures), [0.0] * len(futures)
         t_sent, sent_at = time.perf_counter(), time.time()
         last_start = last_end = last_entered = sent_at
         ran_on: dict[str, int] = {}
@@ -327,13 +329,13 @@ class DaskPredecessors:
                     raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
                 if fut.status != "finished":  # cancelled under us (the cluster is closing)
                     raise DaskPartFailed(f"a part of CPre on a Dask worker ended {fut.status}")
-                blob, s, began, entered, where = answer
-                ran_on[where] = ran_on.get(where, 0) + 1
+                part: Part = answer
+                ran_on[part.where] = ran_on.get(part.where, 0) + 1
                 with m.guard("reading a Dask worker's part of CPre"):
-                    result |= _load(m, blob)
-                seconds[index[fut.key]] = s
-                last_start, last_end = max(last_start, began), max(last_end, began + s)
-                last_entered = max(last_entered, entered)
+                    result |= _load(m, part.blob)
+                seconds[index[fut.key]], cpu[index[fut.key]] = part.seconds, part.cpu
+                last_start, last_end = max(last_start, part.began), max(last_end, part.began + part.seconds)
+                last_entered = max(last_entered, part.entered)
                 fut.release()
         finally:
             for fut in futures:
@@ -349,16 +351,19 @@ class DaskPredecessors:
         self._seconds = seconds
         self._calls += 1
         t_end, slowest = time.perf_counter(), max(seconds, default=0.0)
-        call = {"sending": t_sent - t_start, "slowest_part": slowest, "after_parts": t_parts - t_sent - slowest,
+        call = {"sending": t_sent - t_start, "slowest_part": slowest, "slowest_part_cpu": max(cpu, default=0.0),
+                "after_parts": t_parts - t_sent - slowest,
                 "exists_u": t_end - t_parts, "last_start": max(0.0, last_start - sent_at),
                 "last_entered": max(0.0, last_entered - sent_at),
                 "after_last": max(0.0, joined_at - last_end)}
         for key, value in call.items():
             self.timing[key] += value
         self.history.append({"wall": round(t_end - t_start, 3), "parts_sum": round(sum(seconds), 3),
+                             "parts_cpu_sum": round(sum(cpu), 3),
                              "most_on_one_worker": max(ran_on.values(), default=0),
                              **{k: round(v, 3) for k, v in call.items()}})
-        self._density = update_density(self._density, bounds, seconds)
+        # the parts' CPU seconds are their work even where they share cores (a worker per core: about their seconds)
+        self._density = update_density(self._density, bounds, cpu if all(cpu) else seconds)
         self._cuts = damped_cuts(self._cuts, equal_work_cuts(self._density, len(bounds)))
         log.info("CPre on the cluster: %d parts took %s s (sum %.2f); call %.2f s: sending %.2f, parts and "
                  "joining them %.2f (the last was entered after %.2f, began after %.2f, joined %.2f after the last "

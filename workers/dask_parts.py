@@ -13,7 +13,7 @@ import tempfile
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 from pipelines.symbolic.files import model_from_header
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
@@ -26,10 +26,22 @@ HELD_PROBLEMS = 2
 Reach(Safe)); older ones are dropped with their CUDD manager when no other problem of theirs is held."""
 
 
-Part = tuple[bytes, float, float, float, str]
-"""What a part's task returns: its answer as DDDMP bytes, the seconds it computed, the wall-clock time
-(``time.time()``) it began computing, after its worker loaded the problem, the wall-clock time its task was
-entered on the worker (before the loading), and the worker's address (empty outside a Dask task)."""
+class Part(NamedTuple):
+    """What a part's task returns."""
+
+    blob: bytes
+    """Its answer as DDDMP bytes."""
+    seconds: float
+    """The seconds it computed (wall), the problem's loading not counted."""
+    began: float
+    """The wall-clock time (``time.time()``) it began computing, after its worker loaded the problem."""
+    entered: float
+    """The wall-clock time its task was entered on the worker (before the loading)."""
+    where: str
+    """The worker's address (empty outside a Dask task)."""
+    cpu: float
+    """The CPU seconds of its computing thread: what the part costs whatever else shares the machine's cores (on
+    a machine with fewer cores than workers its wall seconds are mostly waiting for one)."""
 
 #: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
 _HELD: OrderedDict[str, tuple] = OrderedDict()
@@ -107,7 +119,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     model = held[0]
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held[6])
     began = time.time()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
@@ -116,7 +128,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             result = sym.close(result)
         blob = _dump(model, result)
     del z, out, result
-    return blob, time.perf_counter() - t0, began, entered, _where()
+    return Part(blob, time.perf_counter() - t0, began, entered, _where(), time.thread_time() - c0)
 
 
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -204,20 +216,21 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
     held = _problem(key, problem)
     model, _, admissible, M, u_bits, _, owner = held
     sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=owner)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     with model.guard("joining a part of CPre on a Dask worker"):
         states, _ = w_window(model, M, digits[0], start[0], None if end is None else end[0])
         if sym is not None:
             states &= sym.representatives
         bad = model.bdd.false
-        for blob, *_ in (own, *others):
-            bad |= _load(model, blob)
+        for part in (own, *others):
+            bad |= _load(model, part.blob)
         result = and_exists(admissible & states, ~bad, list(u_bits))
         if sym is not None:
             result = sym.close(result)
         blob = _dump(model, result)
     del states, bad, result
-    return blob, own[1] + time.perf_counter() - t0, own[2], own[3], _where()
+    return Part(blob, own.seconds + time.perf_counter() - t0, own.began, own.entered, _where(),
+                own.cpu + time.thread_time() - c0)
 
 
 def forget(model_key: str) -> int:
