@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 from pipelines.symbolic.files import model_from_header
-from pipelines.symbolic.model import Function, SymbolicModel, and_exists
+from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.synthesis.cpre import bad_inputs, predecessors_of, window_predecessors
 from pipelines.synthesis.partition import lexicographic_part, w_window
 from pipelines.synthesis.symmetry import Symmetry, cached_symmetry
@@ -221,14 +221,17 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
         states, _ = w_window(model, M, digits[0], start[0], None if end is None else end[0])
         if sym is not None:
             states &= sym.representatives
-        bad = model.bdd.false
+        # the good pairs of the part's states, cut down by each range's bad ones in turn: every operand stays within
+        # the part's states. The disjunction of the bad pairs spans every state of those ranges: over a Reach(Safe)
+        # of consensus N = 6 on 16 workers, OR-ing them and one ∃u took 9.0 s of the parts' CPU, this 3.1 s
+        good = admissible & states
         for part in (own, *others):
-            bad |= _load(model, part.blob)
-        result = and_exists(admissible & states, ~bad, list(u_bits))
+            good &= ~_load(model, part.blob)
+        result = model.bdd.exist(list(u_bits), good)
         if sym is not None:
             result = sym.close(result)
         blob = _dump(model, result)
-    del states, bad, result
+    del states, good, result
     return Part(blob, own.seconds + time.perf_counter() - t0, own.began, own.entered, _where(),
                 own.cpu + time.thread_time() - c0)
 
