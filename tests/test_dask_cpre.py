@@ -115,6 +115,52 @@ def test_every_cut_of_the_shared_cpre_is_exact(client, cut):
         pool.close()
 
 
+def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed():
+    """The parts called in this process as a worker calls them: each first phase keeps its answer
+    (``dask_parts._KEPT``), the second phase of its range takes it from there (and drops it) and reads the other
+    ranges' answers from their bytes; the joined answers are the explicit predecessors whether the answers were
+    kept or every one was read from bytes."""
+    from pipelines.symbolic.model import Function
+    from workers import dask_parts
+    from workers.dask_parts import _KEPT, _dump, _load, core_part, join_part
+
+    rng = np.random.default_rng(7400)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    m = game.model
+    pool = DaskPredecessors(game, 3, client=None, cut="split")
+    key, problem = "test-split-kept", pool.problem()
+    try:
+        bounds, starts = pool.bounds(), pool._starts()
+        ranges = list(zip(starts[:-1], starts[1:]))
+        for _ in range(3):
+            Z = random_set(rng, ex, 0.6)
+            blob = _dump(m, state_set(m, np.array(ex.states)[Z]))
+            want = ex.cpre(Z).any(axis=1)
+            for kept in (True, False):
+                _KEPT.clear()
+                cores = [core_part(key, problem, blob, None, list(pool.digits), list(a), None if b is None else list(b))
+                         for a, b in ranges]
+                assert all(c.kept in _KEPT for c in cores) and len(_KEPT) == len(cores)
+                if not kept:
+                    _KEPT.clear()  # every range read from its bytes, as on another worker
+                joins = []
+                for k, (a, b) in enumerate(ranges):
+                    reached = pool._reached(k, bounds)
+                    joins.append(join_part(key, problem, list(pool.digits), list(a), None if b is None else list(b),
+                                           None, *(cores[j] for j in reached)))
+                    assert cores[k].kept not in _KEPT  # its own range's answer is dropped once read
+                got: Function = m.bdd.false
+                for j in joins:
+                    got |= _load(m, j.blob)
+                np.testing.assert_array_equal(states_vector(m, got, ex), want)
+    finally:
+        pool.close()
+        _KEPT.clear()
+        dask_parts.forget(problem["model"])
+
+
 def test_the_w_cut_needs_a_shared_internal_variable():
     game = build(random_net(np.random.default_rng(3), False), "interleaved")
     assert game.M is None

@@ -236,18 +236,22 @@ class DaskPredecessors:
         key = "all" if within is None else within
         if self._problem is key:
             return
+        # Once to every worker: each part's task then finds it in its worker's memory.
+        self._problem_future = self._scatter(self.problem(within))
+        self._problem_key = f"{self._model_key}-{uuid.uuid4().hex}"
+        self._problem = key
+
+    def problem(self, within: Within | None = None) -> dict[str, Any]:
+        """What a worker loads once per problem (:func:`workers.dask_parts._problem`): the chain, the admissible
+        pairs (of ``within``, if given) and ``M̂`` as DDDMP bytes, with the model's header and bits."""
         g = self.cpre
         chain, admissible = (g.chain, g.admissible) if within is None else within
         roots = [rel for rel, _ in chain] + [admissible] + ([] if g.M is None else [g.M])
         with g.model.guard("writing the CPre's relations for the Dask workers"):
             blobs = [_dump(g.model, f) for f in roots]
-        problem = {"model": self._model_key, "header": self._header, "max_memory": self._max_memory,
-                   "roots": blobs, "xn": [list(xn) for _, xn in chain], "u_bits": list(g.u_bits),
-                   "w_bits": list(g.w_bits)}
-        # Once to every worker: each part's task then finds it in its worker's memory.
-        self._problem_future = self._scatter(problem)
-        self._problem_key = f"{self._model_key}-{uuid.uuid4().hex}"
-        self._problem = key
+        return {"model": self._model_key, "header": self._header, "max_memory": self._max_memory,
+                "roots": blobs, "xn": [list(xn) for _, xn in chain], "u_bits": list(g.u_bits),
+                "w_bits": list(g.w_bits)}
 
     def _slots(self) -> list[str]:
         """The workers' addresses, one per thread, in a fixed order: part ``k`` of a call goes to slot ``k``

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -42,11 +43,19 @@ class Part(NamedTuple):
     cpu: float
     """The CPU seconds of its computing thread: what the part costs whatever else shares the machine's cores (on
     a machine with fewer cores than workers its wall seconds are mostly waiting for one)."""
+    kept: str = ""
+    """Of the split cut's first phase: the key under which its worker keeps the answer (:data:`_KEPT`)."""
 
 #: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
 _HELD: OrderedDict[str, tuple] = OrderedDict()
 #: Per worker process: (model key, classes) -> the Symmetry on that model (dropped with the model's problems).
 _SYMMETRIES: dict[tuple, Symmetry] = {}
+#: Per worker process: the split cut's first-phase answers computed here, newest last, so that the second phase of
+#: the same range (placed on the same worker) takes its own range's pairs as they are instead of reading their bytes
+#: back: a third of the second phase's reading (the others' pairs come from other workers).
+_KEPT: OrderedDict[str, Function] = OrderedDict()
+#: How many :data:`_KEPT` holds (a join that ran elsewhere leaves its range's answer here until it is pushed out).
+KEPT_ANSWERS = 4
 
 
 def _load(model: SymbolicModel, blob: bytes) -> Function:
@@ -106,14 +115,14 @@ def _where() -> str:
 
 def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
             compute: Callable[[tuple, Function, Function | None, Function | None], Function],
-            classes: Sequence[Sequence[int]] | None = None, close: bool = True) -> Part:
+            classes: Sequence[Sequence[int]] | None = None, close: bool = True, keep: bool = False) -> Part:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
     outside, representatives)`` run under CUDD's memory guard, its result as DDDMP bytes, the seconds it took
     (the problem's loading not counted: it happens once per worker) and the wall-clock time it began (after the
     loading). With the ``classes`` of interchangeable subsystems (the sets of the call invariant under them)
     ``representatives`` are their orbit representatives (else ``None``) and the result is closed under them here,
     on the worker (unless ``close`` is false: the split cut's first phase, whose pairs are read on the
-    representatives only)."""
+    representatives only). With ``keep`` the worker also keeps the result (:data:`_KEPT`)."""
     entered = time.time()
     held = _problem(key, problem)
     model = held[0]
@@ -127,8 +136,14 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
         if sym is not None and close:
             result = sym.close(result)
         blob = _dump(model, result)
+    kept = ""
+    if keep:
+        kept = uuid.uuid4().hex
+        _KEPT[kept] = result
+        while len(_KEPT) > KEPT_ANSWERS:
+            _KEPT.popitem(last=False)
     del z, out, result
-    return Part(blob, time.perf_counter() - t0, began, entered, _where(), time.thread_time() - c0)
+    return Part(blob, time.perf_counter() - t0, began, entered, _where(), time.thread_time() - c0, kept)
 
 
 def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -199,7 +214,7 @@ def core_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None
         care = out if reps is None else reps if out is None else out & reps
         return bad_inputs(model, chain, M, w_bits, z, care, lexicographic_part(model, digits, start, end))
 
-    return _answer(key, problem, Z, outside, compute, classes, close=False)
+    return _answer(key, problem, Z, outside, compute, classes, close=False, keep=True)
 
 
 def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: Sequence[int],
@@ -225,8 +240,9 @@ def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: S
         # the part's states. The disjunction of the bad pairs spans every state of those ranges: over a Reach(Safe)
         # of consensus N = 6 on 16 workers, OR-ing them and one ∃u took 9.0 s of the parts' CPU, this 3.1 s
         good = admissible & states
-        for part in (own, *others):
-            good &= ~_load(model, part.blob)
+        for part in (own, *others):  # own's answer is done with here once read (others' may serve a later join)
+            kept = (_KEPT.pop if part is own else _KEPT.get)(part.kept, None) if part.kept else None
+            good &= ~(kept if kept is not None and kept.bdd is model.bdd else _load(model, part.blob))
         result = model.bdd.exist(list(u_bits), good)
         if sym is not None:
             result = sym.close(result)
@@ -243,6 +259,7 @@ def forget(model_key: str) -> int:
         del _HELD[k]
     for sym_key in [k for k in _SYMMETRIES if k[0] == model_key]:
         del _SYMMETRIES[sym_key]
+    _KEPT.clear()
     return len(keys)
 
 
