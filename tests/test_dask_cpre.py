@@ -161,6 +161,32 @@ def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed()
         dask_parts.forget(problem["model"])
 
 
+def test_a_worker_that_lost_its_problem_is_sent_it_again(client):
+    """The problem reaches the workers once (``dask_parts.receive``), not as a dependency of every part; a worker
+    without it (restarted, or joined since) fails its part with ``ProblemMissing``, and the call sends the problem
+    to every worker again and runs on the cluster, exactly."""
+    from workers.dask_parts import forget
+
+    rng = np.random.default_rng(7500)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    game = build(net, "shared_top")
+    m = game.model
+    pool = DaskPredecessors(game, 2, client=client)
+    try:
+        for k in range(2):
+            if k:  # one worker forgets every problem of this CPre, as if it had restarted
+                first = pool._problem_key
+                lost = client.run(forget, pool._model_key, workers=[sorted(client.nthreads())[0]])
+                assert list(lost.values()) == [1]
+            Z = random_set(rng, ex, 0.6)
+            got = states_vector(m, pool(state_set(m, np.array(ex.states)[Z])), ex)
+            np.testing.assert_array_equal(got, ex.cpre(Z).any(axis=1))
+        assert pool.calls == 2 and pool._problem_key != first  # on the cluster both times, the problem sent again
+    finally:
+        pool.close()
+
+
 def test_the_w_cut_needs_a_shared_internal_variable():
     game = build(random_net(np.random.default_rng(3), False), "interleaved")
     assert game.M is None

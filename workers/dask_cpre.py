@@ -4,9 +4,11 @@
 like :class:`workers.processes.partitioned_cpre.PartitionedPredecessors`, with the parts run as Dask tasks:
 
 * **The problem lives on the workers.** The chain, the admissible pairs and (shared ``w``) ``M̂`` travel once per
-  problem as DDDMP bytes, scattered to every worker; a worker's first part of a problem loads them into a CUDD
+  problem as DDDMP bytes, sent to every worker; a worker's first part of a problem loads them into a CUDD
   manager of its own and keeps them for the later calls (:mod:`workers.dask_parts`, the tasks' side), so a call
-  sends only ``Z`` (and ``outside``), once per worker, and gets back each part's result as DDDMP bytes.
+  sends only ``Z`` (and ``outside``), once per worker, and gets back each part's result as DDDMP bytes. The
+  problem goes to every worker with ``client.run``, not as a dependency of the parts
+  (:func:`workers.dask_parts.receive` says why); a worker that joined or restarted since gets it again.
 * **Parts.** A call is cut into ``parts`` ranges (:mod:`pipelines.synthesis.partition`: exact, the union of the
   parts is the whole): for the shared CPre, ranges of the shared internal variable ``ŵ``, each part the
   ``∃u.CPre`` of the states whose lowest admissible ``ŵ`` lies in its range, the chain run on the ``ŵ`` cells
@@ -45,6 +47,7 @@ from pipelines.synthesis.symmetry import Symmetry
 from workers.dask_parts import (
     HELD_PROBLEMS,
     Part,
+    ProblemMissing,
     _dump,
     _load,
     bad_part,
@@ -52,6 +55,7 @@ from workers.dask_parts import (
     forget,
     join_part,
     predecessors_part,
+    receive,
     window_part,
 )
 
@@ -156,7 +160,6 @@ class DaskPredecessors:
         self._max_memory = m.max_memory
         self._problem: Any = None  # the Within (or "all") the workers hold
         self._problem_key = ""
-        self._problem_future: Any = None
         self._last_bounds: list[tuple[int, int]] | None = None  # the parts of the last call
         self._reach: np.ndarray | None = None  # the split cut's: highest ŵ admitted, by lowest (_reached)
         self._finalizer = weakref.finalize(self, _forget_everywhere, client, self._model_key)
@@ -236,9 +239,10 @@ class DaskPredecessors:
         key = "all" if within is None else within
         if self._problem is key:
             return
-        # Once to every worker: each part's task then finds it in its worker's memory.
-        self._problem_future = self._scatter(self.problem(within))
+        # Once to every worker: each part's task then finds it in its worker's memory (dask_parts.receive says why
+        # not as a dependency of the parts).
         self._problem_key = f"{self._model_key}-{uuid.uuid4().hex}"
+        self.client.run(receive, self._problem_key, self.problem(within))
         self._problem = key
 
     def problem(self, within: Within | None = None) -> dict[str, Any]:
@@ -276,7 +280,11 @@ class DaskPredecessors:
         if symmetry is not None and not self.takes_symmetry:
             raise ValueError("the w cut does not take a symmetry")
         try:
-            return self._call(Z, outside, within, symmetry)
+            try:
+                return self._call(Z, outside, within, symmetry)
+            except ProblemMissing:  # a worker joined or restarted since the problem was sent: send it again, once
+                self._problem = None
+                return self._call(Z, outside, within, symmetry)
         except BDDMemoryError:
             raise
         except PartitionFailed:
@@ -303,7 +311,7 @@ class DaskPredecessors:
         for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
             assert start is not None
             futures.append(self.client.submit(
-                task, self._problem_key, self._problem_future, z, o, list(self.digits), list(start),
+                task, self._problem_key, None, z, o, list(self.digits), list(start),
                 None if end is None else list(end), *extra, pure=False, retries=self.retries,
                 key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}", **self._placed(slots, k)))
         if self.cut == "split":  # the second phase: each range's states from the pairs of the ranges they admit
@@ -312,7 +320,7 @@ class DaskPredecessors:
             for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
                 assert start is not None
                 futures.append(self.client.submit(
-                    join_part, self._problem_key, self._problem_future, list(self.digits), list(start),
+                    join_part, self._problem_key, None, list(self.digits), list(start),
                     None if end is None else list(end), classes, *(cores[j] for j in self._reached(k, bounds)),
                     pure=False, retries=self.retries, key=f"compabs-cpre-join-{self._calls}-{k}-{uuid.uuid4().hex[:8]}",
                     **self._placed(slots, k)))
@@ -330,6 +338,8 @@ class DaskPredecessors:
                     exc = fut.exception()
                     if isinstance(exc, BDDMemoryError):
                         raise BDDMemoryError(f"a synthesis part on a Dask worker: {exc}")
+                    if isinstance(exc, ProblemMissing):  # a new one: raising exc itself would tie it to this frame
+                        raise ProblemMissing(str(exc))
                     raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
                 if fut.status != "finished":  # cancelled under us (the cluster is closing)
                     raise DaskPartFailed(f"a part of CPre on a Dask worker ended {fut.status}")
@@ -379,7 +389,7 @@ class DaskPredecessors:
     def close(self) -> None:
         """Drop the workers' copies of the problem and release its scattered bytes (idempotent); the statistics
         stay readable."""
-        self._problem, self._problem_future = None, None
+        self._problem = None
         self._finalizer()
 
 

@@ -46,8 +46,19 @@ class Part(NamedTuple):
     kept: str = ""
     """Of the split cut's first phase: the key under which its worker keeps the answer (:data:`_KEPT`)."""
 
+Problem = dict[str, Any] | None
+"""What a task gets for its CPre's problem: the problem itself (:meth:`workers.dask_cpre.DaskPredecessors.problem`),
+or ``None``: the one :func:`receive` kept under the task's key."""
+
+
+class ProblemMissing(RuntimeError):
+    """A part named a problem its worker was not sent (it joined the cluster, or restarted, after the sending)."""
+
+
 #: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
 _HELD: OrderedDict[str, tuple] = OrderedDict()
+#: Per worker process: problem key -> the problem as sent (:func:`receive`), newest last.
+_SENT: OrderedDict[str, dict[str, Any]] = OrderedDict()
 #: Per worker process: (model key, classes) -> the Symmetry on that model (dropped with the model's problems).
 _SYMMETRIES: dict[tuple, Symmetry] = {}
 #: Per worker process: the split cut's first-phase answers computed here, newest last, so that the second phase of
@@ -81,11 +92,15 @@ def _dump(model: SymbolicModel, f: Function) -> bytes:
         os.unlink(path)
 
 
-def _problem(key: str, problem: dict[str, Any]) -> tuple:
+def _problem(key: str, problem: Problem) -> tuple:
     held = _HELD.get(key)
     if held is not None:
         _HELD.move_to_end(key)
         return held
+    if problem is None:
+        problem = _SENT.get(key)
+        if problem is None:
+            raise ProblemMissing(f"this worker was not sent the CPre problem {key} (it joined or restarted since)")
     # A model is shared by the problems of one CPre (same header): a new manager per problem would reload the
     # variables and leave the older problems' nodes in another manager.
     model = next((h[0] for h in _HELD.values() if h[6] == problem["model"]), None)
@@ -103,6 +118,23 @@ def _problem(key: str, problem: dict[str, Any]) -> tuple:
     return held
 
 
+def receive(key: str, problem: dict[str, Any]) -> None:
+    """Keep a CPre's problem, sent to every worker at once (``client.run``), until its first part here loads it
+    (:func:`_problem`); :data:`HELD_PROBLEMS` at most, the newest last.
+
+    Why not a scattered future that the parts depend on: Dask brings every dependency to a task's worker before it
+    runs, and its active memory manager drops the replicas no waiting task needs a few seconds after a call, so each
+    call every worker fetched the whole problem again from the one worker left holding it, though it kept the
+    problem loaded all along. On 16 workers (2-core machine, consensus N = 7) the last part of each call was entered
+    7.8 and 5.2 s later (summed over the calls) in two runs that way, 0.8 s with the memory manager stopped; the
+    16-core machine had measured 12.5 s of such waiting.
+    """
+    _SENT[key] = problem
+    _SENT.move_to_end(key)
+    while len(_SENT) > HELD_PROBLEMS:
+        _SENT.popitem(last=False)
+
+
 def _where() -> str:
     """The address of the Dask worker running this task, ``""`` outside one (a part called directly)."""
     try:
@@ -113,7 +145,7 @@ def _where() -> str:
         return ""
 
 
-def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
+def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
             compute: Callable[[tuple, Function, Function | None, Function | None], Function],
             classes: Sequence[Sequence[int]] | None = None, close: bool = True, keep: bool = False) -> Part:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
@@ -146,7 +178,7 @@ def _answer(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     return Part(blob, time.perf_counter() - t0, began, entered, _where(), time.thread_time() - c0, kept)
 
 
-def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+def predecessors_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
                       start: Sequence[int], end: Sequence[int] | None,
                       classes: Sequence[Sequence[int]] | None = None) -> Part:
     """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as a :data:`Part`. With the
@@ -164,7 +196,7 @@ def predecessors_part(key: str, problem: dict[str, Any], Z: bytes, outside: byte
     return _answer(key, problem, Z, outside, compute, classes)
 
 
-def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+def bad_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
              start: Sequence[int], end: Sequence[int] | None) -> Part:
     """A Dask task of the ``w`` cut: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some admissible
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
@@ -177,7 +209,7 @@ def bad_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None,
     return _answer(key, problem, Z, outside, compute)
 
 
-def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+def window_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
                 start: Sequence[int], end: Sequence[int] | None,
                 classes: Sequence[Sequence[int]] | None = None) -> Part:
     """A Dask task of the window cut: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible code of
@@ -201,7 +233,7 @@ def window_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | No
     return _answer(key, problem, Z, outside, compute, classes)
 
 
-def core_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None, digits: Sequence[str],
+def core_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
               start: Sequence[int], end: Sequence[int] | None,
               classes: Sequence[Sequence[int]] | None = None) -> Part:
     """The split cut's first phase, a Dask task: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some
@@ -217,7 +249,7 @@ def core_part(key: str, problem: dict[str, Any], Z: bytes, outside: bytes | None
     return _answer(key, problem, Z, outside, compute, classes, close=False, keep=True)
 
 
-def join_part(key: str, problem: dict[str, Any], digits: Sequence[str], start: Sequence[int],
+def join_part(key: str, problem: Problem, digits: Sequence[str], start: Sequence[int],
               end: Sequence[int] | None, classes: Sequence[Sequence[int]] | None, own: Part, *others: Part) -> Part:
     """The split cut's second phase, a Dask task: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible
     code of ``digits[0]`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.partition.w_window`), from the first
@@ -259,8 +291,10 @@ def forget(model_key: str) -> int:
         del _HELD[k]
     for sym_key in [k for k in _SYMMETRIES if k[0] == model_key]:
         del _SYMMETRIES[sym_key]
+    for sent in [k for k, p in _SENT.items() if p["model"] == model_key]:
+        del _SENT[sent]
     _KEPT.clear()
     return len(keys)
 
 
-__all__ = ["HELD_PROBLEMS", "Part", "bad_part", "core_part", "forget", "join_part", "predecessors_part", "window_part"]
+__all__ = ["HELD_PROBLEMS", "Part", "ProblemMissing", "receive", "bad_part", "core_part", "forget", "join_part", "predecessors_part", "window_part"]
