@@ -141,15 +141,14 @@ class DaskPredecessors:
         self._seconds: list[float] = []
         self._calls = 0
         #: Seconds summed over the calls: sending the sets, the slower part of each call (and the most CPU seconds a
-        #: part of each call took: on a machine with fewer cores than workers, what the slower part would take on a
-        #: core of its own), reading and joining the parts after it ended, the ∃u step of the w cut (what the job's process adds to the parts' time). Of
-        #: ``after_parts``: ``last_start``, from sending the parts until the last of them began computing (Dask's
-        #: dispatch, a worker's first loading of the problem, parts queued behind others), of which
-        #: ``last_entered``, until the last part's task was entered on its worker (the loading not counted), and
-        #: ``after_last``, from
-        #: the end of the last part's computation until this process had joined every part (its bytes coming back
-        #: and read here). Both from the workers' wall clocks: exact on one machine, off by the clocks' skew on a
-        #: real cluster.
+        #: part of each call took: on a machine with fewer cores than workers, what the slower part would take on a core
+        #: of its own), reading and joining the parts after it ended, the ∃u step of the w cut (what the job's process
+        #: adds to the parts' time). Of ``after_parts``: ``last_start``, from sending the parts until the last of them
+        #: began computing (Dask's dispatch, a worker's first loading of the problem, parts queued behind others), of
+        #: which ``last_entered``, until the last part's task was entered on its worker (the loading not counted), and
+        #: ``after_last``, from the end of the last part's computation until this process had joined every part (its
+        #: bytes coming back and read here). Both from the workers' wall clocks: exact on one machine, off by the
+        #: clocks' skew on a real cluster.
         self.timing = {"sending": 0.0, "slowest_part": 0.0, "slowest_part_cpu": 0.0, "after_parts": 0.0,
                        "exists_u": 0.0, "last_start": 0.0, "last_entered": 0.0, "after_last": 0.0}
         #: The same per call, with the call's wall seconds, its parts' summed seconds (wall and CPU) and the most of

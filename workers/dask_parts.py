@@ -297,4 +297,5 @@ def forget(model_key: str) -> int:
     return len(keys)
 
 
-__all__ = ["HELD_PROBLEMS", "Part", "ProblemMissing", "receive", "bad_part", "core_part", "forget", "join_part", "predecessors_part", "window_part"]
+__all__ = ["HELD_PROBLEMS", "Part", "ProblemMissing", "bad_part", "core_part", "forget", "join_part",
+           "predecessors_part", "receive", "window_part"]
