@@ -345,3 +345,16 @@ def test_astronomical_knobs_are_refused_not_500(make_client):
     assert "more than a petabyte" in err.value.message
     r = make_client().post("/jobs", json=data, headers=AUTH)
     assert 400 <= r.status_code < 500, r.text
+
+
+@pytest.mark.parametrize("box", ["input", "state"])
+def test_an_astronomical_grid_is_refused_not_500(make_client, box):
+    """A box of 5·10^306 cells (an input box found by the trust campaign's mutated specs; the state box of
+    examples/vehicle.yaml likewise) is a refusal naming the cells cap, not an OverflowError when the default chunk
+    size is worked out."""
+    data = small()
+    agent(data)[box] = {"lb": -5.44755495412823e306, "ub": 2, "eta": 1}
+    with pytest.raises(CostError, match="max_cells"):
+        check(data, Caps())
+    r = make_client().post("/jobs", json=data, headers=AUTH)
+    assert 400 <= r.status_code < 500, r.text

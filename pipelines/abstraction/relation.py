@@ -108,9 +108,12 @@ def default_chunk_cells(sub: Subsystem, target_points: int | None = None) -> int
     if target_points is None:
         target_points = DEFAULT_CHUNK_POINTS
     n_x = sub.state_grid.size
-    per_cell = sub.input_grid.size * sub.n_w_cells * triple_cost(sub, sub.spec.growth_bound, sub.spec.scp_objective)
+    # Python integers do not overflow but floats do: a grid of 10^306 cells is a cost refusal, not an OverflowError
+    # (the floats may still become inf, which gives one cell per chunk)
+    triples = min(sub.input_grid.size * sub.n_w_cells, 10**300)
+    per_cell = float(triples) * triple_cost(sub, sub.spec.growth_bound, sub.spec.scp_objective)
     by_cost = max(1, int(target_points // per_cell))
-    spread = -(-n_x // MIN_TASKS) if per_cell * n_x >= target_points / 2 else n_x
+    spread = -(-n_x // MIN_TASKS) if per_cell * min(n_x, 10**300) >= target_points / 2 else n_x
     return max(1, min(by_cost, spread))
 
 
