@@ -187,6 +187,34 @@ def test_a_worker_that_lost_its_problem_is_sent_it_again(client):
         pool.close()
 
 
+def test_a_problem_pushed_out_of_a_workers_memory_is_loaded_again_from_what_was_sent():
+    """Three CPres' problems on one worker (jobs sharing a cluster): the worker keeps two loaded
+    (``HELD_PROBLEMS``), and the first, pushed out, is loaded again from the bytes it was sent, with the same
+    relations; one never sent is ``ProblemMissing``."""
+    from workers.dask_parts import _HELD, HELD_PROBLEMS, ProblemMissing, _dump, _load, _problem, forget, receive
+
+    rng = np.random.default_rng(7600)
+    games = [build(random_net(rng, True), "shared_top") for _ in range(3)]
+    pools = [DaskPredecessors(g, 2, client=None) for g in games]
+    keys = [f"test-sent-{k}" for k in range(3)]
+    try:
+        for key, pool in zip(keys, pools):
+            receive(key, pool.problem())
+            _problem(key, None)
+        assert HELD_PROBLEMS == 2 and keys[0] not in _HELD and all(k in _HELD for k in keys[1:])
+        model, chain, *_ = _problem(keys[0], None)
+        game = games[0]
+        assert len(chain) == len(game.chain)
+        for (rel, _), (want, _) in zip(chain, game.chain):  # the same relations, in the worker's own manager
+            assert _load(game.model, _dump(model, rel)) == want
+        with pytest.raises(ProblemMissing, match="not sent"):
+            _problem("test-sent-never", None)
+    finally:
+        for pool in pools:
+            pool.close()
+            forget(pool._model_key)
+
+
 def test_the_w_cut_needs_a_shared_internal_variable():
     game = build(random_net(np.random.default_rng(3), False), "interleaved")
     assert game.M is None

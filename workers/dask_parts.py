@@ -26,6 +26,11 @@ HELD_PROBLEMS = 2
 """Problems a worker keeps loaded (a safety loop's ``within`` problem and the plain one alternate in
 Reach(Safe)); older ones are dropped with their CUDD manager when no other problem of theirs is held."""
 
+SENT_PROBLEMS = 16
+"""Problems a worker keeps as sent (:func:`receive`), to load again when :data:`HELD_PROBLEMS` pushed one out (jobs
+sharing a cluster take turns on its workers). A CPre's problems go when it closes (:func:`forget`); the bound is
+for those whose job's process died first."""
+
 
 class Part(NamedTuple):
     """What a part's task returns."""
@@ -101,6 +106,7 @@ def _problem(key: str, problem: Problem) -> tuple:
         problem = _SENT.get(key)
         if problem is None:
             raise ProblemMissing(f"this worker was not sent the CPre problem {key} (it joined or restarted since)")
+        _SENT.move_to_end(key)
     # A model is shared by the problems of one CPre (same header): a new manager per problem would reload the
     # variables and leave the older problems' nodes in another manager.
     model = next((h[0] for h in _HELD.values() if h[6] == problem["model"]), None)
@@ -120,7 +126,7 @@ def _problem(key: str, problem: Problem) -> tuple:
 
 def receive(key: str, problem: dict[str, Any]) -> None:
     """Keep a CPre's problem, sent to every worker at once (``client.run``), until its first part here loads it
-    (:func:`_problem`); :data:`HELD_PROBLEMS` at most, the newest last.
+    (:func:`_problem`), and after, to load again: :data:`SENT_PROBLEMS` at most, the newest last.
 
     Why not a scattered future that the parts depend on: Dask brings every dependency to a task's worker before it
     runs, and its active memory manager drops the replicas no waiting task needs a few seconds after a call, so each
@@ -131,7 +137,7 @@ def receive(key: str, problem: dict[str, Any]) -> None:
     """
     _SENT[key] = problem
     _SENT.move_to_end(key)
-    while len(_SENT) > HELD_PROBLEMS:
+    while len(_SENT) > SENT_PROBLEMS:
         _SENT.popitem(last=False)
 
 
@@ -297,5 +303,5 @@ def forget(model_key: str) -> int:
     return len(keys)
 
 
-__all__ = ["HELD_PROBLEMS", "Part", "ProblemMissing", "bad_part", "core_part", "forget", "join_part",
+__all__ = ["HELD_PROBLEMS", "SENT_PROBLEMS", "Part", "ProblemMissing", "bad_part", "core_part", "forget", "join_part",
            "predecessors_part", "receive", "window_part"]
