@@ -4,11 +4,11 @@
 like :class:`workers.processes.partitioned_cpre.PartitionedPredecessors`, with the parts run as Dask tasks:
 
 * **The problem lives on the workers.** The chain, the admissible pairs and (shared ``w``) ``M̂`` travel once per
-  problem as DDDMP bytes, sent to every worker; a worker's first part of a problem loads them into a CUDD
-  manager of its own and keeps them for the later calls (:mod:`workers.dask_parts`, the tasks' side), so a call
-  sends only ``Z`` (and ``outside``), once per worker, and gets back each part's result as DDDMP bytes. The
-  problem goes to every worker with ``client.run``, not as a dependency of the parts
-  (:func:`workers.dask_parts.receive` says why); a worker that joined or restarted since gets it again.
+  problem as DDDMP bytes, sent to every worker with ``client.run``, not as a dependency of the parts
+  (:func:`workers.dask_parts.receive` says why; a worker that joined or restarted since gets it again); a
+  worker's first part of a problem loads them into a CUDD manager of its own and keeps them for the later calls
+  (:mod:`workers.dask_parts`, the tasks' side), so a call sends only ``Z`` (and ``outside``), once per worker,
+  and gets back each part's result as DDDMP bytes.
 * **Parts.** A call is cut into ``parts`` ranges (:mod:`pipelines.synthesis.partition`: exact, the union of the
   parts is the whole): for the shared CPre, ranges of the shared internal variable ``ŵ``, each part the
   ``∃u.CPre`` of the states whose lowest admissible ``ŵ`` lies in its range, the chain run on the ``ŵ`` cells
@@ -229,8 +229,8 @@ class DaskPredecessors:
         return [(0,) * len(self.shape), *self.cut_cells, None]
 
     def _scatter(self, data: Any) -> Any:
-        """One future for ``data``, on every worker. In a list: ``scatter`` of a dict would scatter each value
-        under its dict key as the Dask key, and a later problem's values would be read as the first one's."""
+        """One future for ``data`` (a set of the call as DDDMP bytes), on every worker: each part depends on it. In a
+        list, so that any ``data`` is one future (``scatter`` gives a collection's items a future each)."""
         (future,) = self.client.scatter([data], broadcast=True, hash=False)
         return future
 
@@ -386,8 +386,7 @@ class DaskPredecessors:
         return result
 
     def close(self) -> None:
-        """Drop the workers' copies of the problem and release its scattered bytes (idempotent); the statistics
-        stay readable."""
+        """Drop the workers' copies of the problem (idempotent); the statistics stay readable."""
         self._problem = None
         self._finalizer()
 
