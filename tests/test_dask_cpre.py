@@ -121,6 +121,7 @@ def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed()
     ranges' answers from their bytes; the joined answers are the explicit predecessors whether the answers were
     kept or every one was read from bytes."""
     from pipelines.symbolic.model import Function
+    from pipelines.synthesis.partition import admitting_below
     from workers import dask_parts
     from workers.dask_parts import _KEPT, _dump, _load, core_part, join_part
 
@@ -155,6 +156,11 @@ def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed()
                 for j in joins:
                     got |= _load(m, j.blob)
                 np.testing.assert_array_equal(states_vector(m, got, ex), want)
+        # the states of a range come from sets the worker keeps with the problem, one per code, as computed afresh
+        held = dask_parts._HELD[key]
+        assert held.M is not None and held.memo and {k[0] for k in held.memo} == {"below"}
+        for (_, digit, c), f in held.memo.items():
+            assert f == admitting_below(held.model, held.M, digit, c)
     finally:
         pool.close()
         _KEPT.clear()

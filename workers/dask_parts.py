@@ -19,7 +19,8 @@ from typing import Any, NamedTuple
 from pipelines.symbolic.files import model_from_header
 from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.synthesis.cpre import bad_inputs, predecessors_of, window_predecessors
-from pipelines.synthesis.partition import lexicographic_part, w_window
+from pipelines.synthesis.partition import admitting_below, lexicographic_part, lowest_code_states, w_window
+from pipelines.synthesis.schedule import Chain
 from pipelines.synthesis.symmetry import Symmetry, cached_symmetry
 
 HELD_PROBLEMS = 2
@@ -60,8 +61,24 @@ class ProblemMissing(RuntimeError):
     """A part named a problem its worker was not sent (it joined the cluster, or restarted, after the sending)."""
 
 
-#: Per worker process: problem key -> (model, chain, admissible, M, u_bits, w_bits), least recently used first.
-_HELD: OrderedDict[str, tuple] = OrderedDict()
+class Held(NamedTuple):
+    """A CPre's problem as a worker holds it, loaded into its CUDD manager (:func:`_problem`)."""
+
+    model: SymbolicModel
+    chain: Chain
+    admissible: Function
+    M: Function | None
+    u_bits: Sequence[str]
+    w_bits: Sequence[str]
+    owner: str
+    """The key of the CPre's model (shared by its problems)."""
+    memo: dict[tuple, Function]
+    """Sets every call of the problem's parts would compute again, computed once here (:func:`_care`,
+    :func:`_states`): dropped with the problem."""
+
+
+#: Per worker process: problem key -> the problem loaded, least recently used first.
+_HELD: OrderedDict[str, Held] = OrderedDict()
 #: Per worker process: problem key -> the problem as sent (:func:`receive`), newest last.
 _SENT: OrderedDict[str, dict[str, Any]] = OrderedDict()
 #: Per worker process: (model key, classes) -> the Symmetry on that model (dropped with the model's problems).
@@ -97,7 +114,7 @@ def _dump(model: SymbolicModel, f: Function) -> bytes:
         os.unlink(path)
 
 
-def _problem(key: str, problem: Problem) -> tuple:
+def _problem(key: str, problem: Problem) -> Held:
     held = _HELD.get(key)
     if held is not None:
         _HELD.move_to_end(key)
@@ -109,7 +126,7 @@ def _problem(key: str, problem: Problem) -> tuple:
         _SENT.move_to_end(key)
     # A model is shared by the problems of one CPre (same header): a new manager per problem would reload the
     # variables and leave the older problems' nodes in another manager.
-    model = next((h[0] for h in _HELD.values() if h[6] == problem["model"]), None)
+    model = next((h.model for h in _HELD.values() if h.owner == problem["model"]), None)
     if model is None:
         model = model_from_header(problem["header"], problem["max_memory"])
     with model.guard("loading the CPre's relations on a worker"):
@@ -117,11 +134,41 @@ def _problem(key: str, problem: Problem) -> tuple:
     n = len(problem["xn"])
     chain = list(zip(roots[:n], problem["xn"]))
     M = roots[n + 1] if len(roots) > n + 1 else None
-    held = (model, chain, roots[n], M, problem["u_bits"], problem["w_bits"], problem["model"])
+    held = Held(model, chain, roots[n], M, problem["u_bits"], problem["w_bits"], problem["model"], {})
     _HELD[key] = held
     while len(_HELD) > HELD_PROBLEMS:
         _HELD.popitem(last=False)
     return held
+
+
+def _care(held: Held, sym: Symmetry | None) -> Function:
+    """``M̂`` on the orbit representatives of ``sym`` (``M̂`` itself without one), computed once per problem and
+    symmetry: each part of each call conjoined them anew (over a Reach(Safe) of consensus N = 6 on 16 workers,
+    7.0 s of the parts' 51 s of CPU, where one process computes it once per call)."""
+    assert held.M is not None
+    if sym is None:
+        return held.M
+    key = ("care", tuple(tuple(c) for c in sym.classes))
+    care = held.memo.get(key)
+    if care is None:
+        care = held.memo[key] = held.M & sym.representatives
+    return care
+
+
+def _below(held: Held, digit: str) -> Callable[[int], Function]:
+    """:func:`~pipelines.synthesis.partition.admitting_below` on the problem's ``M̂``, each code's set computed once
+    per problem (a part's range moves between calls, but its ends are among the cells of ``ŵ``)."""
+    assert held.M is not None
+    M = held.M
+
+    def below(c: int) -> Function:
+        key = ("below", digit, c)
+        f = held.memo.get(key)
+        if f is None:
+            f = held.memo[key] = admitting_below(held.model, M, digit, c)
+        return f
+
+    return below
 
 
 def receive(key: str, problem: dict[str, Any]) -> None:
@@ -152,25 +199,26 @@ def _where() -> str:
 
 
 def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
-            compute: Callable[[tuple, Function, Function | None, Function | None], Function],
+            compute: Callable[[Held, Function, Function | None, Symmetry | None], Function],
             classes: Sequence[Sequence[int]] | None = None, close: bool = True, keep: bool = False) -> Part:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
-    outside, representatives)`` run under CUDD's memory guard, its result as DDDMP bytes, the seconds it took
+    outside, symmetry)`` run under CUDD's memory guard, its result as DDDMP bytes, the seconds it took
     (the problem's loading not counted: it happens once per worker) and the wall-clock time it began (after the
     loading). With the ``classes`` of interchangeable subsystems (the sets of the call invariant under them)
-    ``representatives`` are their orbit representatives (else ``None``) and the result is closed under them here,
+    ``symmetry`` is their :class:`Symmetry` (else ``None``), the part is computed on its orbit representatives
+    and the result is closed under it here,
     on the worker (unless ``close`` is false: the split cut's first phase, whose pairs are read on the
     representatives only). With ``keep`` the worker also keeps the result (:data:`_KEPT`)."""
     entered = time.time()
     held = _problem(key, problem)
-    model = held[0]
-    sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held[6])
+    model = held.model
+    sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held.owner)
     began = time.time()
     t0, c0 = time.perf_counter(), time.thread_time()
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
         out = None if outside is None else _load(model, outside)
-        result = compute(held, z, out, None if sym is None else sym.representatives)
+        result = compute(held, z, out, sym)
         if sym is not None and close:
             result = sym.close(result)
         blob = _dump(model, result)
@@ -192,11 +240,11 @@ def predecessors_part(key: str, problem: Problem, Z: bytes, outside: bytes | Non
     answer on the part's representatives (the parts' closures overlap; their union is the whole, since closing
     distributes over unions)."""
 
-    def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
-        model, chain, admissible, M, u_bits, w_bits, _ = held
+    def compute(held: Held, z: Function, out: Function | None, sym: Symmetry | None) -> Function:
+        model, chain, admissible, M, u_bits, w_bits, *_ = held
         part = lexicographic_part(model, digits, start, end)
-        if reps is not None:
-            part &= reps
+        if sym is not None:
+            part &= sym.representatives
         return predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out, part)
 
     return _answer(key, problem, Z, outside, compute, classes)
@@ -208,8 +256,8 @@ def bad_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
     that range of ``ŵ`` as its part), as a :data:`Part`."""
 
-    def compute(held: tuple, z: Function, out: Function | None, _reps: Function | None) -> Function:
-        model, chain, _, M, _, w_bits, _ = held
+    def compute(held: Held, z: Function, out: Function | None, _sym: Symmetry | None) -> Function:
+        model, chain, _, M, _, w_bits, *_ = held
         return bad_inputs(model, chain, M, w_bits, z, out, lexicographic_part(model, digits, start, end))
 
     return _answer(key, problem, Z, outside, compute)
@@ -229,11 +277,12 @@ def window_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, dig
     N = 6 the two windows' slower parts summed to 13.8 s over a Reach(Safe) that way, 14.7 s with them in the
     chain too, 20.2 s without the representatives."""
 
-    def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
-        model, chain, admissible, M, u_bits, w_bits, _ = held
-        states, window = w_window(model, M, digits[0], start[0], None if end is None else end[0])
-        if reps is not None:
-            states &= reps
+    def compute(held: Held, z: Function, out: Function | None, sym: Symmetry | None) -> Function:
+        model, chain, admissible, M, u_bits, w_bits, *_ = held
+        states, window = w_window(model, M, digits[0], start[0], None if end is None else end[0],
+                                  _below(held, digits[0]))
+        if sym is not None:
+            states &= sym.representatives
         return window_predecessors(model, chain, admissible, M, w_bits, u_bits, z, states, window, out)
 
     return _answer(key, problem, Z, outside, compute, classes)
@@ -247,10 +296,10 @@ def core_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digit
     only: no window reaches past them), as a :data:`Part`. With the ``classes`` of interchangeable subsystems, on
     their representatives only (the second phase reads them there), not closed."""
 
-    def compute(held: tuple, z: Function, out: Function | None, reps: Function | None) -> Function:
-        model, chain, _, M, _, w_bits, _ = held
-        care = out if reps is None else reps if out is None else out & reps
-        return bad_inputs(model, chain, M, w_bits, z, care, lexicographic_part(model, digits, start, end))
+    def compute(held: Held, z: Function, out: Function | None, sym: Symmetry | None) -> Function:
+        # M̂ on the representatives in place of M̂: bad_inputs reads M̂ only where it conjoins it with ``out``
+        return bad_inputs(held.model, held.chain, _care(held, sym), held.w_bits, z, out,
+                          lexicographic_part(held.model, digits, start, end))
 
     return _answer(key, problem, Z, outside, compute, classes, close=False, keep=True)
 
@@ -267,11 +316,13 @@ def join_part(key: str, problem: Problem, digits: Sequence[str], start: Sequence
     Returns its answer (closed under the ``classes``, if given), the seconds of both phases of its own range,
     when its first phase began and was entered, and where it ran."""
     held = _problem(key, problem)
-    model, _, admissible, M, u_bits, _, owner = held
-    sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=owner)
+    model, _, admissible, M, u_bits, *_ = held
+    sym = None if classes is None else cached_symmetry(_SYMMETRIES, model, classes, owner=held.owner)
     t0, c0 = time.perf_counter(), time.thread_time()
     with model.guard("joining a part of CPre on a Dask worker"):
-        states, _ = w_window(model, M, digits[0], start[0], None if end is None else end[0])
+        assert M is not None
+        states = lowest_code_states(model, M, digits[0], start[0], None if end is None else end[0],
+                                    _below(held, digits[0]))
         if sym is not None:
             states &= sym.representatives
         # the good pairs of the part's states, cut down by each range's bad ones in turn: every operand stays within
@@ -292,7 +343,7 @@ def join_part(key: str, problem: Problem, digits: Sequence[str], start: Sequence
 
 def forget(model_key: str) -> int:
     """Drop every problem of one CPre this worker holds (run on every worker when the CPre closes)."""
-    keys = [k for k, h in _HELD.items() if h[6] == model_key]
+    keys = [k for k, h in _HELD.items() if h.owner == model_key]
     for k in keys:
         del _HELD[k]
     for sym_key in [k for k in _SYMMETRIES if k[0] == model_key]:
@@ -303,5 +354,5 @@ def forget(model_key: str) -> int:
     return len(keys)
 
 
-__all__ = ["HELD_PROBLEMS", "SENT_PROBLEMS", "Part", "ProblemMissing", "bad_part", "core_part", "forget", "join_part",
+__all__ = ["HELD_PROBLEMS", "SENT_PROBLEMS", "Held", "Part", "ProblemMissing", "bad_part", "core_part", "forget", "join_part",
            "predecessors_part", "receive", "window_part"]

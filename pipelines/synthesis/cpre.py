@@ -147,9 +147,11 @@ def bad_inputs(
     for rel, xn_bits in chain:
         acc = and_exists(acc, rel, xn_bits)
     if M is not None:
-        care = M if outside is None else M & outside
-        if part is not None:
-            care &= part
+        # the part first: a range of ŵ (a cluster's part) cuts M̂ down to its cells before the larger product with
+        # ``outside`` (16 parts of consensus N = 6, a Reach(Safe): 5.4 s of the parts' CPU the other way, 0.5 s)
+        care = M if part is None else M & part
+        if outside is not None:
+            care &= outside
         acc = and_exists(care, acc, list(w_bits))
     return acc
 

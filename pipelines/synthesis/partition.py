@@ -26,7 +26,7 @@ A cell here is a pair (top digit, second digit), indexed row-major.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -147,8 +147,15 @@ def lexicographic_part(
     return part
 
 
+def admitting_below(model: SymbolicModel, M: Function, digit: str, c: int) -> Function:
+    """``∃ŵ. M̂ ∧ code(ŵ_digit) ≤ c``: the states admitting some internal input whose code of ``digit`` is at
+    most ``c`` (:func:`w_window`'s sets are differences of two of these)."""
+    return model.bdd.exist(model.w_bits, M & model.interval(digit, 0, c))
+
+
 def w_window(
-    model: SymbolicModel, M: Function, digit: str, start: int, end: int | None
+    model: SymbolicModel, M: Function, digit: str, start: int, end: int | None,
+    below: Callable[[int], Function] | None = None,
 ) -> tuple[Function, Function]:
     """The states whose lowest admissible code of ``digit`` lies in ``[start, end)``, and every ``ŵ`` they admit.
 
@@ -159,21 +166,35 @@ def w_window(
         The shared interconnection ``M̂(x̂, ŵ)`` (:attr:`~.cpre.ControllablePredecessor.M`).
     digit : str
         An internal variable's digit (``w0``); ``end = None``: no upper end.
+    below : callable, optional
+        ``c -> admitting_below(model, M, digit, c)``, if the caller keeps those sets (a Dask worker computes each
+        once per problem, not once per part and call).
 
     Returns
     -------
     states : Function
-        ``{x̂ : min{code(ŵ_digit) : M̂(x̂, ŵ)} ∈ [start, end)}``. Consecutive ranges ``[s_0, s_1), ..., [s_k, None)``
-        with ``s_0 = 0`` partition the states with ``M̂(x̂) ≠ ∅`` (the only states with admissible inputs).
+        ``{x̂ : min{code(ŵ_digit) : M̂(x̂, ŵ)} ∈ [start, end)}``: the states admitting a code at most ``end - 1``
+        and none below ``start``. Consecutive ranges ``[s_0, s_1), ..., [s_k, None)`` with ``s_0 = 0`` partition
+        the states with ``M̂(x̂) ≠ ∅`` (the only states with admissible inputs).
     window : Function
         ``∃x̂. M̂ ∧ states``, over ``w`` bits: every ``ŵ`` a state of ``states`` admits. It reaches past ``end``
         by the spread of ``M̂(x̂)`` (one or two cells for consensus), which is what the parts of
         :func:`~.cpre.window_predecessors` compute twice.
     """
-    bdd = model.bdd
+    states = lowest_code_states(model, M, digit, start, end, below)
+    return states, model.bdd.exist(model.x_bits, M & states)
+
+
+def lowest_code_states(
+    model: SymbolicModel, M: Function, digit: str, start: int, end: int | None,
+    below: Callable[[int], Function] | None = None,
+) -> Function:
+    """:func:`w_window`'s ``states`` alone (the split cut's second phase needs no window)."""
+    if below is None:
+        def below(c: int) -> Function:
+            return admitting_below(model, M, digit, c)
     top = (1 << len(model.bits[digit])) - 1
-    w_bits = model.w_bits
-    reaches = bdd.exist(w_bits, M & model.interval(digit, start, top if end is None else end - 1))
-    states = reaches if start == 0 else reaches & ~bdd.exist(w_bits, M & model.interval(digit, 0, start - 1))
-    window = bdd.exist(model.x_bits, M & states)
-    return states, window
+    states = below(top if end is None else end - 1)
+    if start > 0:
+        states &= ~below(start - 1)
+    return states
