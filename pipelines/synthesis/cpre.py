@@ -138,8 +138,11 @@ def bad_inputs(
 
     The chain (``R_i`` = T̃_i or T_i) is conjoined one subsystem at a time; ``M`` is ``None`` for the
     per-subsystem CPre (``w`` already quantified in the chain), else the shared ``∃w`` step follows, the
-    bottleneck of METHOD §6. ``part`` (current states) is conjoined into the chain's first operand; it reads
-    current-state bits only, so it commutes with ``∃x'`` and ``∃w`` and the result is exact on it.
+    bottleneck of METHOD §6. ``part`` is conjoined into the chain's first operand and into ``M̂``; it reads no
+    next-state bit, so it commutes with ``∃x'``. A set of current states commutes with ``∃w`` too, and the result
+    is exact on it; a set of ``ŵ`` cells (the cluster's ranges, :mod:`workers.dask_parts`) gives the pairs bad for
+    some admissible ``ŵ`` among them. ``M`` may come already conjoined with what the caller keeps (a Dask
+    worker's ``M̂`` on the representatives).
     """
     acc = ~model.to_next(Z)
     if part is not None:
