@@ -313,8 +313,14 @@ def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
             assert 0 < t["slowest_part_cpu"] <= t["slowest_part"] * 1.05 + 0.05
             calls = report["parallel"]["per_call"]
             assert len(calls) == report["parallel"]["calls"] and all(c["wall"] >= c["slowest_part"] for c in calls)
-            # each call's parts spread over the workers (DaskPredecessors._placed), none queued behind another's
-            assert [c["most_on_one_worker"] for c in calls] == [per_worker] * len(calls)
+            # one part per worker at a time, handed out as workers free up (workers.dispatch), none queued behind
+            # another's; with a part per worker, each on a worker of its own
+            assert [c["most_in_flight"] for c in calls] == [2] * len(calls)
+            if per_worker == 1:
+                assert [c["most_on_one_worker"] for c in calls] == [1] * len(calls)
+            # what the busiest worker ran in a call, one task after another, within the call
+            assert all(0 < c["busiest_worker"] <= c["wall"] + 0.05 for c in calls)
+            assert all(0 < c["busiest_worker_cpu"] <= c["busiest_worker"] * 1.05 + 0.05 for c in calls)
             # the window cut's parts cover every cell of ŵ, some twice (the windows overlap by M̂'s spread)
             w = report["parallel"]["window_cells"]
             assert len(w["parts"]) == 2 * per_worker and w["cells"] == 33

@@ -16,9 +16,12 @@ like :class:`workers.processes.partitioned_cpre.PartitionedPredecessors`, with t
   much, in two phases (the split cut: :func:`core_part` runs the chain on each range's own cells once,
   :func:`join_part` answers a range's states from the ranges they reach, on a worker); else ranges of the top
   two current-state digits, each part its states' ``∃u.CPre``. Either way a part's answer is a set of states,
-  final on its own: this process only ORs them. Dask hands each worker the next
-  part as it frees up, and the cuts move after every call towards equal measured work
+  final on its own: this process only ORs them. The cuts move after every call towards equal measured work
   (:func:`~pipelines.synthesis.partition.update_density`).
+* **Parts handed out as workers free up** (:mod:`workers.dispatch`): each worker holds one part at a time, the
+  largest predicted first; when its part ends this process submits the next one there (a join once the first
+  phases it reads have ended), so with more parts than workers (``parts_for(client, per_worker)``) unequal parts
+  even out.
 * **The same answer in every mode.** Each part is ``part ∧ ∃u.CPre(Z)`` computed by
   :func:`~pipelines.synthesis.cpre.predecessors_of`, the function the one-process and helper-process modes run.
 
@@ -58,6 +61,7 @@ from workers.dask_parts import (
     receive,
     window_part,
 )
+from workers.dispatch import Dispatch, Task
 
 log = logging.getLogger(__name__)
 
@@ -151,8 +155,11 @@ class DaskPredecessors:
         #: clocks' skew on a real cluster.
         self.timing = {"sending": 0.0, "slowest_part": 0.0, "slowest_part_cpu": 0.0, "after_parts": 0.0,
                        "exists_u": 0.0, "last_start": 0.0, "last_entered": 0.0, "after_last": 0.0}
-        #: The same per call, with the call's wall seconds, its parts' summed seconds (wall and CPU) and the most of
-        #: its parts that ran on one worker (of the split cut, of its second phase), in call order.
+        #: The same per call, with the call's wall seconds, its parts' summed seconds (wall and CPU), the most of
+        #: its parts that ran on one worker (of the split cut, of its second phase), the most tasks submitted at once
+        #: (``most_in_flight``: one per worker) and the seconds (and CPU seconds) of the busiest worker's tasks
+        #: (``busiest_worker``: with more parts than workers, what the call waited for), in call order. With more
+        #: parts than workers ``last_start`` is when the last part was handed out and began.
         self.history: list[dict[str, float]] = []
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
@@ -262,17 +269,17 @@ class DaskPredecessors:
         return [addr for addr, n in sorted(self.client.nthreads().items()) for _ in range(n)]
 
     @staticmethod
-    def _placed(slots: list[str], k: int) -> dict[str, Any]:
-        """Where part ``k`` runs: slot ``k``'s worker, or another if that one is gone (a loose restriction).
+    def _placed(slots: list[str], slot: int) -> dict[str, Any]:
+        """Where a task that :class:`~workers.dispatch.Dispatch` gave slot ``slot`` runs: that slot's worker, or
+        another if that one is gone (a loose restriction).
 
         Why not leave it to Dask: its scheduler placed the parts of a call by its estimates of their durations, and
         on 16 workers (2-core machine, consensus N = 5, split cut) one call's 16 parts went to 6 workers, five
         of them one after another on one worker, so the call took the time of five parts; pinned, every call of
-        the same runs had each part on a worker of its own. The split cut's second phase of range ``k`` goes where
-        its first phase ran: its largest input is there."""
+        the same runs had each part on a worker of its own."""
         if not slots:
             return {}
-        return {"workers": [slots[k % len(slots)]], "allow_other_workers": True}
+        return {"workers": [slots[slot % len(slots)]], "allow_other_workers": True}
 
     def __call__(self, Z: Function, outside: Function | None = None, within: Within | None = None,
                  symmetry: Symmetry | None = None) -> Function:
@@ -303,36 +310,47 @@ class DaskPredecessors:
             o = None if outside is None else self._scatter(_dump(m, outside))
         bounds, starts = self.bounds(), self._starts()
         self._last_bounds = bounds
-        futures = []
         slots = self._slots()
-        task = {"w": bad_part, "window": window_part, "split": core_part}.get(self.cut, predecessors_part)
+        ranges = [(list(a), None if b is None else list(b)) for a, b in zip(starts[:-1], starts[1:]) if a is not None]
+        work = [float(self._density[lo:hi + 1].sum()) for lo, hi in bounds]
+        dispatch = Dispatch(work, max(1, len(slots)),
+                            [self._reached(k, bounds) for k in range(len(bounds))] if self.cut == "split" else None)
+        first = {"w": bad_part, "window": window_part, "split": core_part}.get(self.cut, predecessors_part)
         extra = () if symmetry is None else (symmetry.classes,)
-        for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
-            assert start is not None
-            futures.append(self.client.submit(
-                task, self._problem_key, None, z, o, list(self.digits), list(start),
-                None if end is None else list(end), *extra, pure=False, retries=self.retries,
-                key=f"compabs-cpre-{self._calls}-{k}-{uuid.uuid4().hex[:8]}", **self._placed(slots, k)))
-        if self.cut == "split":  # the second phase: each range's states from the pairs of the ranges they admit
-            cores, futures = futures, []
-            classes = None if symmetry is None else symmetry.classes
-            for k, (start, end) in enumerate(zip(starts[:-1], starts[1:])):
-                assert start is not None
-                futures.append(self.client.submit(
-                    join_part, self._problem_key, None, list(self.digits), list(start),
-                    None if end is None else list(end), classes, *(cores[j] for j in self._reached(k, bounds)),
-                    pure=False, retries=self.retries, key=f"compabs-cpre-join-{self._calls}-{k}-{uuid.uuid4().hex[:8]}",
-                    **self._placed(slots, k)))
-        index = {f.key: k for k, f in enumerate(futures)}
-        seconds, cpu = [0.0] * len(futures), [0.0] * len(futures)
+        classes = None if symmetry is None else symmetry.classes
+        cores: dict[int, Any] = {}  # the split cut's first phases, which the joins depend on
+        submitted: dict[str, Task] = {}
+        ac = as_completed()
+
+        def submit(tasks: list[Task]) -> None:
+            for t in tasks:
+                start, end = ranges[t.k]
+                key = f"compabs-cpre-{self._calls}-{t.kind}-{t.k}-{uuid.uuid4().hex[:8]}"
+                if t.kind == "join":  # each range's states from the pairs of the ranges they admit, own range first
+                    args: tuple = (join_part, self._problem_key, None, list(self.digits), start, end, classes,
+                                   *(cores[j] for j in self._reached(t.k, bounds)))
+                else:
+                    args = (first, self._problem_key, None, z, o, list(self.digits), start, end, *extra)
+                fut = self.client.submit(*args, pure=False, retries=self.retries, key=key, **self._placed(slots, t.slot))
+                if t.kind == "core":
+                    cores[t.k] = fut
+                submitted[key] = t
+                ac.add(fut)
+
+        seconds, cpu = [0.0] * len(bounds), [0.0] * len(bounds)
         t_sent, sent_at = time.perf_counter(), time.time()
         last_start = last_end = last_entered = sent_at
         ran_on: dict[str, int] = {}
+        busy: dict[str, list[float]] = {}  # per worker: the seconds and CPU seconds of the tasks it ran in this call
         result = g.bdd.false
+        live = []
         try:
-            # with_results: the client fetches each answer as its part ends, in its own thread, instead of one round
-            # trip per part from here after it ended.
-            for fut, answer in as_completed(futures, with_results=True, raise_errors=False):
+            submit(dispatch.start())
+            # Futures come back as they end, without their results: a first phase's answer stays on its worker, where
+            # the joins that read it fetch it; only final answers come here.
+            for fut in ac:
+                task = submitted[fut.key]
+                live.append(fut)
                 if fut.status == "error":
                     exc = fut.exception()
                     if isinstance(exc, BDDMemoryError):
@@ -342,20 +360,25 @@ class DaskPredecessors:
                     raise DaskPartFailed(f"a part of CPre failed on a Dask worker: {type(exc).__name__}: {exc}")
                 if fut.status != "finished":  # cancelled under us (the cluster is closing)
                     raise DaskPartFailed(f"a part of CPre on a Dask worker ended {fut.status}")
-                part: Part = answer
+                submit(dispatch.done(task))  # before reading the answer: the freed worker must not wait for this
+                if task.kind == "core":
+                    continue
+                part: Part = fut.result()
                 ran_on[part.where] = ran_on.get(part.where, 0) + 1
+                for where, s, c in part.phases:
+                    b = busy.setdefault(where, [0.0, 0.0])
+                    b[0], b[1] = b[0] + s, b[1] + c
                 with m.guard("reading a Dask worker's part of CPre"):
                     result |= _load(m, part.blob)
-                seconds[index[fut.key]], cpu[index[fut.key]] = part.seconds, part.cpu
+                seconds[task.k], cpu[task.k] = part.seconds, part.cpu
                 last_start, last_end = max(last_start, part.began), max(last_end, part.began + part.seconds)
                 last_entered = max(last_entered, part.entered)
                 fut.release()
+            if not dispatch.finished:  # as_completed ran dry with parts still to run: nothing was lost silently
+                raise DaskPartFailed("the Dask parts of a CPre call stopped before every part ran")
         finally:
-            for fut in futures:
+            for fut in (*live, *cores.values(), *ac.futures):
                 fut.cancel()
-            if self.cut == "split":
-                for fut in cores:
-                    fut.cancel()
         t_parts, joined_at = time.perf_counter(), time.time()
         if self.cut == "w":  # the parts are the bad pairs: the one ∃u step, on the whole set, here
             admissible = g.admissible if within is None else within.admissible
@@ -374,6 +397,9 @@ class DaskPredecessors:
         self.history.append({"wall": round(t_end - t_start, 3), "parts_sum": round(sum(seconds), 3),
                              "parts_cpu_sum": round(sum(cpu), 3),
                              "most_on_one_worker": max(ran_on.values(), default=0),
+                             "most_in_flight": dispatch.most_in_flight,
+                             "busiest_worker": round(max((b[0] for b in busy.values()), default=0.0), 3),
+                             "busiest_worker_cpu": round(max((b[1] for b in busy.values()), default=0.0), 3),
                              **{k: round(v, 3) for k, v in call.items()}})
         # the parts' CPU seconds are their work even where they share cores (a worker per core: about their seconds)
         self._density = update_density(self._density, bounds, cpu if all(cpu) else seconds)

@@ -51,6 +51,9 @@ class Part(NamedTuple):
     a machine with fewer cores than workers its wall seconds are mostly waiting for one)."""
     kept: str = ""
     """Of the split cut's first phase: the key under which its worker keeps the answer (:data:`_KEPT`)."""
+    phases: tuple[tuple[str, float, float], ...] = ()
+    """Where each phase of the answer ran, with its seconds and CPU seconds, in order (one for a one-phase part, two
+    for the split cut's second phase): what each worker was busy with in a call (``DaskPredecessors.history``)."""
 
 Problem = dict[str, Any] | None
 """What a task gets for its CPre's problem: the problem itself (:meth:`workers.dask_cpre.DaskPredecessors.problem`),
@@ -87,8 +90,9 @@ _SYMMETRIES: dict[tuple, Symmetry] = {}
 #: the same range (placed on the same worker) takes its own range's pairs as they are instead of reading their bytes
 #: back: a third of the second phase's reading (the others' pairs come from other workers).
 _KEPT: OrderedDict[str, Function] = OrderedDict()
-#: How many :data:`_KEPT` holds (a join that ran elsewhere leaves its range's answer here until it is pushed out).
-KEPT_ANSWERS = 4
+#: How many :data:`_KEPT` holds (a join that ran elsewhere leaves its range's answer here until it is pushed out;
+#: with several parts per worker a worker computes several first phases of a call before their joins).
+KEPT_ANSWERS = 8
 
 
 def _load(model: SymbolicModel, blob: bytes) -> Function:
@@ -229,7 +233,8 @@ def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
         while len(_KEPT) > KEPT_ANSWERS:
             _KEPT.popitem(last=False)
     del z, out, result
-    return Part(blob, time.perf_counter() - t0, began, entered, _where(), time.thread_time() - c0, kept)
+    seconds, cpu, where = time.perf_counter() - t0, time.thread_time() - c0, _where()
+    return Part(blob, seconds, began, entered, where, cpu, kept, ((where, seconds, cpu),))
 
 
 def predecessors_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -337,8 +342,9 @@ def join_part(key: str, problem: Problem, digits: Sequence[str], start: Sequence
             result = sym.close(result)
         blob = _dump(model, result)
     del states, good, result
-    return Part(blob, own.seconds + time.perf_counter() - t0, own.began, own.entered, _where(),
-                own.cpu + time.thread_time() - c0)
+    seconds, cpu, where = time.perf_counter() - t0, time.thread_time() - c0, _where()
+    return Part(blob, own.seconds + seconds, own.began, own.entered, where, own.cpu + cpu, "",
+                (*own.phases, (where, seconds, cpu)))
 
 
 def forget(model_key: str) -> int:
