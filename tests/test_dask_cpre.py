@@ -319,7 +319,7 @@ def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
             if per_worker == 1:
                 assert [c["most_on_one_worker"] for c in calls] == [1] * len(calls)
             # what the busiest worker ran in a call, one task after another, within the call
-            assert all(0 < c["busiest_worker"] <= c["wall"] + 0.05 for c in calls)
+            assert all(0 < c["busiest_worker"] <= c["parts_span"] + 0.05 <= c["wall"] + 0.1 for c in calls)
             assert all(0 < c["busiest_worker_cpu"] <= c["busiest_worker"] * 1.05 + 0.05 for c in calls)
             # the window cut's parts cover every cell of ŵ, some twice (the windows overlap by M̂'s spread)
             w = report["parallel"]["window_cells"]

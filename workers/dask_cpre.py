@@ -158,8 +158,10 @@ class DaskPredecessors:
         #: The same per call, with the call's wall seconds, its parts' summed seconds (wall and CPU), the most of
         #: its parts that ran on one worker (of the split cut, of its second phase), the most tasks submitted at once
         #: (``most_in_flight``: one per worker) and the seconds (and CPU seconds) of the busiest worker's tasks
-        #: (``busiest_worker``: with more parts than workers, what the call waited for), in call order. With more
-        #: parts than workers ``last_start`` is when the last part was handed out and began.
+        #: (``busiest_worker``: with more parts than workers, what the call waited for) against ``parts_span``, from
+        #: sending the parts until the last ended (the difference: workers waiting, for the split cut's second phase
+        #: of a range until every first phase it reads ended), in call order. With more parts than workers
+        #: ``last_start`` is when the last part was handed out and began.
         self.history: list[dict[str, float]] = []
         self._model_key = uuid.uuid4().hex
         self._header = header(m)
@@ -371,7 +373,7 @@ class DaskPredecessors:
                 with m.guard("reading a Dask worker's part of CPre"):
                     result |= _load(m, part.blob)
                 seconds[task.k], cpu[task.k] = part.seconds, part.cpu
-                last_start, last_end = max(last_start, part.began), max(last_end, part.began + part.seconds)
+                last_start, last_end = max(last_start, part.began), max(last_end, part.ended)
                 last_entered = max(last_entered, part.entered)
                 fut.release()
             if not dispatch.finished:  # as_completed ran dry with parts still to run: nothing was lost silently
@@ -400,6 +402,7 @@ class DaskPredecessors:
                              "most_in_flight": dispatch.most_in_flight,
                              "busiest_worker": round(max((b[0] for b in busy.values()), default=0.0), 3),
                              "busiest_worker_cpu": round(max((b[1] for b in busy.values()), default=0.0), 3),
+                             "parts_span": round(max(0.0, last_end - sent_at), 3),
                              **{k: round(v, 3) for k, v in call.items()}})
         # the parts' CPU seconds are their work even where they share cores (a worker per core: about their seconds)
         self._density = update_density(self._density, bounds, cpu if all(cpu) else seconds)

@@ -51,6 +51,9 @@ class Part(NamedTuple):
     a machine with fewer cores than workers its wall seconds are mostly waiting for one)."""
     kept: str = ""
     """Of the split cut's first phase: the key under which its worker keeps the answer (:data:`_KEPT`)."""
+    ended: float = 0.0
+    """The wall-clock time it ended computing (of the split cut's second phase, the second phase's end: the two
+    phases may be apart, the second waiting for the first phases of other ranges)."""
     phases: tuple[tuple[str, float, float], ...] = ()
     """Where each phase of the answer ran, with its seconds and CPU seconds, in order (one for a one-phase part, two
     for the split cut's second phase): what each worker was busy with in a call (``DaskPredecessors.history``)."""
@@ -234,7 +237,7 @@ def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
             _KEPT.popitem(last=False)
     del z, out, result
     seconds, cpu, where = time.perf_counter() - t0, time.thread_time() - c0, _where()
-    return Part(blob, seconds, began, entered, where, cpu, kept, ((where, seconds, cpu),))
+    return Part(blob, seconds, began, entered, where, cpu, kept, time.time(), ((where, seconds, cpu),))
 
 
 def predecessors_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
@@ -343,7 +346,7 @@ def join_part(key: str, problem: Problem, digits: Sequence[str], start: Sequence
         blob = _dump(model, result)
     del states, good, result
     seconds, cpu, where = time.perf_counter() - t0, time.thread_time() - c0, _where()
-    return Part(blob, own.seconds + seconds, own.began, own.entered, where, own.cpu + cpu, "",
+    return Part(blob, own.seconds + seconds, own.began, own.entered, where, own.cpu + cpu, "", time.time(),
                 (*own.phases, (where, seconds, cpu)))
 
 
