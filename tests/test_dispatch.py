@@ -77,21 +77,42 @@ def test_joins_wait_for_every_first_phase_they_read_and_go_where_their_own_pairs
 
 
 def test_a_join_is_not_held_back_for_its_own_worker_while_another_idles():
-    # two ranges, two slots: core 0 is long, core 1 short; join 1 needs only core 1, join 0 needs both
-    d = Dispatch([2.0, 1.0], 2, [[0], [1]])
+    # three ranges on two workers: first phases first, then each join where its own pairs are kept if that is free
+    d = Dispatch([2.0, 1.0, 1.0], 2, [[0], [1, 2], [2]])
     assert d.start() == [Task("core", 0, 0), Task("core", 1, 1)]
-    assert d.done(Task("core", 1, 1)) == [Task("join", 1, 1)]
-    d = Dispatch([2.0, 1.0], 2, [[0, 1], [1, 0]])
-    d.start()
-    assert d.done(Task("core", 1, 1)) == []  # neither join can start: slot 1 waits
-    # core 0 ends: join 0 goes to slot 0 (its own), join 1 to slot 1 (its own, free since)
-    assert sorted(d.done(Task("core", 0, 0))) == [Task("join", 0, 0), Task("join", 1, 1)]
+    assert d.done(Task("core", 1, 1)) == [Task("core", 2, 1)]  # a first phase before any join
+    # joins 1 and 2 are ready, both kept on worker 1: one of them there, the other waits (worker 0 is busy)
+    assert d.done(Task("core", 2, 1)) == [Task("join", 1, 1)]
+    assert d.done(Task("core", 0, 0)) == [Task("join", 0, 0)]
+    assert d.done(Task("join", 1, 1)) == [Task("join", 2, 1)]
     d = Dispatch([2.0, 1.0, 1.0], 2, [[0], [1], [2]])
     d.start()
-    assert d.done(Task("core", 1, 1)) == [Task("core", 2, 1)]  # a first phase before any join
+    d.done(Task("core", 1, 1))
     assert d.done(Task("core", 0, 0)) == [Task("join", 0, 0)]
     # slot 0 frees while join 1's own slot runs core 2: join 1 runs on slot 0 rather than wait
     assert d.done(Task("join", 0, 0)) == [Task("join", 1, 0)]
+    assert not d.finished
+    d.done(Task("join", 1, 0))
+    assert d.done(Task("core", 2, 1)) == [Task("join", 2, 1)]
+    d.done(Task("join", 2, 1))
+    assert d.finished
+
+
+def test_with_a_range_per_worker_the_joins_go_with_the_first_phases_to_their_own_workers():
+    # Dask starts each join once the first phases it depends on ended, without a round trip through the job
+    d = Dispatch([2.0, 1.0, 1.5], 3, [[0, 1], [1, 2], [2]])
+    assert d.at_once
+    assert d.start() == [Task("core", 0, 0), Task("core", 2, 1), Task("core", 1, 2),
+                         Task("join", 0, 0), Task("join", 1, 2), Task("join", 2, 1)]
+    assert d.most_in_flight == 3  # the joins count once they can run
+    assert d.done(Task("core", 2, 1)) == []
+    assert d.done(Task("core", 1, 2)) == [] and d.most_in_flight == 3
+    assert d.done(Task("core", 0, 0)) == [] and not d.finished
+    for k, slot in ((0, 0), (1, 2), (2, 1)):
+        assert d.done(Task("join", k, slot)) == []
+    assert d.finished and d.most_in_flight == 3
+    assert not Dispatch([1.0] * 4, 3, [[k] for k in range(4)]).at_once  # more ranges than workers: handed out
+    assert not Dispatch([1.0] * 2, 3).at_once  # one phase: nothing to wait for
 
 
 def test_dispatch_needs_a_slot():

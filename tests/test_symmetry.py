@@ -167,3 +167,44 @@ def test_with_parts_on_the_cluster_the_domain_is_the_same(client):
             game._last_pool = None
     assert phi_domain[True] == phi_domain[False]
     assert phi_domain[True][1] == 191_493
+
+
+def test_closing_in_one_pass_of_bubble_sorts_swaps_is_the_closure_under_every_permutation():
+    """``Symmetry.close`` against the fixed point of the adjacent swaps, on random sets of consensus N = 4 (one set
+    of four agents: 24 permutations) and on images of single states, whose closure is their orbit."""
+    import itertools
+
+    game, _ = _consensus(4)
+    sym = game.symmetry
+    assert sym is not None and sym.classes == [[0, 1, 2, 3]]
+    m, bdd = game.model, game.bdd
+
+    def fixed_point(f):
+        while True:
+            g = f
+            for s in sym.state_swaps:
+                g = g | bdd.let(s, g)
+            if g == f:
+                return f
+            f = g
+
+    rng = np.random.default_rng(24)
+    for _ in range(6):
+        f = _random_set(game, rng, 0.5) & sym.representatives
+        assert sym.close(f) == fixed_point(f)
+    digits = [m.subsystem_digits(s)["x"][0] for s in m.subsystems]
+    for _ in range(4):  # one state: its closure holds exactly the permutations of its codes
+        codes = [int(rng.integers(0, m.sizes[d])) for d in digits]
+        orbit = {tuple(p) for p in itertools.permutations(codes)}
+
+        def state(cs):
+            f = bdd.true
+            for d, c in zip(digits, cs):
+                f &= m.interval(d, c, c)
+            return f
+
+        closed = sym.close(state(codes))
+        want = bdd.false
+        for p in orbit:
+            want |= state(p)
+        assert closed == want

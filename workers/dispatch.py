@@ -9,6 +9,11 @@ threads without worker restrictions), and placed its parts unevenly (on 16 worke
 another on one worker, measured on consensus N = 5). Here each worker holds one part at a time: the first wave
 goes one part per worker, and each further part is submitted, pinned, when a worker's part ended.
 
+With at most one range per worker the split cut's joins are submitted at once with the first phases, each on the
+worker of its own range's first phase and depending on the first phases it reads: Dask starts each when they have
+ended, without a round trip through this process (whose thread may be reading an answer into CUDD, holding the
+GIL, when a first phase ends).
+
 What goes first: the ranges predicted largest (the parts' work estimate of the last calls, ``work``), as in
 longest-processing-time list scheduling, whose slowest worker finishes within one part of the mean; the split cut's
 second phase of a range (its *join*) once every first phase it reads has ended, on the worker that computed its
@@ -61,15 +66,23 @@ class Dispatch:
         self._cores_done: set[int] = set()
         self._joins_left = set(range(len(self.work))) if self.two_phase else set()
         self._running = 0
-        #: The most tasks submitted and not yet ended at once (at most ``slots``: one per worker).
+        #: Joins submitted with the first phases (at most one range per worker), waiting for those they read.
+        self._waiting: set[int] = set()
+        self.at_once = self.two_phase and len(self.work) <= slots
+        #: The most tasks at once that could run, submitted and not yet ended (at most ``slots``: one per worker; a
+        #: join submitted with the first phases counts once those it reads have ended).
         self.most_in_flight = 0
 
     @property
     def finished(self) -> bool:
-        return not self._first and not self._joins_left and self._running == 0
+        return not self._first and not self._joins_left and not self._waiting and self._running == 0
 
     def start(self) -> list[Task]:
-        return self._fill()
+        out = self._fill()
+        if self.at_once:  # every join now, after the first phases it depends on (module docstring)
+            self._waiting = set(self._joins_left)
+            out += [self._join(k, self._core_slot[k]) for k in sorted(self._waiting)]
+        return out
 
     def done(self, task: Task) -> list[Task]:
         """``task`` ended: its slot is free; the tasks to submit now."""
@@ -77,6 +90,12 @@ class Dispatch:
         self._free.append(task.slot)
         if task.kind == "core":
             self._cores_done.add(task.k)
+        if self.at_once:
+            ready = {k for k in self._waiting if self.needs[k] <= self._cores_done}
+            self._waiting -= ready
+            self._running += len(ready)
+            self.most_in_flight = max(self.most_in_flight, self._running)
+            return []
         return self._fill()
 
     def _ready(self) -> list[int]:
