@@ -66,10 +66,11 @@ from workers.dispatch import Dispatch, Task
 log = logging.getLogger(__name__)
 
 PARTS_PER_WORKER = 1
-"""Parts of one call per worker thread. More parts than workers would let Dask even out unequal parts, but each
-cut loses sub-results the parts share: on consensus N = 6 the parts of one call summed to 2.5x more work with three
-parts per worker than with one, while the cuts moved after every call (:func:`update_density`) kept two parts
-within 10 % of each other."""
+"""Parts of one call per worker thread. More parts than workers are handed out as workers free up
+(:mod:`workers.dispatch`), which evens out unequal parts, but each cut costs work the parts share or repeat: on
+16 cores (consensus N = 7) the busiest worker of a call took 1.53x the mean with one part per worker and 1.24x with
+two, while the parts' CPU grew from 120 to 192 s, and the synthesis took 18.0 against 24.6 s (8 workers: 27.8
+against 29.4 s; docs/benchmarks.md, "third lease")."""
 
 SPLIT_FROM = 4
 """From this many parts of the shared CPre on, ``cut='auto'`` is the split cut, below it the window cut. Summed
