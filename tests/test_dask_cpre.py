@@ -111,6 +111,9 @@ def test_every_cut_of_the_shared_cpre_is_exact(client, cut):
             np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
             got = states_vector(m, pool(bZ, outside=bO), ex)
             np.testing.assert_array_equal(got & Out, want & Out)
+            # the reach loop's outside, ¬Z, is complemented on the workers, not sent (dask_parts.NOT_Z)
+            got = states_vector(m, pool(bZ, outside=~bZ), ex)
+            np.testing.assert_array_equal(got & ~Z, want & ~Z)
     finally:
         pool.close()
 

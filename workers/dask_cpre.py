@@ -49,6 +49,7 @@ from pipelines.synthesis.partition import damped_cuts, equal_work_cuts, split_di
 from pipelines.synthesis.symmetry import Symmetry
 from workers.dask_parts import (
     HELD_PROBLEMS,
+    NOT_Z,
     Part,
     ProblemMissing,
     _dump,
@@ -310,7 +311,8 @@ class DaskPredecessors:
         self._send_problem(within)
         with m.guard("writing a set for the Dask workers"):
             z = self._scatter(_dump(m, Z))
-            o = None if outside is None else self._scatter(_dump(m, outside))
+            # the reach loop's outside is ¬Z: the workers complement their Z (dask_parts.NOT_Z)
+            o = None if outside is None else NOT_Z if outside == ~Z else self._scatter(_dump(m, outside))
         bounds, starts = self.bounds(), self._starts()
         self._last_bounds = bounds
         slots = self._slots()

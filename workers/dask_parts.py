@@ -58,6 +58,13 @@ class Part(NamedTuple):
     """Where each phase of the answer ran, with its seconds and CPU seconds, in order (one for a one-phase part, two
     for the split cut's second phase): what each worker was busy with in a call (``DaskPredecessors.history``)."""
 
+NOT_Z = "not Z"
+"""What a task gets for ``outside`` when it is ``¬Z`` (the reach loop's, every call): the worker complements the
+``Z`` it read (constant time in CUDD) instead of this process writing, sending and each part reading a second set."""
+
+Outside = bytes | str | None
+"""A task's ``outside``: DDDMP bytes, :data:`NOT_Z`, or ``None`` (none)."""
+
 Problem = dict[str, Any] | None
 """What a task gets for its CPre's problem: the problem itself (:meth:`workers.dask_cpre.DaskPredecessors.problem`),
 or ``None``: the one :func:`receive` kept under the task's key."""
@@ -206,7 +213,15 @@ def _where() -> str:
         return ""
 
 
-def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
+def _outside(model: SymbolicModel, z: Function, outside: Outside) -> Function | None:
+    if outside is None or isinstance(outside, bytes):
+        return None if outside is None else _load(model, outside)
+    if outside != NOT_Z:
+        raise ValueError(f"a part's outside is DDDMP bytes, {NOT_Z!r} or None, not {outside!r}")
+    return ~z
+
+
+def _answer(key: str, problem: Problem, Z: bytes, outside: Outside,
             compute: Callable[[Held, Function, Function | None, Symmetry | None], Function],
             classes: Sequence[Sequence[int]] | None = None, close: bool = True, keep: bool = False) -> Part:
     """What every task does around its part: the held problem, ``Z`` and ``outside`` read, ``compute(held, Z,
@@ -224,7 +239,7 @@ def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
     t0, c0 = time.perf_counter(), time.thread_time()
     with model.guard("computing a part of CPre on a Dask worker"):
         z = _load(model, Z)
-        out = None if outside is None else _load(model, outside)
+        out = _outside(model, z, outside)
         result = compute(held, z, out, sym)
         if sym is not None and close:
             result = sym.close(result)
@@ -240,7 +255,7 @@ def _answer(key: str, problem: Problem, Z: bytes, outside: bytes | None,
     return Part(blob, seconds, began, entered, where, cpu, kept, time.time(), ((where, seconds, cpu),))
 
 
-def predecessors_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
+def predecessors_part(key: str, problem: Problem, Z: bytes, outside: Outside, digits: Sequence[str],
                       start: Sequence[int], end: Sequence[int] | None,
                       classes: Sequence[Sequence[int]] | None = None) -> Part:
     """A Dask task: ``part ∧ ∃u.CPre(Z)`` for the part ``[start, end)`` of ``digits``, as a :data:`Part`. With the
@@ -258,7 +273,7 @@ def predecessors_part(key: str, problem: Problem, Z: bytes, outside: bytes | Non
     return _answer(key, problem, Z, outside, compute, classes)
 
 
-def bad_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
+def bad_part(key: str, problem: Problem, Z: bytes, outside: Outside, digits: Sequence[str],
              start: Sequence[int], end: Sequence[int] | None) -> Part:
     """A Dask task of the ``w`` cut: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some admissible
     ``ŵ`` whose code of ``digits`` lies in ``[start, end)`` (:func:`~pipelines.synthesis.cpre.bad_inputs` with
@@ -271,7 +286,7 @@ def bad_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits
     return _answer(key, problem, Z, outside, compute)
 
 
-def window_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
+def window_part(key: str, problem: Problem, Z: bytes, outside: Outside, digits: Sequence[str],
                 start: Sequence[int], end: Sequence[int] | None,
                 classes: Sequence[Sequence[int]] | None = None) -> Part:
     """A Dask task of the window cut: ``states ∧ ∃u.CPre(Z)`` for the states whose lowest admissible code of
@@ -296,7 +311,7 @@ def window_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, dig
     return _answer(key, problem, Z, outside, compute, classes)
 
 
-def core_part(key: str, problem: Problem, Z: bytes, outside: bytes | None, digits: Sequence[str],
+def core_part(key: str, problem: Problem, Z: bytes, outside: Outside, digits: Sequence[str],
               start: Sequence[int], end: Sequence[int] | None,
               classes: Sequence[Sequence[int]] | None = None) -> Part:
     """The split cut's first phase, a Dask task: the pairs ``(x̂, û)`` with a successor outside ``Z`` for some
