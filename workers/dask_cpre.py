@@ -38,7 +38,7 @@ import math
 import time
 import uuid
 import weakref
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -325,7 +325,10 @@ class DaskPredecessors:
         classes = None if symmetry is None else symmetry.classes
         cores: dict[int, Any] = {}  # the split cut's first phases, which the joins depend on
         submitted: dict[str, Task] = {}
-        ac = as_completed()
+        # Which ends this process waits for: every task's where it hands parts out; else only the final answers,
+        # which the client then fetches in its own thread as each ends (one round trip per part less).
+        watch_first = self.cut == "split" and not dispatch.at_once
+        ac = as_completed(with_results=not watch_first, raise_errors=False)
 
         def submit(tasks: list[Task]) -> None:
             for t in tasks:
@@ -340,7 +343,8 @@ class DaskPredecessors:
                 if t.kind == "core":
                     cores[t.k] = fut
                 submitted[key] = t
-                ac.add(fut)
+                if t.kind != "core" or watch_first:
+                    ac.add(fut)
 
         seconds, cpu = [0.0] * len(bounds), [0.0] * len(bounds)
         t_sent, sent_at = time.perf_counter(), time.time()
@@ -351,9 +355,10 @@ class DaskPredecessors:
         live = []
         try:
             submit(dispatch.start())
-            # Futures come back as they end, without their results: a first phase's answer stays on its worker, where
-            # the joins that read it fetch it; only final answers come here.
-            for fut in ac:
+            # A first phase's answer stays on its worker, where the joins that read it fetch it; only final answers
+            # come here.
+            for item in ac:
+                fut, answer = (item, None) if watch_first else item  # (future, its Part)
                 task = submitted[fut.key]
                 live.append(fut)
                 if fut.status == "error":
@@ -368,7 +373,7 @@ class DaskPredecessors:
                 submit(dispatch.done(task))  # before reading the answer: the freed worker must not wait for this
                 if task.kind == "core":
                     continue
-                part: Part = fut.result()
+                part = cast(Part, fut.result() if watch_first else answer)
                 ran_on[part.where] = ran_on.get(part.where, 0) + 1
                 for where, s, c in part.phases:
                     b = busy.setdefault(where, [0.0, 0.0])

@@ -66,36 +66,35 @@ class Dispatch:
         self._cores_done: set[int] = set()
         self._joins_left = set(range(len(self.work))) if self.two_phase else set()
         self._running = 0
-        #: Joins submitted with the first phases (at most one range per worker), waiting for those they read.
-        self._waiting: set[int] = set()
+        #: The split cut with at most one range per worker: every join goes with the first phases (module
+        #: docstring). Its first phases' ends then need not be reported (:meth:`done`): a join depends on its own
+        #: range's first phase and ends after it.
         self.at_once = self.two_phase and len(self.work) <= slots
         #: The most tasks at once that could run, submitted and not yet ended (at most ``slots``: one per worker; a
-        #: join submitted with the first phases counts once those it reads have ended).
+        #: join submitted with the first phases runs on the worker of its own range's, after it).
         self.most_in_flight = 0
 
     @property
     def finished(self) -> bool:
-        return not self._first and not self._joins_left and not self._waiting and self._running == 0
+        return not self._first and not self._joins_left and self._running == 0
 
     def start(self) -> list[Task]:
         out = self._fill()
-        if self.at_once:  # every join now, after the first phases it depends on (module docstring)
-            self._waiting = set(self._joins_left)
-            out += [self._join(k, self._core_slot[k]) for k in sorted(self._waiting)]
+        if self.at_once:  # every join now, after the first phases it depends on; each stands for its own range's
+            out += [self._join(k, self._core_slot[k]) for k in sorted(self._joins_left)]
         return out
 
     def done(self, task: Task) -> list[Task]:
-        """``task`` ended: its slot is free; the tasks to submit now."""
+        """``task`` ended: its slot is free; the tasks to submit now (with :attr:`at_once`, none: only joins count,
+        and a first phase's end may go unreported)."""
+        if self.at_once:
+            if task.kind == "join":
+                self._running -= 1
+            return []
         self._running -= 1
         self._free.append(task.slot)
         if task.kind == "core":
             self._cores_done.add(task.k)
-        if self.at_once:
-            ready = {k for k in self._waiting if self.needs[k] <= self._cores_done}
-            self._waiting -= ready
-            self._running += len(ready)
-            self.most_in_flight = max(self.most_in_flight, self._running)
-            return []
         return self._fill()
 
     def _ready(self) -> list[int]:
