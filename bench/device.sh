@@ -7,7 +7,7 @@
 #                    fills .whl/ with ../shared/tools/device-wheels.sh and keeps what bench/synthesis.py needs
 #                    (about 27 MB; a device call carries at most 64 MiB)
 #   on the device:   the `run` tool with command "bash bench/device.sh measure", carry [".whl"], timeout_s 480
-#                    (N = 7: about 4 minutes there; N, WORKERS and PER_WORKER override the defaults)
+#                    (N = 7: about 4 minutes there; N, WORKERS, PER_WORKER and PARALLEL_AFTER override the defaults)
 #
 # The results come back as $OUT/synthesis.json. Quote the ratios of one run, never a time from one machine against
 # a time from another.
@@ -32,7 +32,7 @@ case "${1:-}" in
     export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
     lscpu | grep -E '^CPU\(s\)|per core|Model name' || true
     python3 bench/synthesis.py --N "${N:-7}" --workers "${WORKERS:-16,2}" --per-worker "${PER_WORKER:-1}" \
-      --processes 1 --json "${OUT:-/tmp}/synthesis.json"
+      --processes 1 --parallel-after "${PARALLEL_AFTER:-1}" --json "${OUT:-/tmp}/synthesis.json"
     ;;
   *)
     echo "usage: bash bench/device.sh prepare|measure" >&2

@@ -51,7 +51,7 @@ def default_workers(cores: int) -> list[int]:
 
 
 def measure(N: int, workers: list[int], per_worker: int | list[int], processes: int, quiet: bool = False,
-            no_symmetry: bool = False, compare_cuts: int = 0) -> dict[str, Any]:
+            no_symmetry: bool = False, compare_cuts: int = 0, parallel_after: float = 1.0) -> dict[str, Any]:
     import yaml
 
     from pipelines.spec.model import parse_spec
@@ -75,6 +75,7 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
 
     def run(mode: str, **kw: Any) -> dict[str, Any]:
         t = time.perf_counter()
+        kw.setdefault("parallel_after", parallel_after)
         game, results, report = synthesize(a.network, a.relations, a.interconnection, spec.specification,
                                            reach_and_stay_methods=("reach_safe",), **kw)
         wall = time.perf_counter() - t
@@ -117,14 +118,16 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
     for r in rows:
         r["speedup"] = round(base["wall"] / r["wall"], 2) if r["wall"] else None
         r["same_domain"] = r["domain_states"] == base["domain_states"]
-    return {"N": N, "cores": os.cpu_count(), "per_worker": per_worker, "abstraction_seconds": round(abstraction_seconds, 2),
+    return {"N": N, "cores": os.cpu_count(), "per_worker": per_worker, "parallel_after": parallel_after,
+            "abstraction_seconds": round(abstraction_seconds, 2),
             "rows": rows, "targets": TARGETS}
 
 
 def lines(rec: dict[str, Any]) -> list[str]:
     """The case's table, with each target's verdict."""
     out = [f"  synthesis: consensus N = {rec['N']} (Reach(Safe)), {rec['cores']} cores, "
-           f"{rec['per_worker']} part(s) per worker"]
+           f"{rec['per_worker']} part(s) per worker, the parts from "
+           + ("the first step" if rec.get("parallel_after", 1.0) <= 0 else f"a step of {rec.get('parallel_after', 1.0):g} s")]
     out.append(f"    {'mode':<28} {'wall s':>8} {'speed-up':>9}  {'parts':>5}  {'calls':>5}  same domain")
     for r in rec["rows"]:
         p = r["parallel"]
@@ -199,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--per-worker", type=_worker_counts, default=[1],
                    help="parts per worker (workers.dask_cpre.PARTS_PER_WORKER); comma-separated: each cluster once per value")
     p.add_argument("--processes", type=count(1), default=2, help="helper processes for the local mode (1: skip it)")
+    p.add_argument("--parallel-after", type=float, default=1.0,
+                   help="seconds a step must take in one process before the parts start (0: from the first step)")
     p.add_argument("--json", default=None, help="write the results here")
     p.add_argument("--no-symmetry", action="store_true", help="also run one process and the largest cluster without the symmetry")
     p.add_argument("--compare-cuts", type=count(0), default=0, metavar="P",
@@ -207,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     cores = os.cpu_count() or 1
     workers = args.workers or default_workers(cores)
     rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry,
-                  compare_cuts=args.compare_cuts)
+                  compare_cuts=args.compare_cuts, parallel_after=args.parallel_after)
     print("\n".join(lines(rec)))
     if args.json:
         Path(args.json).write_text(json.dumps(rec, indent=1))

@@ -184,7 +184,7 @@ def test_fixed_points_with_helpers_equal_the_one_process_ones(shared):
     ex = Explicit(net)
     one = build(net, "shared_top" if shared else "interleaved")
     two = build(net, "shared_top" if shared else "interleaved")
-    two.processes, two.parallel_after, two.partitioned = 2, 0.0, PartitionedPredecessors  # helpers from call 2 on
+    two.processes, two.parallel_after, two.partitioned = 2, 0.0, PartitionedPredecessors  # helpers from call 1 on
     S, T, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.6))
     try:
         for g in (one, two):
@@ -298,18 +298,25 @@ class _FailingParts:
 
 def test_a_failed_part_is_recomputed_here_and_reported():
     """The policy of :meth:`ControllablePredecessor.predecessors` with an injected factory: started after the
-    first call, used for the next, dropped on :class:`PartitionFailed` (same answer), never started again."""
+    first call that took ``parallel_after`` seconds (with ``0``, before the first call), used for the next,
+    dropped on :class:`PartitionFailed` (same answer), never started again."""
     assert issubclass(HelperError, PartitionFailed)
     game = build(random_net(np.random.default_rng(8), True), "shared_top")
-    game.processes, game.parallel_after, game.partitioned = 3, 0.0, _FailingParts
+    game.processes, game.parallel_after, game.partitioned = 3, 1e-9, _FailingParts
     Z = game.model.x_domain
     want = game.predecessors(Z)
     parts = game._pool
-    assert isinstance(parts, _FailingParts) and parts.processes == 3
+    assert isinstance(parts, _FailingParts) and parts.processes == 3 and parts.calls == 0
     assert game.predecessors(Z) == want and parts.calls == 1
     assert game.predecessors(Z) == want and parts.closed and game._pool is None and game.processes == 1
     assert game.predecessors(Z) == want and game._pool is None
     assert game.parallel["calls"] == 2 and game.parallel["stopped"].startswith("part 1 died")
+    first = build(random_net(np.random.default_rng(8), True), "shared_top")
+    first.processes, first.parallel_after, first.partitioned = 3, 0.0, _FailingParts
+    whole = first.model.x_domain
+    want = first.predecessors(whole, part=whole)  # a call on a given part runs here and starts nothing
+    assert first._pool is None
+    assert first.predecessors(whole) == want and isinstance(first._pool, _FailingParts) and first._pool.calls == 1
 
 
 def test_processes_must_be_positive():

@@ -321,7 +321,7 @@ class OptionsSpec(_Model):
     synthesis_parallel_after: float = Field(
         default=1.0, ge=0, le=1e6,
         description="seconds one fixed-point step must take in one process before the parts start (starting them "
-        "costs about a second; small games never need them). Not part of the spec's hash",
+        "costs about a second; small games never need them); 0: from the first step on. Not part of the spec's hash",
     )
 
     synthesis_quotient: int = Field(
