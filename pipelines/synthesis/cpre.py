@@ -265,8 +265,9 @@ class ControllablePredecessor:
         that one process computes once).
     parallel_after : float
         Seconds one single-process :meth:`predecessors` call must take before ``partitioned`` is started
-        (starting helper processes costs ~0.5 s; small games never need them). ``0``: from the first call on (on
-        16 workers, consensus N = 7, the first call in one process was 1.4 s of an 11.7 s synthesis).
+        (starting helper processes costs ~0.5 s; small games never need them). ``0``: from the first call on (the
+        first call of consensus N = 7 takes 2.0 s in one process on a 2-core machine, where 16 workers of a 16-core
+        one synthesize it in 11.7 s, about 1.4 s at that machine's speed).
     partitioned : callable, optional
         ``partitioned(cpre, processes)`` -> :class:`Partitioned`: how to run :meth:`predecessors` in parts
         (``workers.processes.partitioned_cpre.PartitionedPredecessors`` runs them in helper processes).
