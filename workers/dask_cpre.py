@@ -325,8 +325,9 @@ class DaskPredecessors:
         classes = None if symmetry is None else symmetry.classes
         cores: dict[int, Any] = {}  # the split cut's first phases, which the joins depend on
         submitted: dict[str, Task] = {}
-        # Which ends this process waits for: every task's where it hands parts out; else only the final answers,
-        # which the client then fetches in its own thread as each ends (one round trip per part less).
+        # Where parts are handed out one by one this process waits for every task's end (fetching only the final
+        # answers); else only for the final answers, which the client fetches in its own thread as each ends (one
+        # round trip per part less).
         watch_first = self.cut == "split" and not dispatch.at_once
         ac = as_completed(with_results=not watch_first, raise_errors=False)
 
