@@ -172,7 +172,9 @@ def test_partitioned_predecessors_equal_the_explicit_ones(seed, shared):
             np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
             got = states_vector(m, pool(bZ, outside=bO), ex)
             np.testing.assert_array_equal(got & Out, want & Out)
-        assert pool.calls == 18 and len(pool.seconds) == len(pool.cuts) + 1
+            got = states_vector(m, pool(bZ, outside=~bZ), ex)  # the reach loop's: complemented by the helpers
+            np.testing.assert_array_equal(got & ~Z, want & ~Z)
+        assert pool.calls == 24 and len(pool.seconds) == len(pool.cuts) + 1
     finally:
         pool.close()
 

@@ -259,11 +259,12 @@ class PartitionedPredecessors:
         t_start = time.perf_counter()
         self._send_problem(within)
         z_file = self._dump(Z)
-        o_file = None if outside is None else self._dump(outside)
+        not_z = outside is not None and outside == ~Z  # the reach loop's: each helper complements its Z
+        o_file = None if outside is None or not_z else self._dump(outside)
         bounds, starts = self.bounds(), self._starts()
         classes = None if symmetry is None else symmetry.classes
         for h, start, end in zip(self._helpers, starts[1:], starts[2:]):
-            h.send(("pred", z_file, o_file, self.digits, start, end, self._path(), classes))
+            h.send(("pred", z_file, o_file, not_z, self.digits, start, end, self._path(), classes))
         t0 = time.perf_counter()
         mine = lexicographic_part(m, self.digits, (0,) * len(self.shape), starts[1])  # starts[0], never None
         if symmetry is not None:
@@ -324,11 +325,11 @@ def _serve(inp: Connection, out: Connection) -> None:
                 out.send(("ok",))
             elif msg[0] == "pred":
                 assert model is not None and problem is not None
-                _, z_file, o_file, digits, start, end, result_file, classes = msg
+                _, z_file, o_file, not_z, digits, start, end, result_file, classes = msg
                 t0 = time.perf_counter()
                 with model.guard("computing a part of CPre"):
                     Z = model.bdd.load(z_file)[0]
-                    outside = None if o_file is None else model.bdd.load(o_file)[0]
+                    outside = ~Z if not_z else None if o_file is None else model.bdd.load(o_file)[0]
                     chain, admissible, M, u_bits, w_bits = problem
                     part = lexicographic_part(model, digits, start, end)
                     sym = None if classes is None else cached_symmetry(symmetries, model, classes)
