@@ -20,6 +20,10 @@ second phase of a range (its *join*) once every first phase it reads has ended, 
 own range's first phase if that worker is free (it keeps that answer: :data:`workers.dask_parts._KEPT`), else on
 any free worker (waiting for that one would leave this one idle).
 
+On 16 cores (consensus N = 7) two parts per worker handed out this way brought the busiest worker of a call from
+1.53x to 1.24x the mean, and cost 1.6x the CPU: one part per worker stays the default
+(:data:`workers.dask_cpre.PARTS_PER_WORKER`).
+
 Pure bookkeeping, no Dask: tested on its own (``tests/test_dispatch.py``).
 """
 
