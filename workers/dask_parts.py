@@ -58,6 +58,7 @@ class Part(NamedTuple):
     """Where each phase of the answer ran, with its seconds and CPU seconds, in order (one for a one-phase part, two
     for the split cut's second phase): what each worker was busy with in a call (``DaskPredecessors.history``)."""
 
+
 NOT_Z = "not Z"
 """What a task gets for ``outside`` when it is ``¬Z`` (the reach loop's, every call): the worker complements the
 ``Z`` it read (constant time in CUDD) instead of this process writing, sending and each part reading a second set."""
@@ -214,6 +215,7 @@ def _where() -> str:
 
 
 def _outside(model: SymbolicModel, z: Function, outside: Outside) -> Function | None:
+    """A task's ``outside`` as a set of its worker's manager (``z``: its ``Z`` there)."""
     if outside is None or isinstance(outside, bytes):
         return None if outside is None else _load(model, outside)
     if outside != NOT_Z:

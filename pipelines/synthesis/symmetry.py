@@ -88,8 +88,9 @@ class Symmetry:
 
     def close(self, f: Function) -> Function:
         """``G · f``: the union of ``f``'s images under the group, in one pass of ``f ∪ s(f)`` over bubble sort's
-        swaps (``n(n-1)/2`` per set of ``n``). Passes over the ``n - 1`` adjacent swaps until nothing changed took
-        ``n`` passes and one more to see it, the last over the whole closed set."""
+        swaps (``n(n-1)/2`` per set of ``n``). Passes over the ``n - 1`` adjacent swaps until nothing changes need
+        up to ``n`` of them and one more over the whole closed set to see it: on the sets a Reach(Safe) of
+        consensus N = 8 closes, 10.8 s that way against 4.5 s."""
         bdd = self.model.bdd
         for s in self._word:
             f = f | bdd.let(s, f)
