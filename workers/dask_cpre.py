@@ -318,8 +318,9 @@ class DaskPredecessors:
         slots = self._slots()
         ranges = [(list(a), None if b is None else list(b)) for a, b in zip(starts[:-1], starts[1:]) if a is not None]
         work = [float(self._density[lo:hi + 1].sum()) for lo, hi in bounds]
-        dispatch = Dispatch(work, max(1, len(slots)),
-                            [self._reached(k, bounds) for k in range(len(bounds))] if self.cut == "split" else None)
+        # the split cut's: the ranges whose first phase each range's join reads, its own first
+        reads = [self._reached(k, bounds) for k in range(len(bounds))] if self.cut == "split" else None
+        dispatch = Dispatch(work, max(1, len(slots)), reads)
         first = {"w": bad_part, "window": window_part, "split": core_part}.get(self.cut, predecessors_part)
         extra = () if symmetry is None else (symmetry.classes,)
         classes = None if symmetry is None else symmetry.classes
@@ -336,8 +337,9 @@ class DaskPredecessors:
                 start, end = ranges[t.k]
                 key = f"compabs-cpre-{self._calls}-{t.kind}-{t.k}-{uuid.uuid4().hex[:8]}"
                 if t.kind == "join":  # each range's states from the pairs of the ranges they admit, own range first
+                    assert reads is not None
                     args: tuple = (join_part, self._problem_key, None, list(self.digits), start, end, classes,
-                                   *(cores[j] for j in self._reached(t.k, bounds)))
+                                   *(cores[j] for j in reads[t.k]))
                 else:
                     args = (first, self._problem_key, None, z, o, list(self.digits), start, end, *extra)
                 fut = self.client.submit(*args, pure=False, retries=self.retries, key=key, **self._placed(slots, t.slot))

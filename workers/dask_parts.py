@@ -216,8 +216,10 @@ def _where() -> str:
 
 def _outside(model: SymbolicModel, z: Function, outside: Outside) -> Function | None:
     """A task's ``outside`` as a set of its worker's manager (``z``: its ``Z`` there)."""
-    if outside is None or isinstance(outside, bytes):
-        return None if outside is None else _load(model, outside)
+    if outside is None:
+        return None
+    if isinstance(outside, bytes):
+        return _load(model, outside)
     if outside != NOT_Z:
         raise ValueError(f"a part's outside is DDDMP bytes, {NOT_Z!r} or None, not {outside!r}")
     return ~z
