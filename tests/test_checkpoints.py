@@ -9,6 +9,7 @@ part of 23 iterations after their local games, in a few seconds.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -59,10 +60,21 @@ def _stop_at(message: str):
     return progress
 
 
-def _stopped_run(tanks, out: Path) -> dict:
-    """Run until the tenth safety iteration, then stop; the stored header."""
-    with pytest.raises(_Stopped):
-        run_synthesis(tanks, out, runs=0, progress=_stop_at(STOP_AT))
+@pytest.fixture(scope="module")
+def stopped(tanks, tmp_path_factory):
+    """A directory whose synthesis stopped at the tenth safety iteration, every iterate stored (made once: each
+    test works on a copy, :func:`_stopped_run`)."""
+    out = tmp_path_factory.mktemp("stopped")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(checkpoint_store, "EVERY", 0.0)
+        with pytest.raises(_Stopped):
+            run_synthesis(tanks, out, runs=0, progress=_stop_at(STOP_AT))
+    return out
+
+
+def _stopped_run(stopped: Path, out: Path) -> dict:
+    """``out`` as the synthesis left it when stopped at the tenth safety iteration; the stored header."""
+    shutil.copytree(stopped, out, dirs_exist_ok=True)
     return json.loads((out / jobdir.CHECKPOINTS / "reach_safe-safe.json").read_text())
 
 
@@ -70,8 +82,8 @@ def _result(report: dict) -> dict:
     return report["synthesis"]["results"]["reach_safe"]
 
 
-def test_a_stopped_safety_fixed_point_resumes_where_it_stopped(tanks, fresh, tmp_path, every_iterate):
-    head = _stopped_run(tanks, tmp_path)
+def test_a_stopped_safety_fixed_point_resumes_where_it_stopped(tanks, fresh, stopped, tmp_path, every_iterate):
+    head = _stopped_run(stopped, tmp_path)
     assert head["iteration"] == 9  # the tenth iteration's progress event came before its iterate was stored
     assert (tmp_path / jobdir.CHECKPOINTS / "reach_safe-safe.dddmp").stat().st_size > 0
 
@@ -88,8 +100,8 @@ def test_a_stopped_safety_fixed_point_resumes_where_it_stopped(tanks, fresh, tmp
     assert again["warnings"] == fresh["warnings"]  # (the paper's initial state, outside at this spacing)
 
 
-def test_a_damaged_checkpoint_is_named_and_the_run_starts_afresh(tanks, fresh, tmp_path, every_iterate):
-    _stopped_run(tanks, tmp_path)
+def test_a_damaged_checkpoint_is_named_and_the_run_starts_afresh(tanks, fresh, stopped, tmp_path, every_iterate):
+    _stopped_run(stopped, tmp_path)
     stored = tmp_path / jobdir.CHECKPOINTS / "reach_safe-safe.dddmp"
     data = bytearray(stored.read_bytes())
     data[len(data) // 2] ^= 0x20
@@ -106,8 +118,8 @@ def test_a_damaged_checkpoint_is_named_and_the_run_starts_afresh(tanks, fresh, t
     (lambda head: {**head, "format": "something-else"}, "is not a compabs checkpoint"),
     (lambda head: "[1, 2", "is not readable JSON"),
 ])
-def test_a_header_that_cannot_be_trusted_is_named(tanks, fresh, tmp_path, every_iterate, edit, why):
-    head = _stopped_run(tanks, tmp_path)
+def test_a_header_that_cannot_be_trusted_is_named(tanks, fresh, stopped, tmp_path, every_iterate, edit, why):
+    head = _stopped_run(stopped, tmp_path)
     path = tmp_path / jobdir.CHECKPOINTS / "reach_safe-safe.json"
     new = edit(head)
     path.write_text(new if isinstance(new, str) else json.dumps(new))
@@ -118,9 +130,9 @@ def test_a_header_that_cannot_be_trusted_is_named(tanks, fresh, tmp_path, every_
     assert _result(again)["domain_states"] == _result(fresh)["domain_states"]
 
 
-def test_another_problems_checkpoint_is_replaced_silently(tanks, fresh, tmp_path, every_iterate):
+def test_another_problems_checkpoint_is_replaced_silently(tanks, fresh, stopped, tmp_path, every_iterate):
     """What a changed spec leaves behind in the directory: not used, not worth a warning."""
-    head = _stopped_run(tanks, tmp_path)
+    head = _stopped_run(stopped, tmp_path)
     path = tmp_path / jobdir.CHECKPOINTS / "reach_safe-safe.json"
     path.write_text(json.dumps({**head, "problem": "0" * 40}))
 
