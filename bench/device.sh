@@ -11,6 +11,13 @@
 #
 # The results come back as $OUT/synthesis.json. Quote the ratios of one run, never a time from one machine against
 # a time from another.
+#
+# An A/B of two commits on one machine (lent machines differ by up to 1.6x for the same code, so two leases'
+# ratios do not separate a change from the machine):
+#   here, once:      bash bench/device.sh prepare-ab REV      (REV's tree into .ab/, about 1 MB; carry it with .whl)
+#   on the device:   command "bash bench/device.sh measure-ab", carry [".whl", ".ab"], timeout_s 580
+#                    (N = 6 by default: REV and this tree in turn, ROUNDS times (default 2), each one process and
+#                    WORKERS (default 16) workers; results $OUT/ab-REV-k.json and $OUT/ab-this-k.json)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -34,8 +41,33 @@ case "${1:-}" in
     python3 bench/synthesis.py --N "${N:-7}" --workers "${WORKERS:-16,2}" --per-worker "${PER_WORKER:-1}" \
       --processes 1 --parallel-after "${PARALLEL_AFTER:-1}" --json "${OUT:-/tmp}/synthesis.json"
     ;;
+  prepare-ab)
+    rev="${2:?usage: bash bench/device.sh prepare-ab REV}"
+    rm -rf .ab && mkdir .ab
+    git archive "$rev" | tar -x -C .ab
+    git rev-parse --short "$rev" > .ab/REV
+    du -sh .ab
+    ;;
+  measure-ab)
+    if ! ls .whl/*.whl > /dev/null 2>&1 || [ ! -f .ab/REV ]; then
+      echo "error: carry .whl and .ab: run 'bash bench/device.sh prepare' and 'prepare-ab REV' here first" >&2
+      exit 2
+    fi
+    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
+    export PYTHONUNBUFFERED=1
+    lscpu | grep -E '^CPU\(s\)|per core|Model name' || true
+    rev="$(cat .ab/REV)"
+    for k in $(seq "${ROUNDS:-2}"); do
+      for side in "$rev" this; do
+        if [ "$side" = this ]; then tree="$PWD"; else tree="$PWD/.ab"; fi
+        echo "== round $k: $side"
+        (cd "$tree" && PYTHONPATH="/tmp/site:$tree" python3 bench/synthesis.py --N "${N:-6}" \
+          --workers "${WORKERS:-16}" --processes 1 --json "${OUT:-/tmp}/ab-$side-$k.json")
+      done
+    done
+    ;;
   *)
-    echo "usage: bash bench/device.sh prepare|measure" >&2
+    echo "usage: bash bench/device.sh prepare|measure|prepare-ab REV|measure-ab" >&2
     exit 2
     ;;
 esac
