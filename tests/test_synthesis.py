@@ -24,7 +24,7 @@ from pipelines.symbolic.counting import enumerate_cells, inputs_at
 from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout, tree_owners
 from pipelines.symbolic.relations import interconnection_parts, state_set, subsystem_relations
-from pipelines.synthesis.cpre import CHAIN_ORDERS, ControllablePredecessor
+from pipelines.synthesis.cpre import CHAIN_ORDERS, ControllablePredecessor, predecessors_of
 from pipelines.synthesis.fixed_points import reach, reach_and_stay, reach_avoid, safe
 from pipelines.synthesis.synthesize import synthesize
 from workers.job import run_abstraction
@@ -374,6 +374,31 @@ def test_cpre_within_a_set_is_exact_there_and_empty_elsewhere(seed):
         np.testing.assert_array_equal(C, ex.cpre(Z) & S[:, None])
         np.testing.assert_array_equal(states_vector(m, game.predecessors(bZ, within=inside), ex),
                                       ex.cpre(Z).any(axis=1) & S)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_predecessors_on_states_and_parts_are_exact_there(seed):
+    """:func:`predecessors_of` with ``states`` (taken at the ``∃w`` step, not in the chain) and ``part`` (in the
+    chain too), alone and together, with and without ``outside``: ``∃u.CPre`` on their intersection, exactly,
+    against the explicit solver, in both CPre methods."""
+    rng = np.random.default_rng(1300 + seed)
+    shared = bool(seed % 2)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    for method in (("shared",) if shared else ("per_subsystem", "shared")):
+        game = build(net, ["interleaved", "shared_top"][seed % 4 // 2], method)
+        m = game.model
+        for _ in range(3):
+            S, P, Z = random_set(rng, ex, 0.5), random_set(rng, ex, 0.7), random_set(rng, ex, 0.6)
+            bS, bP, bZ = (state_set(m, np.array(ex.states)[v]) for v in (S, P, Z))
+            want = ex.cpre(Z).any(axis=1)
+            for part, states, mask in ((None, bS, S), (bP, bS, S & P), (bP, None, P)):
+                for outside, where in ((None, mask), (~bZ, mask & ~Z)):
+                    got = predecessors_of(m, game.chain, game.admissible, game.M, game.w_bits, game.u_bits, bZ,
+                                          outside, part, states)
+                    vec = states_vector(m, got, ex)
+                    np.testing.assert_array_equal(vec & where, want & where)
+                    assert not np.any(vec & ~mask), "an answer outside part and states"
 
 
 def test_per_subsystem_method_is_refused_for_a_shared_internal_variable():

@@ -270,9 +270,8 @@ def predecessors_part(key: str, problem: Problem, Z: bytes, outside: Outside, di
     def compute(held: Held, z: Function, out: Function | None, sym: Symmetry | None) -> Function:
         model, chain, admissible, M, u_bits, w_bits, *_ = held
         part = lexicographic_part(model, digits, start, end)
-        if sym is not None:
-            part &= sym.representatives
-        return predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out, part)
+        return predecessors_of(model, chain, admissible, M, w_bits, u_bits, z, out, part,
+                               None if sym is None else sym.representatives)
 
     return _answer(key, problem, Z, outside, compute, classes)
 

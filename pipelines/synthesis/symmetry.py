@@ -14,9 +14,11 @@ the result under ``G``:
     ∃u.CPre(Z) = G · (R ∧ ∃u.CPre(Z)).
 
 Swaps that connect a set of subsystems generate every permutation of it, so ``R`` = the states whose codes
-increase along each connected set (:attr:`Symmetry.representatives`). ``R`` is conjoined into the chain's first
-operand (the ``part`` of :func:`~.cpre.predecessors_of`), where it cuts the intermediate products down.
-Measured on consensus, Reach(Safe), the same domains: one process N = 8 314.6 s -> 220.9 s (``bench/synthesis.py
+increase along each connected set (:attr:`Symmetry.representatives`). ``R`` is taken where the result is read (the
+``states`` of :func:`~.cpre.predecessors_of`: ``M̂ ∧ outside`` at the ``∃w`` step and the admissible pairs), not
+in the chain's first operand: it cuts across every agent's block, and there it blew the chain's intermediate
+products up (one process, consensus N = 8, Reach(Safe): 316 and 331 s that way, 205 s this way, the same evening).
+Against no symmetry at all, the chain's way had measured one process N = 8 314.6 s -> 220.9 s (``bench/synthesis.py
 --no-symmetry``; closing takes about 12 s of it), N = 6 36.7 s -> 28.9 s. Parts running elsewhere (helper
 processes, the cluster's workers) each take the representatives of their own states and close their own answer,
 since closing distributes over the union of the parts: two workers N = 8 167.4 s -> 84.7 s.

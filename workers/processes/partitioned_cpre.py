@@ -267,9 +267,8 @@ class PartitionedPredecessors:
             h.send(("pred", z_file, o_file, not_z, self.digits, start, end, self._path(), classes))
         t0 = time.perf_counter()
         mine = lexicographic_part(m, self.digits, (0,) * len(self.shape), starts[1])  # starts[0], never None
-        if symmetry is not None:
-            mine &= symmetry.representatives
-        result = g.predecessors(Z, outside, within, part=mine)
+        result = g.predecessors(Z, outside, within, part=mine,
+                                states=None if symmetry is None else symmetry.representatives)
         if symmetry is not None:
             with m.guard("closing a part of CPre"):
                 result = symmetry.close(result)
@@ -333,9 +332,8 @@ def _serve(inp: Connection, out: Connection) -> None:
                     chain, admissible, M, u_bits, w_bits = problem
                     part = lexicographic_part(model, digits, start, end)
                     sym = None if classes is None else cached_symmetry(symmetries, model, classes)
-                    if sym is not None:
-                        part &= sym.representatives
-                    P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside, part)
+                    P = predecessors_of(model, chain, admissible, M, w_bits, u_bits, Z, outside, part,
+                                        None if sym is None else sym.representatives)
                     if sym is not None:
                         P = sym.close(P)
                     model.bdd.dump(result_file, [P])
