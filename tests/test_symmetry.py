@@ -106,6 +106,10 @@ def test_predecessors_on_representatives_equal_the_plain_ones(consensus3, seed):
             assert game._symmetry_for(skew, None, None) is None
             got, want = both(skew)
             assert got == want
+            # an invariant Z with an outside that is not (only ¬Z is taken as invariant without a check)
+            assert game._symmetry_for(Z, skew, None) is None and game._symmetry_for(Z, ~Z, None) is not None
+            got, want = both(Z, outside=skew)
+            assert got & skew == want & skew
 
 
 def test_fixed_points_give_the_same_domains_with_and_without_symmetry(consensus3):
