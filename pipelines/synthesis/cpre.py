@@ -166,20 +166,15 @@ def predecessors_of(
 ) -> Function:
     """``part ∧ states ∧ ∃u.CPre(Z)`` from the CPre ingredients (:meth:`ControllablePredecessor.predecessors`).
 
-    ``M`` for the shared method, else ``None``. ``part`` restricts :func:`bad_inputs` (its chain's first operand
-    too) and the admissible pairs, so the result is exact on it. ``states`` (a set of current states, such as the
-    orbit representatives of :mod:`.symmetry`) restricts it the same way but, for the shared method, only where
-    the result is read: ``M̂ ∧ outside`` at the ``∃w`` step and the admissible pairs, as the cluster's windows
-    take their states (:func:`window_predecessors`). In the chain's first operand a set cut across every
-    subsystem's block blows the intermediate products up: the largest call of a Reach(Safe) of consensus N = 8
-    (one process, fresh manager) took 201.5 s with the representatives there and 73.8 s at the ``∃w`` step.
+    ``M`` for the shared method, else ``None``. ``part`` restricts :func:`bad_inputs` (the chain's first operand
+    too) and the admissible pairs; ``states`` only where the result is read (``M̂ ∧ outside`` at ``∃w``, the
+    admissible pairs), as the windows take theirs: the orbit representatives in the chain blew it up (the largest
+    call of consensus N = 8 took 201.5 s with them there, 73.8 s at ``∃w``).
     """
+    if states is not None and M is None:  # the per-subsystem chain has no later step to take them
+        part, states = (states if part is None else part & states), None
     if states is not None:
-        if M is None:  # the per-subsystem chain has no later step to take them
-            part = states if part is None else part & states
-        else:
-            admissible = admissible & states
-            outside = states if outside is None else outside & states
+        admissible, outside = admissible & states, (states if outside is None else outside & states)
     if part is not None:
         admissible = admissible & part
     bad = bad_inputs(model, chain, M, w_bits, Z, outside, part)
@@ -488,25 +483,23 @@ class ControllablePredecessor:
         the result is exact only on states in ``outside`` (a reach loop passes ``¬Z``: states already won need
         no answer); the shared ``∃w.M̂ ∧ ...`` step then works on ``M̂ ∧ outside``, which measured 20 % less
         time on consensus N = 5. ``within``: as in :meth:`cpre`. ``part``: a set of current states; the
-        result is ``part ∧ ∃u.CPre(Z)``, computed on that part only, in this process. ``states`` (with ``part``
-        only): as ``part``, taken where :func:`predecessors_of` says (a helper's orbit representatives).
+        result is ``part ∧ ∃u.CPre(Z)``, computed on that part only, in this process (and ``states``, with a
+        ``part``: see :func:`predecessors_of`).
 
         Without ``part``, when the network has interchangeable subsystems (:attr:`symmetry`) and ``Z``,
         ``outside`` and ``within`` are invariant under them, the call is computed on one state per orbit and closed
         (:mod:`.symmetry`): the same result. Running parts do the same on their states when they take the
         symmetry (helper processes, the cluster's window and state cuts), else the call is the plain one.
 
-        With ``processes > 1`` and a ``partitioned`` factory, a call that is not given a ``part`` runs in parts
-        at once once one call here took ``parallel_after`` seconds. If a part fails (:class:`PartitionFailed`),
-        that call and the later ones run in this process (:attr:`parallel` ``["stopped"]`` says why); any other
-        error (CUDD out of memory in a part is a :class:`~.symbolic.model.BDDMemoryError`) is raised, as it
-        would be here.
-        """
+        With ``processes > 1`` and a ``partitioned`` factory, a call without a ``part`` runs in parts at once
+        once a call here took ``parallel_after`` seconds (0: from the first). If a part fails
+        (:class:`PartitionFailed`), this call and the later ones run here (:attr:`parallel` ``["stopped"]`` says
+        why); any other error (CUDD out of memory in a part: a BDDMemoryError) is raised, as it would be here."""
         if (part is None and self._pool is None and self.parallel_after <= 0 and self.processes > 1
                 and self.partitioned is not None):  # the parts from the first call on
             self._pool = self.partitioned(self, self.processes)
-        if states is not None and part is None:
-            raise ValueError("predecessors: states are taken with a part only (a whole call finds its own symmetry)")
+        if states is not None and part is None:  # a whole call finds its own symmetry
+            raise ValueError("predecessors: states are taken with a part only")
         sym = self._symmetry_for(Z, outside, within) if part is None else None
         return self._predecessors(Z, outside, within, part, whole=part is None, symmetry=sym, states=states)
 
@@ -560,11 +553,8 @@ class ControllablePredecessor:
         sym = self.symmetry
         if sym is None or (self._pool is not None and not self._pool.takes_symmetry):
             return None
-        if not sym.invariant(Z):
-            return None
-        # a permutation maps ¬Z to ¬(its image of Z): the reach loop's ``outside`` needs no second check (half of
-        # the 1.0 s these checks took over a Reach(Safe) of consensus N = 7)
-        if outside is not None and outside != ~Z and not sym.invariant(outside):
+        # a permutation maps ¬Z to ¬(its image of Z): the reach loop's ``outside`` needs no check of its own
+        if not sym.invariant(Z) or (outside is not None and outside != ~Z and not sym.invariant(outside)):
             return None
         if within is not None and not sym.invariant(within.admissible):  # 0.03 s on consensus N = 8
             return None
