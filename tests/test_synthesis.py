@@ -399,6 +399,9 @@ def test_predecessors_on_states_and_parts_are_exact_there(seed):
                     vec = states_vector(m, got, ex)
                     np.testing.assert_array_equal(vec & where, want & where)
                     assert not np.any(vec & ~mask), "an answer outside part and states"
+            np.testing.assert_array_equal(states_vector(m, game.predecessors(bZ, part=bP, states=bS), ex), want & S & P)
+            with pytest.raises(ValueError, match="with a part only"):
+                game.predecessors(bZ, states=bS)
 
 
 def test_per_subsystem_method_is_refused_for_a_shared_internal_variable():

@@ -495,11 +495,11 @@ class ControllablePredecessor:
         once a call here took ``parallel_after`` seconds (0: from the first). If a part fails
         (:class:`PartitionFailed`), this call and the later ones run here (:attr:`parallel` ``["stopped"]`` says
         why); any other error (CUDD out of memory in a part: a BDDMemoryError) is raised, as it would be here."""
+        if states is not None and part is None:  # a whole call finds its own symmetry
+            raise ValueError("predecessors: states are taken with a part only")
         if (part is None and self._pool is None and self.parallel_after <= 0 and self.processes > 1
                 and self.partitioned is not None):  # the parts from the first call on
             self._pool = self.partitioned(self, self.processes)
-        if states is not None and part is None:  # a whole call finds its own symmetry
-            raise ValueError("predecessors: states are taken with a part only")
         sym = self._symmetry_for(Z, outside, within) if part is None else None
         return self._predecessors(Z, outside, within, part, whole=part is None, symmetry=sym, states=states)
 
