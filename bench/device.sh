@@ -14,12 +14,23 @@
 #
 # An A/B of two commits on one machine (lent machines differ by up to 1.6x for the same code, so two leases'
 # ratios do not separate a change from the machine):
-#   here, once:      bash bench/device.sh prepare-ab REV      (REV's tree into .ab/, about 1 MB; carry it with .whl)
+#   here, once:      bash bench/device.sh prepare-ab REV      (REV's tree into .ab/, about 3 MB; carry it with .whl)
 #   on the device:   command "bash bench/device.sh measure-ab", carry [".whl", ".ab"], timeout_s 580
 #                    (N = 6 by default: REV and this tree in turn, ROUNDS times (default 2), each one process and
 #                    WORKERS (default 16) workers; results $OUT/ab-REV-k.json and $OUT/ab-this-k.json)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+# On the device: the carried wheels into /tmp/site (it cannot download), and what the machine is.
+install_wheels() {
+  if ! ls .whl/*.whl > /dev/null 2>&1; then
+    echo "error: no .whl/ here: run 'bash bench/device.sh prepare' on the development machine and carry .whl" >&2
+    exit 2
+  fi
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
+  export PYTHONUNBUFFERED=1
+  lscpu | grep -E '^CPU\(s\)|per core|Model name' || true
+}
 
 case "${1:-}" in
   prepare)
@@ -31,13 +42,8 @@ case "${1:-}" in
     du -sh .whl
     ;;
   measure)
-    if ! ls .whl/*.whl > /dev/null 2>&1; then
-      echo "error: no .whl/ here: run 'bash bench/device.sh prepare' on the development machine and carry .whl" >&2
-      exit 2
-    fi
-    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
-    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-    lscpu | grep -E '^CPU\(s\)|per core|Model name' || true
+    install_wheels
+    export PYTHONPATH=/tmp/site:$PWD
     python3 bench/synthesis.py --N "${N:-7}" --workers "${WORKERS:-16,2}" --per-worker "${PER_WORKER:-1}" \
       --processes 1 --parallel-after "${PARALLEL_AFTER:-1}" --json "${OUT:-/tmp}/synthesis.json"
     ;;
@@ -49,13 +55,11 @@ case "${1:-}" in
     du -sh .ab
     ;;
   measure-ab)
-    if ! ls .whl/*.whl > /dev/null 2>&1 || [ ! -f .ab/REV ]; then
-      echo "error: carry .whl and .ab: run 'bash bench/device.sh prepare' and 'prepare-ab REV' here first" >&2
+    if [ ! -f .ab/REV ]; then
+      echo "error: no .ab/ here: run 'bash bench/device.sh prepare-ab REV' on the development machine and carry .ab" >&2
       exit 2
     fi
-    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
-    export PYTHONUNBUFFERED=1
-    lscpu | grep -E '^CPU\(s\)|per core|Model name' || true
+    install_wheels
     rev="$(cat .ab/REV)"
     for k in $(seq "${ROUNDS:-2}"); do
       for side in "$rev" this; do
