@@ -197,6 +197,20 @@ class SharedCluster:
             self._restore_config()
 
 
+@pytest.fixture(scope="session")
+def tanks_job(tmp_path_factory) -> Path:
+    """``compabs run examples/tanks.yaml --in-process`` once per session (its directory: report, controller, figures),
+    for the tests that read what that run writes (the closed loop, the C export of its controller); each test reads
+    it only. The run audits 10^5 stored transitions."""
+    from service.cli import main
+
+    out = tmp_path_factory.mktemp("tanks_job")
+    args = ["run", str(EXAMPLES / "tanks.yaml"), "--out", str(out), "--quiet", "--in-process",
+            "--audit-transitions", "100000"]
+    assert main(args) == 0
+    return out
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """A real embedded Dask cluster with two worker processes, one per test module that asks for it; closed at

@@ -178,18 +178,14 @@ def outside_the_box(g, size: int, rng: np.random.Generator) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_tanks_c_export_on_a_million_sampled_domain_cells(tmp_path):
+def test_tanks_c_export_on_a_million_sampled_domain_cells(tanks_job, tmp_path):
     """The ten tanks (examples/tanks.yaml, Reach(Safe): 217,735,106,888 domain cells of 41^10, 1.6e-5 of the grid;
     the exact tree is not built above 2^21 grid cells, so the export is the BDD). The C agrees bit for bit with the
     export's tables on 10^6 domain cells drawn uniformly from the domain (a state drawn uniformly in each), its
     input is one the BDD controller allows on 300 of them, and it says "no input" (u untouched) on 10^5 states of
     the box outside the domain, on about 9 * 10^4 states in cells next to domain cells but outside the domain, and
     on 10^5 states outside the box (far, the next double beyond an edge, infinite, NaN)."""
-    from .conftest import EXAMPLES
-    from .test_export import make_job
-
-    job = make_job(EXAMPLES / "tanks.yaml", tmp_path / "job")
-    ctrl = load_controller(job, "controller_reach_safe")
+    ctrl = load_controller(tanks_job)  # the spec's one fixed point, reach_safe, as ``compabs run`` wrote it
     assert isinstance(ctrl, Controller)
     export = export_controller(ctrl)
     assert export.form == "bdd" and export.tree is None and export.sizes["tree_nodes"] is None
