@@ -8,7 +8,7 @@ parts' summed seconds of the largest call against that call in one process (what
 domain is the one process's (it must be: every mode is exact).
 
     python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1[,2,...]] [--no-symmetry] [--compare-cuts P]
-                              [--json OUT]
+                              [--rounds R] [--json OUT]
 
 ``--per-worker 1,2,3`` runs each cluster once per value: the parts of a call handed out as workers free up
 (:mod:`workers.dispatch`), more parts per worker evening out unequal parts at the cost of the sub-results they share.
@@ -17,6 +17,12 @@ domain is the one process's (it must be: every mode is exact).
 (:mod:`pipelines.synthesis.symmetry`): what it buys in each. ``--compare-cuts P`` adds the largest cluster with
 ``P`` parts per worker, cut in windows and by the split cut (:mod:`workers.dask_cpre`), and prints the parts'
 summed seconds of each: what the split cut buys where there are many parts.
+
+``--rounds R`` runs one process and each cluster ``R`` times, alternating (one process, the clusters, one process,
+...), each round's speed-ups against that round's one process; a target is judged on the median of the rounds'
+speed-ups. On this 2-core machine the same code's two workers took 100.3 to 108.9 s within ten minutes (consensus
+N = 8), so one round's ratio moves by several per cent with the hour; the extras (helper processes, ``--no-symmetry``,
+``--compare-cuts``, more parts per worker) run in the first round only.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -50,8 +57,26 @@ def default_workers(cores: int) -> list[int]:
     return out
 
 
+def speedups(rec: dict[str, Any], k: int) -> list[float]:
+    """Each round's speed-up of ``k`` workers over that round's one process (the best parts per worker), in round
+    order (rows without a round are the first)."""
+    best: dict[int, float] = {}
+    for r in rec["rows"]:
+        if r.get("workers") == k and r.get("speedup") is not None:
+            rnd = r.get("round", 0)
+            best[rnd] = max(best.get(rnd, 0.0), r["speedup"])
+    return [best[rnd] for rnd in sorted(best)]
+
+
+def target_speedup(rec: dict[str, Any], k: int) -> float | None:
+    """The speed-up a target of ``k`` workers is judged on: the median of the rounds' (:func:`speedups`)."""
+    got = speedups(rec, k)
+    return round(statistics.median(got), 2) if got else None
+
+
 def measure(N: int, workers: list[int], per_worker: int | list[int], processes: int, quiet: bool = False,
-            no_symmetry: bool = False, compare_cuts: int = 0, parallel_after: float = 1.0) -> dict[str, Any]:
+            no_symmetry: bool = False, compare_cuts: int = 0, parallel_after: float = 1.0,
+            rounds: int = 1) -> dict[str, Any]:
     import yaml
 
     from pipelines.spec.model import parse_spec
@@ -87,39 +112,45 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
         return row
 
     say(f"consensus N = {N}: abstraction {abstraction_seconds:.1f} s; synthesis in every mode")
-    rows = [run("one process", processes=1)]
-    base = rows[0]
-    if no_symmetry:  # what the interchangeable subsystems bought (pipelines/synthesis/symmetry.py)
-        rows.append(run("one process, no symmetry", processes=1, symmetry=False))
-    if processes > 1:
-        rows.append(run(f"{processes} helper processes", processes=processes, partitioned=PartitionedPredecessors))
+    rows: list[dict[str, Any]] = []
     per_workers = [per_worker] if isinstance(per_worker, int) else list(per_worker)
     per_worker = per_workers[0]
-    for k in workers:
-        conn = connect(None, k)
-        try:
-            client = conn.client
-            for each in per_workers:  # more parts than workers, handed out as they free up (workers.dispatch)
-                label = "" if len(per_workers) == 1 else f", {each} part{'s' if each > 1 else ''} each"
-                rows.append(run(f"cluster, {k} worker{'s' if k > 1 else ''}{label}", processes="auto",
-                                partitioned=on_cluster(client), auto_parts=parts_for(client, each)))
-                rows[-1]["workers"], rows[-1]["per_worker"] = k, each
-            if no_symmetry and k == workers[-1]:  # what the symmetry buys on the cluster's parts
-                rows.append(run(f"cluster, {k} workers, no symmetry", processes="auto", symmetry=False,
-                                partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker)))
-            if compare_cuts and k == workers[-1]:  # many parts: what the split cut buys over the windows
-                parts = parts_for(client, compare_cuts)
-                for cut in ("window", "split"):
-                    rows.append(run(f"cluster, {k} workers, {parts} parts, {cut}", processes="auto",
-                                    partitioned=on_cluster(client, cut=cut), auto_parts=parts))
-                    rows[-1]["compare_cut"] = cut
-        finally:
-            conn.close()
-    for r in rows:
-        r["speedup"] = round(base["wall"] / r["wall"], 2) if r["wall"] else None
-        r["same_domain"] = r["domain_states"] == base["domain_states"]
+    for rnd in range(rounds):
+        first = rnd == 0  # the extras run once
+        tag = "" if rounds == 1 else f" (round {rnd + 1})"
+        start = len(rows)
+        rows.append(run("one process" + tag, processes=1))
+        if first and no_symmetry:  # what the interchangeable subsystems bought (pipelines/synthesis/symmetry.py)
+            rows.append(run("one process, no symmetry", processes=1, symmetry=False))
+        if first and processes > 1:
+            rows.append(run(f"{processes} helper processes", processes=processes, partitioned=PartitionedPredecessors))
+        for k in workers:
+            conn = connect(None, k)
+            try:
+                client = conn.client
+                for each in per_workers if first else per_workers[:1]:  # more parts than workers (workers.dispatch)
+                    label = "" if len(per_workers) == 1 else f", {each} part{'s' if each > 1 else ''} each"
+                    rows.append(run(f"cluster, {k} worker{'s' if k > 1 else ''}{label}{tag}", processes="auto",
+                                    partitioned=on_cluster(client), auto_parts=parts_for(client, each)))
+                    rows[-1]["workers"], rows[-1]["per_worker"] = k, each
+                if first and no_symmetry and k == workers[-1]:  # what the symmetry buys on the cluster's parts
+                    rows.append(run(f"cluster, {k} workers, no symmetry", processes="auto", symmetry=False,
+                                    partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker)))
+                if first and compare_cuts and k == workers[-1]:  # many parts: what the split cut buys over windows
+                    parts = parts_for(client, compare_cuts)
+                    for cut in ("window", "split"):
+                        rows.append(run(f"cluster, {k} workers, {parts} parts, {cut}", processes="auto",
+                                        partitioned=on_cluster(client, cut=cut), auto_parts=parts))
+                        rows[-1]["compare_cut"] = cut
+            finally:
+                conn.close()
+        base = rows[start]  # each round against its own one process
+        for r in rows[start:]:
+            r["round"] = rnd
+            r["speedup"] = round(base["wall"] / r["wall"], 2) if r["wall"] else None
+            r["same_domain"] = r["domain_states"] == base["domain_states"]
     return {"N": N, "cores": os.cpu_count(), "per_worker": per_worker, "parallel_after": parallel_after,
-            "abstraction_seconds": round(abstraction_seconds, 2),
+            "abstraction_seconds": round(abstraction_seconds, 2), "rounds": rounds,
             "rows": rows, "targets": TARGETS}
 
 
@@ -180,12 +211,16 @@ def lines(rec: dict[str, Any]) -> list[str]:
                        f"the mean worker {mean:.1f} s ({busiest / mean if mean else 0:.2f}x), all parts "
                        f"{sum(c['parts_cpu_sum'] for c in calls):.1f} s")
     for k, target in rec["targets"].items():  # keys are strings once read back from JSON
-        rows = [r for r in rec["rows"] if r.get("workers") == int(k)]
+        rows = [r for r in rec["rows"] if r.get("workers") == int(k) and r.get("round", 0) == 0]
         row = max(rows, key=lambda r: r["speedup"], default=None)  # the best parts per worker
-        if row is not None:
-            met = row["speedup"] >= target
+        got = speedups(rec, int(k))
+        value = target_speedup(rec, int(k))
+        if row is not None and value is not None:
+            met = value >= target
             how = f", {row['per_worker']} parts per worker" if len(rows) > 1 else ""
-            out.append(f"    target: {k} workers >= {target}x one process: {row['speedup']:.2f}x{how} "
+            each = (f" (the median of the rounds' {', '.join(f'{v:.2f}' for v in got)})"
+                    if len(got) > 1 else "")
+            out.append(f"    target: {k} workers >= {target}x one process: {value:.2f}x{each}{how} "
                        f"({'met' if met else 'NOT met'})")
     return out
 
@@ -208,11 +243,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-symmetry", action="store_true", help="also run one process and the largest cluster without the symmetry")
     p.add_argument("--compare-cuts", type=count(0), default=0, metavar="P",
                    help="also run the largest cluster with P parts per worker, windows and split cut (0: not)")
+    p.add_argument("--rounds", type=count(1), default=1,
+                   help="run one process and each cluster this many times, alternating; targets on the median")
     args = p.parse_args(argv)
     cores = os.cpu_count() or 1
     workers = args.workers or default_workers(cores)
     rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry,
-                  compare_cuts=args.compare_cuts, parallel_after=args.parallel_after)
+                  compare_cuts=args.compare_cuts, parallel_after=args.parallel_after, rounds=args.rounds)
     print("\n".join(lines(rec)))
     if args.json:
         Path(args.json).write_text(json.dumps(rec, indent=1))
