@@ -105,6 +105,24 @@ def test_controller_cells_on_the_upper_edge_of_the_box(jobs):
     assert ctrl.cell(ub + 1e-6) is None
 
 
+def test_in_domain_is_the_domain_bdd_at_each_cell(jobs):
+    """``Controller.in_domain`` walks the domain's node table for all cells at once; against one ``let`` of the
+    domain BDD per cell on every cell of each grid (explicit and layered controllers), and cells off the grid
+    (negative, past the last cell, past the bits' width) are in no domain."""
+    for name, ctrl in cases(jobs):
+        m, g = ctrl.model, ctrl.state_grid
+        every = g.unravel(np.arange(g.size))
+        want = np.array([m.bdd.let(m.state_assignment(c), ctrl.domain) == m.bdd.true for c in every])
+        assert 0 < want.sum() < g.size, name
+        np.testing.assert_array_equal(ctrl.in_domain(every), want, err_msg=name)
+        inside = every[want][:3]
+        off = np.repeat(inside[:1], 3, axis=0)  # an inside cell with its first code before the first cell, past
+        off[:, 0] = [-1, g.shape[0], g.shape[0] * 2**20 + inside[0, 0]]  # the last, and past the bits' width
+        mixed = np.concatenate([inside, off, inside])
+        np.testing.assert_array_equal(ctrl.in_domain(mixed), [True] * 3 + [False] * 3 + [True] * 3, err_msg=name)
+        assert ctrl.in_domain(np.zeros((0, g.dim), dtype=np.int64)).shape == (0,)
+
+
 # ============================================================================ determinized and minimised
 def test_the_determinized_input_is_admissible_on_every_domain_cell(jobs):
     for name, ctrl in cases(jobs):

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipelines.controller import Controller, LayeredController
-from pipelines.export.table import BDDTable, ExportError
+from pipelines.export.table import BDDTable, ExportError, node_table
 from pipelines.symbolic.counting import enumerate_cells
 from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.synthesis.cpre import bad_inputs, cpre_at_state
@@ -195,11 +195,6 @@ def restrict(model: SymbolicModel, f: Function, care: Function) -> Function:
         return go(f, care)
 
 
-def _edge(ids: dict[int, int], g: Function) -> int:
-    reg = ~g if g.negated else g
-    return (ids[int(reg)] << 1) | int(g.negated)
-
-
 def bdd_table(model: SymbolicModel, D: Function, simplify: bool = True) -> BDDTable:
     """The node table of ``D`` over the state bits: the domain ``∃û.D`` and each chosen input bit
     ``∃û.(D ∧ û_b)`` (digit by digit, most significant first), sharing their nodes; with ``simplify`` the input
@@ -213,34 +208,4 @@ def bdd_table(model: SymbolicModel, D: Function, simplify: bool = True) -> BDDTa
         outputs = [bdd.exist(model.u_bits, D & model.var(b)) for b in model.u_bits]
     if simplify:
         outputs = [restrict(model, f, domain) for f in outputs]
-    x_bits = sorted(model.x_bits, key=bdd.level_of_var)
-    var_of = {bdd.level_of_var(b): k for k, b in enumerate(x_bits)}
-    bits = []
-    for b in x_bits:
-        digit, pos = b.split("_")
-        width = len(model.bits[digit])
-        bits.append((int(digit[1:]), width - 1 - int(pos)))
-    ids: dict[int, int] = {int(bdd.true): 0}
-    order: list[Function] = []
-    stack = [~g if g.negated else g for g in (domain, *outputs)]
-    while stack:  # preorder: a node gets its id before its children
-        g = stack.pop()
-        if int(g) in ids:
-            continue
-        ids[int(g)] = len(ids)
-        order.append(g)
-        for child in (g.high, g.low):
-            reg = ~child if child.negated else child
-            if int(reg) not in ids:
-                stack.append(reg)
-    K = len(order) + 1
-    var = np.zeros(K, dtype=np.int64)
-    low = np.zeros(K, dtype=np.int64)
-    high = np.zeros(K, dtype=np.int64)
-    for g in order:
-        k = ids[int(g)]
-        var[k] = var_of[g.level]
-        low[k], high[k] = _edge(ids, g.low), _edge(ids, g.high)
-    bits_arr = np.asarray(bits, dtype=np.int64).reshape(-1, 2)
-    return BDDTable(bits_arr, var, low, high, _edge(ids, domain), np.asarray([_edge(ids, f) for f in outputs],
-                                                                            dtype=np.int64))
+    return node_table(model, domain, outputs)

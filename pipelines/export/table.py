@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -152,6 +153,52 @@ class BDDTable:
                 raise ExportError("export file: the BDD is not ordered")
         return cls(bits, var, low, high, int(d["domain"]), outputs)
 
+
+
+def _edge(ids: dict[int, int], g: Any) -> int:
+    reg = ~g if g.negated else g
+    return (ids[int(reg)] << 1) | int(g.negated)
+
+
+def node_table(model: Any, domain: Any, outputs: Sequence[Any] = ()) -> BDDTable:
+    """The :class:`BDDTable` of ``domain`` and ``outputs``, BDDs over the current-state bits of ``model`` (a
+    :class:`~pipelines.symbolic.model.SymbolicModel`), sharing their nodes.
+
+    The walk visits every node once (Python work proportional to the BDDs, never to the states); what the table
+    gives per cell is then one vectorised walk (:meth:`BDDTable.evaluate`).
+    """
+    bdd = model.bdd
+    x_bits = sorted(model.x_bits, key=bdd.level_of_var)
+    var_of = {bdd.level_of_var(b): k for k, b in enumerate(x_bits)}
+    bits = []
+    for b in x_bits:
+        digit, pos = b.split("_")
+        width = len(model.bits[digit])
+        bits.append((int(digit[1:]), width - 1 - int(pos)))
+    ids: dict[int, int] = {int(bdd.true): 0}
+    order: list[Any] = []
+    stack = [~g if g.negated else g for g in (domain, *outputs)]
+    while stack:  # preorder: a node gets its id before its children
+        g = stack.pop()
+        if int(g) in ids:
+            continue
+        ids[int(g)] = len(ids)
+        order.append(g)
+        for child in (g.high, g.low):
+            reg = ~child if child.negated else child
+            if int(reg) not in ids:
+                stack.append(reg)
+    K = len(order) + 1
+    var = np.zeros(K, dtype=np.int64)
+    low = np.zeros(K, dtype=np.int64)
+    high = np.zeros(K, dtype=np.int64)
+    for g in order:
+        k = ids[int(g)]
+        var[k] = var_of[g.level]
+        low[k], high[k] = _edge(ids, g.low), _edge(ids, g.high)
+    bits_arr = np.asarray(bits, dtype=np.int64).reshape(-1, 2)
+    return BDDTable(bits_arr, var, low, high, _edge(ids, domain),
+                    np.asarray([_edge(ids, f) for f in outputs], dtype=np.int64))
 
 @dataclass(frozen=True)
 class TreeTable:
