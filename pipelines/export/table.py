@@ -154,7 +154,6 @@ class BDDTable:
         return cls(bits, var, low, high, int(d["domain"]), outputs)
 
 
-
 def _edge(ids: dict[int, int], g: Any) -> int:
     reg = ~g if g.negated else g
     return (ids[int(reg)] << 1) | int(g.negated)
@@ -199,6 +198,7 @@ def node_table(model: Any, domain: Any, outputs: Sequence[Any] = ()) -> BDDTable
     bits_arr = np.asarray(bits, dtype=np.int64).reshape(-1, 2)
     return BDDTable(bits_arr, var, low, high, _edge(ids, domain),
                     np.asarray([_edge(ids, f) for f in outputs], dtype=np.int64))
+
 
 @dataclass(frozen=True)
 class TreeTable:
