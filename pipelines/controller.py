@@ -168,7 +168,7 @@ class Controller:
         cells: 0.2 s for 2·10^5 cells of the tanks' controller, where a ``let`` per cell takes about 8.5 s. A cell off the grid is in
         no domain (its bits could spell another cell's code)."""
         idx = np.asarray(idx, dtype=np.int64).reshape(-1, self._state_grid.dim)
-        on_grid = np.all((idx >= 0) & (idx < np.asarray(self._state_grid.shape, dtype=np.int64)), axis=1)
+        on_grid = self._state_grid.on_grid(idx)
         if self._domain_table is None:
             self._domain_table = node_table(self._model, self._domain)
         out = np.zeros(idx.shape[0], dtype=bool)

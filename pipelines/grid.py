@@ -188,6 +188,11 @@ class UniformGrid:
         """Flat (row-major) indices, shape (B,), to per-dimension indices, shape (B, d)."""
         return np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), self.shape), axis=-1)
 
+    def on_grid(self, idx: np.ndarray) -> np.ndarray:
+        """Whether each per-dimension index, shape (B, d), is a cell of this grid; bool (B,)."""
+        idx = np.asarray(idx)
+        return np.all((idx >= 0) & (idx < np.asarray(self.shape)), axis=-1)
+
     def ravel(self, idx: np.ndarray) -> np.ndarray:
         """Per-dimension indices, shape (B, d), to flat row-major indices, shape (B,)."""
         idx = np.asarray(idx, dtype=np.int64)
@@ -239,8 +244,7 @@ class UniformGrid:
             r = _snap((np.asarray(x, dtype=float) - np.asarray(self.origin)) / self.eta_array + 0.5)
         k = _index(np.floor(r) if tie == "upper" else np.ceil(r) - 1)
         idx = k - np.asarray(self.k_lo, dtype=np.int64)
-        inside = np.all((idx >= 0) & (idx < np.asarray(self.shape)), axis=-1)
-        return idx, inside
+        return idx, self.on_grid(idx)
 
     def cells_touching(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Index range of the cells that meet the closed boxes ``[lo, hi]`` (successor sets, Def. 4.2).

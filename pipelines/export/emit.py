@@ -136,7 +136,7 @@ def domain_cells(t: BDDTable, grid: UniformGrid) -> np.ndarray:
         one[:, coord] |= 1 << shift
         codes, e = np.concatenate([codes, one]), np.concatenate([lo, hi])
     cells = codes[e == 0]
-    cells = cells[np.all(cells < np.asarray(grid.shape), axis=1)]
+    cells = cells[grid.on_grid(cells)]
     return cells[np.lexsort(cells.T[::-1])] if cells.size else cells
 
 

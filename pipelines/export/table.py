@@ -56,7 +56,7 @@ def quantize(grid: UniformGrid, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     upper, _ = grid.cell_of(np.where(np.isfinite(X), X, 0.0), "upper")
     lower, _ = grid.cell_of(np.where(np.isfinite(X), X, 0.0), "lower")
     idx = np.where((upper >= 0) & (upper < shape), upper, lower)
-    ok = in_box & np.all((idx >= 0) & (idx < shape), axis=1)
+    ok = in_box & grid.on_grid(idx)
     return np.where(ok[:, None], idx, 0), ok
 
 
