@@ -98,6 +98,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 EXAMPLES = ROOT / "examples"
 
+from service.arguments import count  # noqa: E402  (the CLI's own integer type, after the path is set)
+
 # ====================================================================================== the paper's figures
 #: What the paper reports (Ajeleye & Zamani, /work/shared/paper/data-driven-compositional-abstractions.tex), on a
 #: 64 GB MacBook with a modified SCOTS and CUDD, and where. "abstraction" is "abstracting and stacking of the
@@ -1407,8 +1409,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="tanks/consensus end to end on an embedded cluster of W workers, as `compabs run` (0: in "
                         "process, synthesis parts in helper processes)")
     p.add_argument("--synthesis-N", type=int, default=8, metavar="N", help="agents of the synthesis case's consensus")
-    from service.arguments import count  # the CLI's own integer type (ROOT is on the path by now)
-
     p.add_argument("--synthesis-rounds", type=count(1), default=2, metavar="R",
                    help="rounds of one process and the clusters in the synthesis case (targets on the median)")
     p.add_argument("--child", help=argparse.SUPPRESS)

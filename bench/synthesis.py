@@ -22,7 +22,7 @@ summed seconds of each: what the split cut buys where there are many parts.
 ...), each round's speed-ups against that round's one process; a target is judged on the median of the rounds'
 speed-ups. On this 2-core machine the same code's two workers took 100.3 to 108.9 s within ten minutes (consensus
 N = 8), so one round's ratio moves by several per cent with the hour; the extras (helper processes, ``--no-symmetry``,
-``--compare-cuts``, more parts per worker) run in the first round only.
+``--compare-cuts``, more parts per worker than the first round's best) run in the first round only.
 """
 
 from __future__ import annotations
@@ -115,6 +115,7 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
     rows: list[dict[str, Any]] = []
     per_workers = [per_worker] if isinstance(per_worker, int) else list(per_worker)
     per_worker = per_workers[0]
+    best_each: dict[int, int] = {}  # per worker count, the parts per worker the later rounds repeat
     for rnd in range(rounds):
         first = rnd == 0  # the extras run once
         tag = "" if rounds == 1 else f" (round {rnd + 1})"
@@ -128,7 +129,7 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
             conn = connect(None, k)
             try:
                 client = conn.client
-                for each in per_workers if first else per_workers[:1]:  # more parts than workers (workers.dispatch)
+                for each in per_workers if first else [best_each[k]]:  # more parts than workers (workers.dispatch)
                     label = "" if len(per_workers) == 1 else f", {each} part{'s' if each > 1 else ''} each"
                     rows.append(run(f"cluster, {k} worker{'s' if k > 1 else ''}{label}{tag}", processes="auto",
                                     partitioned=on_cluster(client), auto_parts=parts_for(client, each)))
@@ -149,6 +150,10 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
             r["round"] = rnd
             r["speedup"] = round(base["wall"] / r["wall"], 2) if r["wall"] else None
             r["same_domain"] = r["domain_states"] == base["domain_states"]
+        if first:  # the median compares like with like: each later round runs round 1's best parts per worker
+            for k in workers:
+                mine = [r for r in rows if r.get("workers") == k and "per_worker" in r]
+                best_each[k] = max(mine, key=lambda r: r["speedup"] or 0.0)["per_worker"]
     return {"N": N, "cores": os.cpu_count(), "per_worker": per_worker, "parallel_after": parallel_after,
             "abstraction_seconds": round(abstraction_seconds, 2), "rounds": rounds,
             "rows": rows, "targets": TARGETS}
