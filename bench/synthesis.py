@@ -74,6 +74,18 @@ def target_speedup(rec: dict[str, Any], k: int) -> float | None:
     return round(statistics.median(got), 2) if got else None
 
 
+def machine_times() -> dict[str, float]:
+    """The machine's CPU seconds so far, all cores together: ``busy`` (every process's, this one's and any
+    other's), ``idle`` (and waiting for I/O) and ``steal`` (taken by the hypervisor, where it says so)."""
+    import psutil
+
+    t = psutil.cpu_times()
+    idle = t.idle + getattr(t, "iowait", 0.0)
+    steal = getattr(t, "steal", 0.0)
+    return {"busy": sum(t) - idle - steal - getattr(t, "guest", 0.0) - getattr(t, "guest_nice", 0.0),
+            "idle": idle, "steal": steal}
+
+
 def measure(N: int, workers: list[int], per_worker: int | list[int], processes: int, quiet: bool = False,
             no_symmetry: bool = False, compare_cuts: int = 0, parallel_after: float = 1.0,
             rounds: int = 1) -> dict[str, Any]:
@@ -98,17 +110,23 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
         if not quiet:
             print(msg, flush=True)
 
+    from bench.run import tree_cpu  # the stage clock's count: live workers and reaped helpers
+
     def run(mode: str, **kw: Any) -> dict[str, Any]:
+        c0, m0 = tree_cpu(), machine_times()
         t = time.perf_counter()
         kw.setdefault("parallel_after", parallel_after)
         game, results, report = synthesize(a.network, a.relations, a.interconnection, spec.specification,
                                            reach_and_stay_methods=("reach_safe",), **kw)
         wall = time.perf_counter() - t
+        cpu, machine = tree_cpu() - c0, {k: v - m0[k] for k, v in machine_times().items()}
         parallel = dict(report.get("parallel") or {})
         game.close()
-        row = {"mode": mode, "wall": round(wall, 2), "domain_states": results["reach_safe"].domain_states,
+        row = {"mode": mode, "wall": round(wall, 2), "cpu": round(cpu, 2),
+               "machine": {k: round(v, 2) for k, v in machine.items()},
+               "domain_states": results["reach_safe"].domain_states,
                "iterations": results["reach_safe"].iterations, "parallel": parallel}
-        say(f"  {mode:<28} {wall:8.1f} s  domain {row['domain_states']:,}")
+        say(f"  {mode:<28} {wall:8.1f} s  domain {row['domain_states']:,}  ({cpu:.1f} s CPU)")
         return row
 
     say(f"consensus N = {N}: abstraction {abstraction_seconds:.1f} s; synthesis in every mode")
@@ -146,6 +164,7 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
             finally:
                 conn.close()
         base = rows[start]  # each round against its own one process
+        base["baseline"] = True
         for r in rows[start:]:
             r["round"] = rnd
             r["speedup"] = round(base["wall"] / r["wall"], 2) if r["wall"] else None
@@ -164,11 +183,17 @@ def lines(rec: dict[str, Any]) -> list[str]:
     out = [f"  synthesis: consensus N = {rec['N']} (Reach(Safe)), {rec['cores']} cores, "
            f"{rec['per_worker']} part(s) per worker, the parts from "
            + ("the first step" if rec.get("parallel_after", 1.0) <= 0 else f"a step of {rec.get('parallel_after', 1.0):g} s")]
-    out.append(f"    {'mode':<28} {'wall s':>8} {'speed-up':>9}  {'parts':>5}  {'calls':>5}  same domain")
+    out.append(f"    {'mode':<28} {'wall s':>8} {'speed-up':>9}  {'parts':>5}  {'calls':>5}  same domain  "
+               f"{'CPU s':>7} {'idle s':>7} {'steal s':>7}")
     for r in rec["rows"]:
         p = r["parallel"]
+        m = r.get("machine") or {}
+        cpu = "".join(f" {v:7.1f}" if v is not None else f" {'-':>7}"
+                      for v in (r.get("cpu"), m.get("idle"), m.get("steal")))
         out.append(f"    {r['mode']:<28} {r['wall']:8.1f} {r['speedup']:9.2f}  {p.get('processes', 1):>5}  "
-                   f"{p.get('calls', 0):>5}  {'yes' if r['same_domain'] else 'NO'}")
+                   f"{p.get('calls', 0):>5}  {'yes' if r['same_domain'] else 'NO ':<11} {cpu}")
+    out.append("    (CPU: this process and its workers; idle and steal: the whole machine's, all cores. One process "
+               "computing alone should have CPU = wall: what it lacks, it waited for a core the machine gave elsewhere)")
     for r in rec["rows"]:
         t = r["parallel"].get("seconds")
         if t:
@@ -215,6 +240,7 @@ def lines(rec: dict[str, Any]) -> list[str]:
             out.append(f"    {r['mode']}: CPU seconds summed over the calls, the busiest worker of each {busiest:.1f} s, "
                        f"the mean worker {mean:.1f} s ({busiest / mean if mean else 0:.2f}x), all parts "
                        f"{sum(c['parts_cpu_sum'] for c in calls):.1f} s")
+    out += [f"    {line}" for line in where_the_time_went(rec)]
     for k, target in rec["targets"].items():  # keys are strings once read back from JSON
         rows = [r for r in rec["rows"] if r.get("workers") == int(k) and r.get("round", 0) == 0]
         row = max(rows, key=lambda r: r["speedup"], default=None)  # the best parts per worker
@@ -227,6 +253,38 @@ def lines(rec: dict[str, Any]) -> list[str]:
                     if len(got) > 1 else "")
             out.append(f"    target: {k} workers >= {target}x one process: {value:.2f}x{each}{how} "
                        f"({'met' if met else 'NOT met'})")
+    return out
+
+
+def where_the_time_went(rec: dict[str, Any]) -> list[str]:
+    """Each cluster row's wall seconds against half (a ``k``-th) of its round's one process, in four terms that
+    add up: the job's process alone between the calls (symmetry checks, the first call, building, counting), the
+    parts' CPU seconds as if spread evenly over the workers, the calls' wait for their busiest worker beyond the
+    mean, and the rest of the calls' wall (transfers, and a worker waiting for a core). Below, the parts' CPU
+    against the one process's CPU less the same time outside the calls: what cutting cost."""
+    out = []
+    base: dict[int, dict[str, Any]] = {}
+    for r in rec["rows"]:
+        if r.get("baseline"):
+            base[r.get("round", 0)] = r
+    for r in rec["rows"]:
+        calls, k = r["parallel"].get("per_call") or [], r.get("workers")
+        one = base.get(r.get("round", 0))
+        if not calls or not k or "busiest_worker_cpu" not in calls[0] or one is None:
+            continue
+        outside = r["wall"] - sum(c["wall"] for c in calls)
+        parts_cpu = sum(c["parts_cpu_sum"] for c in calls)
+        wait = sum(c["busiest_worker_cpu"] - c["parts_cpu_sum"] / k for c in calls)
+        rest = sum(c["wall"] - c["busiest_worker_cpu"] for c in calls)
+        out.append(f"{r['mode']}: {r['wall']:.1f} s against one process / {k} = {one['wall'] / k:.1f} s: "
+                   f"{outside:.1f} s in the job's process outside the calls + {parts_cpu / k:.1f} s the parts' CPU "
+                   f"spread evenly + {wait:.1f} s waiting for each call's busiest worker + {rest:.1f} s the rest of "
+                   "the calls (transfers, waiting for a core)")
+        if one.get("cpu"):
+            same = one["cpu"] - outside  # the one process's CPU in the same calls, taking its outside as this row's
+            out.append(f"{r['mode']}: the parts' CPU {parts_cpu:.1f} s against the one process's {same:.1f} s in "
+                       f"the same calls ({parts_cpu / same:.2f}x; its {one['cpu']:.1f} s less the {outside:.1f} s "
+                       "outside them)")
     return out
 
 

@@ -159,6 +159,34 @@ def test_the_synthesis_targets_are_judged_on_the_median_of_the_rounds():
     assert targets({"cases": {"synthesis": synthesis}})["consensus synthesis, 2 Dask workers / one process"][2] is False
 
 
+def test_the_synthesis_case_says_where_a_clusters_time_went():
+    """A cluster row's wall in four terms that add up to it (outside the calls, the parts' CPU spread evenly, the wait
+    for each call's busiest worker, the rest of the calls), against its own round's one process, and the parts' CPU
+    against that one process's in the same calls; each row's CPU and the machine's idle and steal seconds."""
+    from bench.synthesis import lines, where_the_time_went
+
+    calls = [{"wall": 10.0, "parts_cpu_sum": 18.0, "busiest_worker_cpu": 9.5, "slowest_part": 9.8, "last_start": 0.0},
+             {"wall": 30.0, "parts_cpu_sum": 50.0, "busiest_worker_cpu": 29.0, "slowest_part": 29.5,
+              "last_start": 0.0}]
+    row = {"iterations": 9, "domain_states": 5, "same_domain": True}
+    rec = {"N": 8, "cores": 2, "per_worker": 1, "targets": {}, "rows": [
+        {**row, "mode": "one process (round 2)", "wall": 80.0, "cpu": 79.0, "machine": {"idle": 80.5, "steal": 0.0},
+         "speedup": 1.0, "round": 1, "baseline": True, "parallel": {}},
+        {**row, "mode": "cluster, 2 workers (round 2)", "wall": 45.0, "cpu": 75.0, "workers": 2, "speedup": 1.78,
+         "round": 1, "machine": {"idle": 9.0, "steal": 1.5}, "parallel": {"processes": 2, "calls": 2, "per_call": calls}}]}
+    said = where_the_time_went(rec)
+    assert said[0].startswith("cluster, 2 workers (round 2): 45.0 s against one process / 2 = 40.0 s: 5.0 s in the "
+                              "job's process outside the calls + 34.0 s the parts' CPU spread evenly + 4.5 s waiting")
+    assert "+ 1.5 s the rest of the calls" in said[0]  # 5 + 34 + 4.5 + 1.5 = 45
+    assert said[1].startswith("cluster, 2 workers (round 2): the parts' CPU 68.0 s against the one process's 74.0 s "
+                              "in the same calls (0.92x")
+    text = "\n".join(lines(rec))
+    assert "    one process (round 2)            80.0      1.00      1      0  yes             79.0    80.5     0.0" in text
+    assert "1.78      2      2  yes             75.0     9.0     1.5" in text
+    rec["rows"][0].pop("baseline")  # no one process in that round: nothing to say
+    assert where_the_time_went(rec) == []
+
+
 def test_the_synthesis_case_prints_what_the_split_cut_buys():
     """With ``--compare-cuts`` the table ends its cluster rows with the parts' summed seconds of both cuts, their
     ratio, and the cells of ``ŵ`` each ran the chain on."""
