@@ -25,7 +25,7 @@ from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
 from pipelines.symbolic.files import dump, load_all
 from pipelines.symbolic.model import Function
-from pipelines.synthesis.cpre import cpre_at_state
+from pipelines.synthesis.cpre import ChainAtStates, cpre_at_state
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.synthesis.cpre import ControllablePredecessor
@@ -232,6 +232,7 @@ class LayeredController(Controller):
         self._admissible = admissible
         self._next: dict[int, Function] = {}
         self._inputs: dict[tuple[int, ...], object] = {}
+        self._at = ChainAtStates(model, self._chain)
         super().__init__(model, self._layers[-1], meta)
         self._domain = self._layers[-1]
 
@@ -252,6 +253,12 @@ class LayeredController(Controller):
     def ingredients(self) -> tuple[list[tuple[Function, list[str]]], Function, Function | None]:
         """``(chain, admissible, M)``: the CPre ingredients (:func:`~.synthesis.cpre.bad_inputs`)."""
         return self._chain, self._admissible, self._M
+
+    @property
+    def chain_at_states(self) -> ChainAtStates:
+        """The chain's cofactors at the cells met so far (:class:`~.synthesis.cpre.ChainAtStates`), for
+        :func:`~.synthesis.cpre.cpre_at_state` at more cells."""
+        return self._at
 
     @property
     def relation(self) -> Function:
@@ -292,7 +299,7 @@ class LayeredController(Controller):
             if src not in self._next:
                 self._next[src] = m.to_next(self._layers[src])
             out = cpre_at_state(m, self._chain, self._admissible, self._M, m.state_assignment(list(key)),
-                                self._next[src])
+                                self._next[src], self._at)
         if len(self._inputs) >= INPUT_CACHE:
             self._inputs.clear()
         self._inputs[key] = out

@@ -479,6 +479,33 @@ def test_cpre_at_a_state_is_cpre_cofactored_there(shared):
             assert game.cpre_at(state, Zn) == m.bdd.let(state, whole), (p, s)
 
 
+@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
+def test_the_chains_cofactors_kept_across_states_give_cpre_at_each_state(shared):
+    """``ChainAtStates`` (what a layered controller keeps across the cells of a closed loop) gives ``CPre(Z)`` at every
+    state, for several sets, the same as computing the cofactors afresh, and keeps each relation's cofactors by its
+    own subsystem's state: fewer than the composed states where a relation reads part of the state (the shared-``w``
+    chain's ``T_i``; per subsystem, ``∃w_i. M̂_i ∧ T_i`` reads the subsystems ``w_i`` comes from, here all)."""
+    from pipelines.synthesis.cpre import ChainAtStates, cpre_at_state
+
+    rng = np.random.default_rng(190 + shared)
+    net = random_net(rng, shared)
+    ex = Explicit(net)
+    game = build(net, "shared_top" if shared else "interleaved")
+    m = game.model
+    at = ChainAtStates(m, game.chain)
+    for p in (0.3, 0.6, 0.9):
+        bZ = state_set(m, np.array(ex.states)[random_set(rng, ex, p)])
+        whole, Zn = game.cpre(bZ), m.to_next(bZ)
+        for s in ex.states:
+            state = m.state_assignment(list(s))
+            kept = cpre_at_state(m, game.chain, game.admissible, game.M, state, Zn, at)
+            assert kept == cpre_at_state(m, game.chain, game.admissible, game.M, state, Zn) == m.bdd.let(state, whole)
+    partial = [i for i, reads in enumerate(at._reads) if len(reads) < len(m.x_bits)]
+    assert partial or not shared, "every relation reads the whole state: the test would not exercise the keeping"
+    for i in partial:
+        assert len(at._kept[i]) < len(ex.states)
+
+
 # ============================================================================ layered controllers
 def layered_matrix(ctrl, ex: Explicit) -> np.ndarray:
     """Inputs a (layered) controller allows at every cell, through ``input_indices`` one cell at a time."""

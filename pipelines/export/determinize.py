@@ -144,7 +144,7 @@ def determinized_at(ctrl: Controller, idx: np.ndarray, rule: str = "auto") -> np
             chain, admissible, M = ctrl.ingredients
             state = m.state_assignment([int(v) for v in idx])
             for Z in ctrl.layers[:k]:  # the earliest layer reachable in one step
-                S = cpre_at_state(m, chain, admissible, M, state, m.to_next(Z))
+                S = cpre_at_state(m, chain, admissible, M, state, m.to_next(Z), ctrl.chain_at_states)
                 if S != m.bdd.false:
                     break
     rows = enumerate_cells(m, lexmin(m, S), m.u_digits())

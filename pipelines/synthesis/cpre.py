@@ -208,9 +208,45 @@ def window_predecessors(
     return and_exists(admissible & states, ~bad, list(u_bits))
 
 
+class ChainAtStates:
+    """The chain's relations cofactored at states, each with the next cells it allows from there, kept per
+    relation by the values of the current-state bits that relation reads.
+
+    ``T_i`` at a composed state depends only on the bits of ``x̂`` in its support (its own subsystem's, as a rule),
+    so a closed loop that visits thousands of composed cells meets each relation at far fewer distinct local
+    states: at the 3,044 cells of 101 consensus N = 8 runs (50 steps) each agent's relation sees a few dozen.
+    What is kept is exact: the cofactor at the restriction of the state to the support. Each relation keeps at
+    most ``limit`` local states (then starts over).
+    """
+
+    def __init__(self, model: SymbolicModel, chain: Chain, limit: int = 100_000) -> None:
+        bdd = model.bdd
+        x_bits = set(model.x_bits)
+        self._bdd, self._chain, self._limit = bdd, list(chain), limit
+        self._reads = [sorted(x_bits & set(bdd.support(rel))) for rel, _ in chain]
+        self._kept: list[dict[tuple[bool, ...], tuple[Function, Function]]] = [{} for _ in chain]
+
+    def at(self, state: Mapping[str, bool]) -> list[tuple[Function, Function, list[str]]]:
+        """Per relation of the chain: ``T_i`` at ``state``, the next cells it allows (``∃u,w. T_i`` there, over
+        its next-state bits) and the next-state bits it quantifies."""
+        bdd, out = self._bdd, []
+        for (rel, xn_bits), reads, kept in zip(self._chain, self._reads, self._kept):
+            key = tuple(state[v] for v in reads)
+            hit = kept.get(key)
+            if hit is None:
+                cof = bdd.let({v: state[v] for v in reads}, rel) if reads else rel
+                quantified = set(xn_bits)
+                hit = (cof, bdd.exist([v for v in bdd.support(cof) if v not in quantified], cof))
+                if len(kept) >= self._limit:
+                    kept.clear()
+                kept[key] = hit
+            out.append((hit[0], hit[1], xn_bits))
+        return out
+
+
 def cpre_at_state(
     model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, state: Mapping[str, bool],
-    Z_next: Function,
+    Z_next: Function, at: ChainAtStates | None = None,
 ) -> Function:
     """``CPre(Z)`` at one state, from the CPre ingredients: a function of the input bits only.
 
@@ -224,6 +260,9 @@ def cpre_at_state(
         Values of all current-state bits (:meth:`SymbolicModel.state_assignment`).
     Z_next : Function
         ``Z`` over next-state bits (``model.to_next(Z)``; callers cache it per set).
+    at : ChainAtStates, optional
+        The chain's cofactors, kept across calls (callers that evaluate many states keep one per chain); by
+        default computed for this state alone.
 
     Every ingredient is cofactored at the state first, so the chain runs on BDDs over ``u``, ``w`` and one
     subsystem's ``x'`` at a time: milliseconds where the full ``CPre`` of a consensus network is minutes.
@@ -236,13 +275,12 @@ def cpre_at_state(
         good = bdd.let(state, admissible)
         if good == bdd.false:
             return good
-        at_state = [(bdd.let(state, rel), xn_bits) for rel, xn_bits in chain]
+        at_state = (ChainAtStates(model, chain) if at is None else at).at(state)
         reachable = bdd.true
-        for rel, xn_bits in at_state:
-            quantified = set(xn_bits)
-            reachable &= bdd.exist([v for v in bdd.support(rel) if v not in quantified], rel)
+        for _, moves, _ in at_state:
+            reachable &= moves
         acc = ~Z_next & reachable
-        for rel, xn_bits in at_state:
+        for rel, _, xn_bits in at_state:
             acc = and_exists(acc, rel, xn_bits)
         if M is not None:
             acc = and_exists(bdd.let(state, M), acc, model.w_bits)
