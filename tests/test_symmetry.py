@@ -123,6 +123,53 @@ def test_fixed_points_give_the_same_domains_with_and_without_symmetry(consensus3
     assert out[True][2] != game.bdd.false
 
 
+def test_iterates_combined_from_invariant_sets_are_recognised_and_nothing_else_is(consensus3, monkeypatch):
+    """``InvariantSets``: after a call on ``Z`` answered ``P`` (closed), ``Z ∧ P`` and ``Z ∨ (P ∧ K)`` for a
+    ``within`` set ``K`` are taken as invariant without a check; the same shapes from a ``K`` that is not
+    invariant, and other sets, are checked (and refused where they are not). A Reach(Safe) checks far fewer sets
+    than it has iterations and gives the domain of the plain CPre."""
+    from pipelines.synthesis.cpre import InvariantSets
+    from pipelines.synthesis.symmetry import Symmetry
+
+    game, phi = consensus3
+    game.use_symmetry, game._symmetry = True, False
+    sym = game.symmetry
+    checked: list[int] = []
+    invariant = Symmetry.invariant
+
+    def counting(self, f):
+        checked.append(1)
+        return invariant(self, f)
+
+    monkeypatch.setattr(Symmetry, "invariant", counting)
+    rng = np.random.default_rng(7)
+    Z, P, K = (sym.close(_random_set(game, rng, 0.5)) for _ in range(3))
+    while len({Z, P, K, Z & P, Z | (P & K), Z | P}) < 6:  # each shape its own set: none recognised by another
+        Z, P, K = (sym.close(_random_set(game, rng, 0.5)) for _ in range(3))
+    skew = _random_set(game, rng, 0.5)
+    while invariant(sym, skew) or invariant(sym, Z | (P & skew)):
+        skew = _random_set(game, rng, 0.5)
+    known = InvariantSets()
+    known.may_join(K)
+    known.may_join(skew)
+    known.step(Z, P)
+    checked.clear()
+    assert known.holds(sym, Z & P) and known.holds(sym, Z | (P & K)) and known.holds(sym, P)
+    recognised = len(checked)
+    assert recognised == 2  # the two within() sets, once each; the iterates themselves not
+    assert not known.holds(sym, Z | (P & skew)) and len(checked) == recognised + 1
+    assert not known.holds(sym, skew)
+
+    checked.clear()
+    with_sym = reach_safe(game, phi, layered=True)
+    assert 0 < len(checked) < with_sym.iterations
+    game.use_symmetry, game._symmetry = False, False
+    try:
+        assert reach_safe(game, phi, layered=True).domain == with_sym.domain
+    finally:
+        game.use_symmetry, game._symmetry = True, False
+
+
 @pytest.mark.parametrize("cut", ["window", "x", "processes"])
 def test_parts_close_their_representatives(consensus3, client, cut):
     """Each part (on a worker, or in a helper process) computes its states' representatives and closes its own
