@@ -23,8 +23,10 @@ Against no symmetry at all, the chain's way had measured one process N = 8 314.6
 processes, the cluster's workers) each take the representatives of their own states and close their own answer,
 since closing distributes over the union of the parts: two workers N = 8 167.4 s -> 84.7 s.
 
-Only subsystems with a one-dimensional state grid are considered (their codes compare as numbers); fixed points
-call :meth:`Symmetry.invariant` on every iterate and fall back to the plain CPre when it says no.
+Only subsystems with a one-dimensional state grid are considered (their codes compare as numbers). Every set a
+call takes must be invariant: the iterates a fixed point builds from invariant sets are recognised as such
+(:class:`~.cpre.InvariantSets`), any other set is checked with :meth:`Symmetry.invariant`, and where it says no
+the call is the plain CPre.
 """
 
 from __future__ import annotations
