@@ -152,13 +152,18 @@ def test_iterates_combined_from_invariant_sets_are_recognised_and_nothing_else_i
     known = InvariantSets()
     known.may_join(K)
     known.may_join(skew)
-    known.step(Z, P)
+    known.step(sym, Z, P)
     checked.clear()
     assert known.holds(sym, Z & P) and known.holds(sym, Z | (P & K)) and known.holds(sym, P)
     recognised = len(checked)
     assert recognised == 2  # the two within() sets, once each; the iterates themselves not
     assert not known.holds(sym, Z | (P & skew)) and len(checked) == recognised + 1
     assert not known.holds(sym, skew)
+    other = Symmetry(game.model, sym.classes)  # another symmetry object: what was known of sym is not taken
+    checked.clear()
+    assert known.holds(other, Z & P) and len(checked) == 1
+    known.forget()
+    assert known.holds(sym, Z & P) and len(checked) == 2
 
     checked.clear()
     with_sym = reach_safe(game, phi, layered=True)

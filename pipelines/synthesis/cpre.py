@@ -302,6 +302,7 @@ class InvariantSets:
 
     def __init__(self, limit: int = 4) -> None:
         self._limit = limit
+        self._sym: Symmetry | None = None  # what the sets below are invariant under
         self._last: tuple[Function, Function] | None = None  # the last call's Z and answer, both invariant
         self._candidates: list[Function] = []  # within() sets, not yet checked
         self._sets: list[Function] = []  # within() sets found invariant
@@ -311,12 +312,18 @@ class InvariantSets:
         if all(S != c for c in self._candidates + self._sets):
             self._candidates = [S, *self._candidates][: self._limit]
 
-    def step(self, Z: Function, answer: Function) -> None:
-        """A call on the invariant ``Z`` gave ``answer``, closed under the symmetry."""
+    def step(self, sym: Symmetry, Z: Function, answer: Function) -> None:
+        """A call on the invariant ``Z`` gave ``answer``, closed under ``sym``."""
+        self._under(sym)
         self._last = (Z, answer)
+
+    def forget(self) -> None:
+        """Drop every set held (their BDD nodes with them)."""
+        self._sym, self._last, self._candidates, self._sets = None, None, [], []
 
     def holds(self, sym: Symmetry, f: Function) -> bool:
         """Whether ``f`` is invariant under ``sym``: recognised from the last call, or checked."""
+        self._under(sym)
         if self._last is not None:
             Z, P = self._last
             if f == Z or f == P or f == Z & P:
@@ -325,6 +332,12 @@ class InvariantSets:
                 if f == Z | (P & K):
                     return True
         return sym.invariant(f)
+
+    def _under(self, sym: Symmetry) -> None:
+        """Another symmetry than the one the sets were found invariant under: nothing is known of it."""
+        if sym is not self._sym:
+            self._sym, self._last = sym, None
+            self._candidates, self._sets = [*self._candidates, *self._sets][: self._limit], []
 
     def _invariant_sets(self, sym: Symmetry) -> list[Function]:
         while self._candidates:
@@ -590,7 +603,7 @@ class ControllablePredecessor:
         sym = self._symmetry_for(Z, outside, within) if part is None else None
         result = self._predecessors(Z, outside, within, part, whole=part is None, symmetry=sym, states=states)
         if sym is not None:
-            self._invariant.step(Z, result)  # closed under the symmetry: invariant by construction
+            self._invariant.step(sym, Z, result)  # closed under the symmetry: invariant by construction
         return result
 
     def _predecessors(self, Z: Function, outside: Function | None, within: Within | None, part: Function | None,
@@ -653,7 +666,8 @@ class ControllablePredecessor:
 
     # ------------------------------------------------------------------ the parts
     def close(self) -> None:
-        """Stop the partitioned ``∃u.CPre``, if one was started (idempotent)."""
+        """Stop the partitioned ``∃u.CPre``, if one was started, and drop the sets known invariant (idempotent)."""
+        self._invariant.forget()
         if self._pool is not None:
             self._pool.close()
             self._drop_pool(one_process=False)
