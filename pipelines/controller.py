@@ -6,7 +6,7 @@ bit widths, the grids, the spec). :func:`load_controller` reads one without the 
 
 A :class:`LayeredController` is the same controller stored as what it is made of (the fixed point's iterates
 and the controllable predecessor's ingredients) and evaluated at one state at a time
-(:func:`~.synthesis.cpre.cpre_at_state`); where the explicit BDD is huge (consensus) it is the form that fits on
+(:func:`~.synthesis.at_state.cpre_at_state`); where the explicit BDD is huge (consensus) it is the form that fits on
 disk and answers in milliseconds.
 """
 
@@ -25,7 +25,7 @@ from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
 from pipelines.symbolic.files import dump, load_all
 from pipelines.symbolic.model import Function
-from pipelines.synthesis.cpre import ChainAtStates, cpre_at_state
+from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.synthesis.cpre import ControllablePredecessor
@@ -256,8 +256,8 @@ class LayeredController(Controller):
 
     @property
     def chain_at_states(self) -> ChainAtStates:
-        """The chain's cofactors at the cells met so far (:class:`~.synthesis.cpre.ChainAtStates`), for
-        :func:`~.synthesis.cpre.cpre_at_state` at more cells."""
+        """The chain's cofactors at the cells met so far (:class:`~.synthesis.at_state.ChainAtStates`), for
+        :func:`~.synthesis.at_state.cpre_at_state` at more cells."""
         return self._at
 
     @property

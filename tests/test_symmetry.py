@@ -128,8 +128,7 @@ def test_iterates_combined_from_invariant_sets_are_recognised_and_nothing_else_i
     ``within`` set ``K`` are taken as invariant without a check; the same shapes from a ``K`` that is not
     invariant, and other sets, are checked (and refused where they are not). A Reach(Safe) checks far fewer sets
     than it has iterations and gives the domain of the plain CPre."""
-    from pipelines.synthesis.cpre import InvariantSets
-    from pipelines.synthesis.symmetry import Symmetry
+    from pipelines.synthesis.symmetry import InvariantSets, Symmetry
 
     game, phi = consensus3
     game.use_symmetry, game._symmetry = True, False

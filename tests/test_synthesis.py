@@ -485,7 +485,7 @@ def test_the_chains_cofactors_kept_across_states_give_cpre_at_each_state(shared)
     state, for several sets, the same as computing the cofactors afresh, and keeps each relation's cofactors by its
     own subsystem's state: fewer than the composed states where a relation reads part of the state (the shared-``w``
     chain's ``T_i``; per subsystem, ``∃w_i. M̂_i ∧ T_i`` reads the subsystems ``w_i`` comes from, here all)."""
-    from pipelines.synthesis.cpre import ChainAtStates, cpre_at_state
+    from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 
     rng = np.random.default_rng(190 + shared)
     net = random_net(rng, shared)

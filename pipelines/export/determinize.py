@@ -24,7 +24,8 @@ from pipelines.controller import Controller, LayeredController
 from pipelines.export.table import BDDTable, ExportError, node_table
 from pipelines.symbolic.counting import enumerate_cells
 from pipelines.symbolic.model import Function, SymbolicModel
-from pipelines.synthesis.cpre import bad_inputs, cpre_at_state
+from pipelines.synthesis.at_state import cpre_at_state
+from pipelines.synthesis.cpre import bad_inputs
 
 RULES = ("auto", "earliest_layer", "smallest_index")
 RULE_TEXT = {

@@ -3,8 +3,12 @@
 Modules, by the paper's concepts:
 
 * :mod:`.cpre` — :class:`~.cpre.ControllablePredecessor`: ``CPre(Z)`` with partitioned relations and early
-  quantification (per-subsystem or shared internal inputs), its one-state form for layered controllers, and
-  the policy for computing ``∃u.CPre`` in parts through an injected factory.
+  quantification (per-subsystem or shared internal inputs), and the policy for computing ``∃u.CPre`` in parts
+  through an injected factory.
+* :mod:`.at_state` — ``CPre`` at one state, what layered controllers evaluate cell by cell, and the chain's
+  cofactors kept across the cells of a closed loop.
+* :mod:`.symmetry` — interchangeable subsystems: ``∃u.CPre`` on one state per orbit, closed, and which sets are
+  known invariant.
 * :mod:`.partition` — where to cut the state space for ``∃u.CPre`` in parts, and why the parts are exact.
 * :mod:`.local_games` — safety games on small groups of subsystems: a superset of the maximal controlled
   invariant that the safety fixed points start from.

@@ -30,7 +30,7 @@ That call may run in parts at once (:mod:`.partition`) through a ``partitioned``
 object goes on in one process.
 
 The ingredients of ``CPre`` (the chain, the admissible pairs, the shared ``M̂``) are also what the free functions
-:func:`bad_inputs`, :func:`predecessors_of` and :func:`cpre_at_state` take: helper processes run them on their
+:func:`bad_inputs`, :func:`predecessors_of` and :func:`~.at_state.cpre_at_state` take: helper processes run them on their
 own copies, and a layered controller read back from its files evaluates them at one state.
 """
 
@@ -46,8 +46,9 @@ from pipelines.errors import CompabsError
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import default_order
 from pipelines.symbolic.relations import interconnection_parts, subsystem_relations
+from pipelines.synthesis.at_state import cpre_at_state
 from pipelines.synthesis.schedule import Chain, schedule
-from pipelines.synthesis.symmetry import Symmetry, find_symmetry
+from pipelines.synthesis.symmetry import InvariantSets, Symmetry, find_symmetry
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -206,145 +207,6 @@ def window_predecessors(
     care = states if outside is None else states & outside
     bad = bad_inputs(model, chain, M, w_bits, Z, care, window)
     return and_exists(admissible & states, ~bad, list(u_bits))
-
-
-class ChainAtStates:
-    """The chain's relations cofactored at states, each with the next cells it allows from there, kept per
-    relation by the values of the current-state bits that relation reads.
-
-    ``T_i`` at a composed state depends only on the bits of ``x̂`` in its support (its own subsystem's, as a rule),
-    so a closed loop that visits thousands of composed cells meets each relation at far fewer distinct local
-    states: at the 3,044 cells of 101 consensus N = 8 runs (50 steps) each agent's relation sees a few dozen.
-    What is kept is exact: the cofactor at the restriction of the state to the support. Each relation keeps at
-    most ``limit`` local states (then starts over).
-    """
-
-    def __init__(self, model: SymbolicModel, chain: Chain, limit: int = 100_000) -> None:
-        bdd = model.bdd
-        x_bits = set(model.x_bits)
-        self._bdd, self._chain, self._limit = bdd, list(chain), limit
-        self._reads = [sorted(x_bits & set(bdd.support(rel))) for rel, _ in chain]
-        self._kept: list[dict[tuple[bool, ...], tuple[Function, Function]]] = [{} for _ in chain]
-
-    def at(self, state: Mapping[str, bool]) -> list[tuple[Function, Function, list[str]]]:
-        """Per relation of the chain: ``T_i`` at ``state``, the next cells it allows (``∃u,w. T_i`` there, over
-        its next-state bits) and the next-state bits it quantifies."""
-        bdd, out = self._bdd, []
-        for (rel, xn_bits), reads, kept in zip(self._chain, self._reads, self._kept):
-            key = tuple(state[v] for v in reads)
-            hit = kept.get(key)
-            if hit is None:
-                cof = bdd.let({v: state[v] for v in reads}, rel) if reads else rel
-                quantified = set(xn_bits)
-                hit = (cof, bdd.exist([v for v in bdd.support(cof) if v not in quantified], cof))
-                if len(kept) >= self._limit:
-                    kept.clear()
-                kept[key] = hit
-            out.append((hit[0], hit[1], xn_bits))
-        return out
-
-
-def cpre_at_state(
-    model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, state: Mapping[str, bool],
-    Z_next: Function, at: ChainAtStates | None = None,
-) -> Function:
-    """``CPre(Z)`` at one state, from the CPre ingredients: a function of the input bits only.
-
-    Parameters
-    ----------
-    model : SymbolicModel
-    chain, admissible, M
-        The ingredients (:class:`ControllablePredecessor` ``chain``, ``admissible``, ``M``; ``M`` is ``None``
-        for the per-subsystem CPre).
-    state : dict of str to bool
-        Values of all current-state bits (:meth:`SymbolicModel.state_assignment`).
-    Z_next : Function
-        ``Z`` over next-state bits (``model.to_next(Z)``; callers cache it per set).
-    at : ChainAtStates, optional
-        The chain's cofactors, kept across calls (callers that evaluate many states keep one per chain); by
-        default computed for this state alone.
-
-    Every ingredient is cofactored at the state first, so the chain runs on BDDs over ``u``, ``w`` and one
-    subsystem's ``x'`` at a time: milliseconds where the full ``CPre`` of a consensus network is minutes.
-    ``¬Z'`` is first cut down to the product of the subsystems' possible next cells from this state
-    (``∧_i ∃u,w. T_i``, which every successor lies in, so the result is the same): about 3x faster per state on
-    consensus N = 8.
-    """
-    bdd = model.bdd
-    with model.guard("computing CPre at a state"):
-        good = bdd.let(state, admissible)
-        if good == bdd.false:
-            return good
-        at_state = (ChainAtStates(model, chain) if at is None else at).at(state)
-        reachable = bdd.true
-        for _, moves, _ in at_state:
-            reachable &= moves
-        acc = ~Z_next & reachable
-        for rel, _, xn_bits in at_state:
-            acc = and_exists(acc, rel, xn_bits)
-        if M is not None:
-            acc = and_exists(bdd.let(state, M), acc, model.w_bits)
-        return good & ~acc
-
-
-class InvariantSets:
-    """Which sets a fixed point hands :meth:`ControllablePredecessor.predecessors` are known invariant under its
-    symmetry without checking them (:meth:`.Symmetry.invariant`: one substitution per generating swap, 2.4 s of
-    a consensus N = 8 Reach(Safe) on the cluster, where the job's process does it alone between the calls).
-
-    Sets combined from invariant sets are invariant. A call computed with the symmetry returns a closed set, so
-    after a call on ``Z`` with answer ``P`` (both invariant), the safety loop's next iterate ``Z ∧ P`` and the
-    reach loop's ``Z ∨ (P ∧ K)``, for a set ``K`` the loop restricts to (a :meth:`~ControllablePredecessor.within`
-    set, checked once), are known to be invariant once recognised: BDDs are canonical, so recognising is one or
-    two operations whose operands the loop has just combined, where the check is ``n - 1`` substitutions. Any
-    other set is checked. Exact either way: a set is taken as invariant only if it is.
-    """
-
-    def __init__(self, limit: int = 4) -> None:
-        self._limit = limit
-        self._sym: Symmetry | None = None  # what the sets below are invariant under
-        self._last: tuple[Function, Function] | None = None  # the last call's Z and answer, both invariant
-        self._candidates: list[Function] = []  # within() sets, not yet checked
-        self._sets: list[Function] = []  # within() sets found invariant
-
-    def may_join(self, S: Function) -> None:
-        """``S`` is a set the loops may restrict their iterates to (checked when first needed)."""
-        if all(S != c for c in self._candidates + self._sets):
-            self._candidates = [S, *self._candidates][: self._limit]
-
-    def step(self, sym: Symmetry, Z: Function, answer: Function) -> None:
-        """A call on the invariant ``Z`` gave ``answer``, closed under ``sym``."""
-        self._under(sym)
-        self._last = (Z, answer)
-
-    def forget(self) -> None:
-        """Drop every set held (their BDD nodes with them)."""
-        self._sym, self._last, self._candidates, self._sets = None, None, [], []
-
-    def holds(self, sym: Symmetry, f: Function) -> bool:
-        """Whether ``f`` is invariant under ``sym``: recognised from the last call, or checked."""
-        self._under(sym)
-        if self._last is not None:
-            Z, P = self._last
-            if f == Z or f == P or f == Z & P:
-                return True
-            for K in self._invariant_sets(sym):
-                if f == Z | (P & K):
-                    return True
-        return sym.invariant(f)
-
-    def _under(self, sym: Symmetry) -> None:
-        """Another symmetry than the one the sets were found invariant under: nothing is known of it."""
-        if sym is not self._sym:
-            self._sym, self._last = sym, None
-            self._candidates, self._sets = [*self._candidates, *self._sets][: self._limit], []
-
-    def _invariant_sets(self, sym: Symmetry) -> list[Function]:
-        while self._candidates:
-            S = self._candidates.pop(0)
-            if sym.invariant(S):
-                self._sets = [S, *self._sets][: self._limit]
-        return self._sets
 
 
 # ====================================================================================== the object

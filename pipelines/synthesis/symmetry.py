@@ -25,7 +25,7 @@ since closing distributes over the union of the parts: two workers N = 8 167.4 s
 
 Only subsystems with a one-dimensional state grid are considered (their codes compare as numbers). Every set a
 call takes must be invariant: the iterates a fixed point builds from invariant sets are recognised as such
-(:class:`~.cpre.InvariantSets`), any other set is checked with :meth:`Symmetry.invariant`, and where it says no
+(:class:`InvariantSets`), any other set is checked with :meth:`Symmetry.invariant`, and where it says no
 the call is the plain CPre.
 """
 
@@ -104,6 +104,66 @@ class Symmetry:
         """The sets by subsystem name (for the report)."""
         subs = self.model.subsystems
         return [[subs[i].name or str(subs[i].index) for i in c] for c in self.classes]
+
+
+class InvariantSets:
+    """Which sets a fixed point hands :meth:`.cpre.ControllablePredecessor.predecessors` are known invariant under its
+    symmetry without checking them (:meth:`Symmetry.invariant`: one substitution per generating swap, 2.4 s of
+    a consensus N = 8 Reach(Safe) on the cluster, where the job's process does it alone between the calls).
+
+    Sets combined from invariant sets are invariant. A call computed with the symmetry returns a closed set, so
+    after a call on ``Z`` with answer ``P`` (both invariant), the safety loop's next iterate ``Z ∧ P`` and the
+    reach loop's ``Z ∨ (P ∧ K)``, for a set ``K`` the loop restricts to (a :meth:`~.cpre.ControllablePredecessor.within`
+    set, checked once), are known to be invariant once recognised: BDDs are canonical, so recognising is one or
+    two operations whose operands the loop has just combined, where the check is ``n - 1`` substitutions. Any
+    other set is checked. Exact either way: a set is taken as invariant only if it is.
+    """
+
+    def __init__(self, limit: int = 4) -> None:
+        self._limit = limit
+        self._sym: Symmetry | None = None  # what the sets below are invariant under
+        self._last: tuple[Function, Function] | None = None  # the last call's Z and answer, both invariant
+        self._candidates: list[Function] = []  # within() sets, not yet checked
+        self._sets: list[Function] = []  # within() sets found invariant
+
+    def may_join(self, S: Function) -> None:
+        """``S`` is a set the loops may restrict their iterates to (checked when first needed)."""
+        if all(S != c for c in self._candidates + self._sets):
+            self._candidates = [S, *self._candidates][: self._limit]
+
+    def step(self, sym: Symmetry, Z: Function, answer: Function) -> None:
+        """A call on the invariant ``Z`` gave ``answer``, closed under ``sym``."""
+        self._under(sym)
+        self._last = (Z, answer)
+
+    def forget(self) -> None:
+        """Drop every set held (their BDD nodes with them)."""
+        self._sym, self._last, self._candidates, self._sets = None, None, [], []
+
+    def holds(self, sym: Symmetry, f: Function) -> bool:
+        """Whether ``f`` is invariant under ``sym``: recognised from the last call, or checked."""
+        self._under(sym)
+        if self._last is not None:
+            Z, P = self._last
+            if f == Z or f == P or f == Z & P:
+                return True
+            for K in self._invariant_sets(sym):
+                if f == Z | (P & K):
+                    return True
+        return sym.invariant(f)
+
+    def _under(self, sym: Symmetry) -> None:
+        """Another symmetry than the one the sets were found invariant under: nothing is known of it."""
+        if sym is not self._sym:
+            self._sym, self._last = sym, None
+            self._candidates, self._sets = [*self._candidates, *self._sets][: self._limit], []
+
+    def _invariant_sets(self, sym: Symmetry) -> list[Function]:
+        while self._candidates:
+            S = self._candidates.pop(0)
+            if sym.invariant(S):
+                self._sets = [S, *self._sets][: self._limit]
+        return self._sets
 
 
 def cached_symmetry(cache: dict[tuple, Symmetry], model: SymbolicModel, classes: Sequence[Sequence[int]],
