@@ -477,6 +477,12 @@ def test_cpre_at_a_state_is_cpre_cofactored_there(shared):
         for s in ex.states:
             state = m.state_assignment(list(s))
             assert game.cpre_at(state, Zn) == m.bdd.let(state, whole), (p, s)
+    # the chain's cofactors are kept across the calls (and sets), and dropped with the game's close
+    assert game._at is not None and all(game._at._kept)
+    game.close()
+    assert game._at is None
+    state = m.state_assignment(list(ex.states[0]))
+    assert game.cpre_at(state, Zn) == m.bdd.let(state, whole)
 
 
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])

@@ -46,7 +46,7 @@ from pipelines.errors import CompabsError
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import default_order
 from pipelines.symbolic.relations import interconnection_parts, subsystem_relations
-from pipelines.synthesis.at_state import cpre_at_state
+from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 from pipelines.synthesis.schedule import Chain, schedule
 from pipelines.synthesis.symmetry import InvariantSets, Symmetry, find_symmetry
 
@@ -316,6 +316,7 @@ class ControllablePredecessor:
         self.use_symmetry = symmetry
         self._symmetry: Symmetry | None | bool = False  # False: not looked for yet
         self._invariant = InvariantSets()
+        self._at: ChainAtStates | None = None  # the chain's cofactors at the states cpre_at met
         self.M: Function | None = None
         self.w_bits: list[str] = []
         self.setup_seconds = 0.0
@@ -427,9 +428,12 @@ class ControllablePredecessor:
         """``CPre(Z)`` at one state, a function of the input bits only (:func:`cpre_at_state`).
 
         ``state``: values of all current-state bits (:meth:`SymbolicModel.state_assignment`); ``Z_next``: ``Z``
-        over next-state bits (``model.to_next(Z)``; callers cache it per set).
+        over next-state bits (``model.to_next(Z)``; callers cache it per set). The chain's cofactors are kept
+        across calls (:class:`~.at_state.ChainAtStates`) until :meth:`close`.
         """
-        return cpre_at_state(self.model, self.chain, self.admissible, self.M, state, Z_next)
+        if self._at is None:
+            self._at = ChainAtStates(self.model, self.chain)
+        return cpre_at_state(self.model, self.chain, self.admissible, self.M, state, Z_next, self._at)
 
     def pre(self, cpre: Function) -> Function:
         """``∃u. cpre``: states with some good input."""
@@ -528,8 +532,10 @@ class ControllablePredecessor:
 
     # ------------------------------------------------------------------ the parts
     def close(self) -> None:
-        """Stop the partitioned ``∃u.CPre``, if one was started, and drop the sets known invariant (idempotent)."""
+        """Stop the partitioned ``∃u.CPre``, if one was started, and drop the sets known invariant and the chain's
+        kept cofactors (idempotent)."""
         self._invariant.forget()
+        self._at = None
         if self._pool is not None:
             self._pool.close()
             self._drop_pool(one_process=False)
