@@ -18,6 +18,9 @@ domain is the one process's (it must be: every mode is exact).
 ``P`` parts per worker, cut in windows and by the split cut (:mod:`workers.dask_cpre`), and prints the parts'
 summed seconds of each: what the split cut buys where there are many parts.
 
+The script runs under the workers' allocator settings (``workers/dask.yaml``'s ``pre-spawn-environ``, huge pages
+among them), starting itself again under them if need be: its one process is the baseline.
+
 ``--rounds R`` runs one process and each cluster ``R`` times, alternating (one process, the clusters, one process,
 ...), each round's speed-ups against that round's one process; a target is judged on the median of the rounds'
 speed-ups. On this 2-core machine the same code's two workers took 100.3 to 108.9 s within ten minutes (consensus
@@ -194,6 +197,12 @@ def lines(rec: dict[str, Any]) -> list[str]:
                    f"{p.get('calls', 0):>5}  {'yes' if r['same_domain'] else 'NO ':<11} {cpu}")
     out.append("    (CPU: this process and its workers; idle and steal: the whole machine's, all cores. One process "
                "computing alone should have CPU = wall: what it lacks, it waited for a core the machine gave elsewhere)")
+    if "allocator" in rec:
+        from workers.cluster import worker_environ
+
+        same = rec["allocator"] == worker_environ()
+        out.append("    one process under the workers' allocator settings (workers/dask.yaml): "
+                   + ("yes" if same else f"NO ({rec['allocator']}): the ratios partly measure the allocator"))
     for r in rec["rows"]:
         t = r["parallel"].get("seconds")
         if t:
@@ -313,11 +322,31 @@ def main(argv: list[str] | None = None) -> int:
     workers = args.workers or default_workers(cores)
     rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry,
                   compare_cuts=args.compare_cuts, parallel_after=args.parallel_after, rounds=args.rounds)
+    from workers.cluster import worker_environ
+
+    rec["allocator"] = {k: os.environ.get(k) for k in worker_environ()}  # this process's: the one process's
     print("\n".join(lines(rec)))
     if args.json:
         Path(args.json).write_text(json.dumps(rec, indent=1))
     return 0
 
 
+def same_allocator_as_the_workers() -> None:
+    """Start this script again under the workers' allocator settings (``workers/dask.yaml``'s
+    ``pre-spawn-environ``: glibc's malloc tunings and transparent huge pages), unless it already runs under them.
+
+    The one process, the baseline, runs in this process, and the Dask workers get those settings from their
+    nannies: measured under different allocators, the ratio would partly measure the allocator (huge pages alone
+    made one process 9 % faster on consensus N = 7)."""
+    from workers.cluster import worker_environ
+
+    want = worker_environ()
+    if all(os.environ.get(k) == v for k, v in want.items()):
+        return
+    print("bench/synthesis.py: started again under the workers' allocator settings", file=sys.stderr, flush=True)
+    os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], {**os.environ, **want})
+
+
 if __name__ == "__main__":
+    same_allocator_as_the_workers()
     sys.exit(main())

@@ -213,7 +213,42 @@ def _allocator_settings() -> dict[str, str | None]:
     import os
 
     return {k: os.environ.get(k) for k in ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
-                                            "MALLOC_TOP_PAD_")}
+                                            "MALLOC_TOP_PAD_", "GLIBC_TUNABLES")}
+
+
+def _huge_pages_of_a_malloc() -> tuple[int, int]:
+    """This process's AnonHugePages (kB) before and after 64 MB from malloc are written (then freed): what CUDD's
+    tables get (numpy asks the kernel for huge pages itself, so a numpy array would not tell)."""
+    import ctypes
+
+    def anon_huge_kb() -> int:
+        with open("/proc/self/smaps_rollup") as f:
+            return next((int(line.split()[1]) for line in f if line.startswith("AnonHugePages:")), 0)
+
+    libc = ctypes.CDLL("libc.so.6")
+    libc.malloc.restype = ctypes.c_void_p
+    size = 64 << 20
+    before = anon_huge_kb()
+    block = libc.malloc(size)
+    try:
+        ctypes.memset(block, 1, size)
+        return before, anon_huge_kb()
+    finally:
+        libc.free(ctypes.c_void_p(block))
+
+
+def _transparent_huge_pages_offered() -> bool:
+    """THP on for malloc's asking (``always`` or ``madvise``) and a glibc that asks (2.35 on: ``glibc.malloc.hugetlb``)."""
+    import platform
+
+    try:
+        with open("/sys/kernel/mm/transparent_hugepage/enabled") as f:
+            mode = f.read()
+    except OSError:
+        return False
+    lib, version = platform.libc_ver()
+    major, minor = (int(v) for v in (version.split(".") + ["0"])[:2]) if lib == "glibc" and version else (0, 0)
+    return "[never]" not in mode and (major, minor) >= (2, 35)
 
 
 def test_embedded_workers_get_the_allocator_settings(client):
@@ -223,9 +258,14 @@ def test_embedded_workers_get_the_allocator_settings(client):
     from workers.cluster import DASK_CONFIG_FILE, worker_environ
 
     want = worker_environ()
-    assert set(want) == {"MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"}
+    assert set(want) == {"MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
+                         "GLIBC_TUNABLES"}
+    assert want["GLIBC_TUNABLES"] == "glibc.malloc.hugetlb=1"
     got = client.run(_allocator_settings)
     assert len(got) == 2 and all(env == want for env in got.values()), got
+    if _transparent_huge_pages_offered():  # what malloc hands a task (CUDD's tables) comes in huge pages
+        before, after = client.submit(_huge_pages_of_a_malloc, pure=False).result(timeout=120)
+        assert after - before >= 32 * 1024, f"64 MB from malloc got {after - before} kB of huge pages"
 
     def mmapped_bytes_with_a_large_array() -> int:
         import ctypes
