@@ -876,8 +876,12 @@ def _ratio(a: float | None, b: float | None) -> float | None:
 # ====================================================================================== cases (parent side)
 def bench_end_to_end(name: str, spec: Path, args, timeout: float) -> dict:
     """tanks / consensus (/ small under --quick) end to end, with ratios to the paper."""
+    from workers.huge_pages import ENV, with_huge_pages
+
+    # as `compabs run` runs a job: with huge pages for CUDD's tables (workers.huge_pages), unless told not to
+    env = {} if os.environ.get(ENV) == "0" else {"GLIBC_TUNABLES": with_huge_pages(os.environ)["GLIBC_TUNABLES"]}
     child = run_child("end_to_end", {"spec": str(spec), "workers": args.e2e_workers}, timeout,
-                      args.mem_limit_gb * 1024)
+                      args.mem_limit_gb * 1024, env=env)
     rec = case_record(name, child, spec=spec.name)
     paper = PAPER.get(name)
     if paper:
@@ -1327,9 +1331,13 @@ def bench_synthesis_case(args) -> dict:
     """The ``synthesis`` case: :mod:`bench.synthesis` in a child process (it starts and stops its own clusters)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "synthesis.json"
+        from workers.cluster import worker_environ
+
+        # under the workers' allocator settings, as its one process must be (bench.synthesis.same_allocator_as_the_workers)
         proc = subprocess.run([sys.executable, str(ROOT / "bench" / "synthesis.py"), "--N", str(args.synthesis_N),
                                "--no-symmetry", "--compare-cuts", "8", "--rounds", str(args.synthesis_rounds),
-                               "--json", str(out)], cwd=ROOT, timeout=args.consensus_timeout * (6 + 2 * args.synthesis_rounds))
+                               "--json", str(out)], cwd=ROOT, timeout=args.consensus_timeout * (6 + 2 * args.synthesis_rounds),
+                              env={**os.environ, **worker_environ()})
         if proc.returncode != 0 or not out.exists():
             return {"case": "synthesis", "status": f"failed (exit {proc.returncode})", "rows": []}
         return {"case": "synthesis", "status": "ok", **json.loads(out.read_text())}

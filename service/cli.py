@@ -38,6 +38,7 @@ from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
 from service.settings import local_caps
 from workers import jobdir
+from workers.huge_pages import restart_with_huge_pages
 from workers.jobdir import json_default as _json_default
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
@@ -483,12 +484,19 @@ def _fail(message: str, status: int = 2) -> int:
     return status
 
 
+#: The commands that build or evaluate BDDs, which the command line runs with huge pages for CUDD's tables
+#: (:mod:`workers.huge_pages`).
+HUGE_PAGE_COMMANDS = frozenset({"run", "serve", "export", "simulate"})
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv``; returns the exit status (usage errors too, which argparse raises)."""
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, its error: line printed)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    if argv is None and args.command in HUGE_PAGE_COMMANDS:  # the command line itself, not a caller's main([...])
+        restart_with_huge_pages()
     try:
         return args.func(args)
     except CompabsError as exc:
