@@ -879,7 +879,7 @@ def bench_end_to_end(name: str, spec: Path, args, timeout: float) -> dict:
     from workers.huge_pages import ENV, with_huge_pages
 
     # as `compabs run` runs a job: with huge pages for CUDD's tables (workers.huge_pages), unless told not to
-    env = {} if os.environ.get(ENV) == "0" else {"GLIBC_TUNABLES": with_huge_pages(os.environ)["GLIBC_TUNABLES"]}
+    env = {} if os.environ.get(ENV) == "0" else with_huge_pages(os.environ)
     child = run_child("end_to_end", {"spec": str(spec), "workers": args.e2e_workers}, timeout,
                       args.mem_limit_gb * 1024, env=env)
     rec = case_record(name, child, spec=spec.name)

@@ -339,12 +339,13 @@ def same_allocator_as_the_workers() -> None:
     nannies: measured under different allocators, the ratio would partly measure the allocator (huge pages alone
     made one process 9 % faster on consensus N = 7)."""
     from workers.cluster import worker_environ
+    from workers.huge_pages import restart_under
 
     want = worker_environ()
     if all(os.environ.get(k) == v for k, v in want.items()):
         return
-    print("bench/synthesis.py: started again under the workers' allocator settings", file=sys.stderr, flush=True)
-    os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], {**os.environ, **want})
+    print("bench/synthesis.py: started again under the workers' allocator settings", file=sys.stderr)
+    restart_under({**os.environ, **want})
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import os
 import platform
 import sys
 from collections.abc import Mapping
+from typing import NoReturn
 
 TUNABLE = "glibc.malloc.hugetlb=1"
 ENV = "COMPABS_HUGE_PAGES"
@@ -40,9 +41,16 @@ def restart_with_huge_pages() -> None:
         return
     if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
         return
+    restart_under({**with_huge_pages(env), ENV: "1"})
+
+
+def restart_under(environ: Mapping[str, str]) -> NoReturn:
+    """Start this process again under ``environ``: ``os.execve`` of the same interpreter with the same command line
+    (``sys.orig_argv``: ``-m`` and ``-c`` included), so the PID and the open files stay; what was printed is
+    flushed first."""
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], {**with_huge_pages(env), ENV: "1"})
+    os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], dict(environ))
 
 
-__all__ = ["ENV", "TUNABLE", "restart_with_huge_pages", "with_huge_pages"]
+__all__ = ["ENV", "TUNABLE", "restart_under", "restart_with_huge_pages", "with_huge_pages"]
