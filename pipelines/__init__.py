@@ -3,7 +3,7 @@
 Nothing here starts a process, knows a storage format or imports Dask, Zarr or FastAPI (``tests/test_layout.py``
 checks it); running the method is :mod:`workers`'s job. One place per concept of the paper:
 
-* :mod:`pipelines.grid` — uniform grids and cells (§4.1, METHOD §1);
+* :mod:`pipelines.grid` — uniform grids and cells (§4.1, docs/method.md §1);
 * :mod:`pipelines.spec` — the job spec (``model``) and its regions on the grids (``regions``);
 * :mod:`pipelines.expressions`, :mod:`pipelines.blackbox`, :mod:`pipelines.network` — the whitelisted dynamics,
   the black boxes and the interconnected system a spec describes;

@@ -1,4 +1,4 @@
-"""Uniform grids of cells (METHOD §1), the quantizer ``[X]_eta`` of the paper.
+"""Uniform grids of cells (docs/method.md §1), the quantizer ``[X]_eta`` of the paper.
 
 Grid points are ``origin + k * eta`` for integer ``k``; the cell of a point is the closed box
 ``point ± eta / 2``. A grid keeps the concrete box it was made for, because cells are only ever sampled
@@ -86,7 +86,7 @@ class UniformGrid:
     ) -> UniformGrid:
         """Grid of every point whose cell meets ``[lb, ub]`` in a set of positive measure (state grids).
 
-        The cells then cover the box, so every concrete state lies in some cell (METHOD §1). A box that is a
+        The cells then cover the box, so every concrete state lies in some cell (docs/method.md §1). A box that is a
         single point in some dimension gets the one cell containing it.
         """
         lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)

@@ -1,4 +1,4 @@
-"""Grids and regions reproduce the paper's counts exactly (METHOD §1)."""
+"""Grids and regions reproduce the paper's counts exactly (docs/method.md §1)."""
 
 import numpy as np
 import pytest

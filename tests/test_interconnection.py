@@ -1,6 +1,6 @@
 """Interconnection abstraction (Section 4.2): lasso supports, MDec (Algorithm 2), error bounds, soundness.
 
-The soundness property (the paper's Theorem thrm_inter, METHOD's "Theorem 4.7"): for every concrete ``x``,
+The soundness property (the paper's Theorem thrm_inter, docs/method.md's "Theorem 4.7"): for every concrete ``x``,
 every cell containing ``M(x)`` is in ``M̂(x̂)`` for every cell ``x̂`` containing ``x``. Draws put coordinates
 exactly on cell boundaries, cell centres and box edges, and both neighbouring cells of a boundary point are
 checked.

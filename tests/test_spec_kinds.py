@@ -1,5 +1,5 @@
 """Specifications with a safe set (reach, reach-avoid and reach-and-stay within ``S``), several obstacles, and
-what a synthesis says when its domain is empty (METHOD §6).
+what a synthesis says when its domain is empty (docs/method.md §6).
 
 The fixed points are checked on hand-made integrators, where the effect of ``S`` is known by hand, and against
 the explicit-state solver of :mod:`tests.test_synthesis` on random networks; the closed loop on a concrete

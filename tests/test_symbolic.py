@@ -1,4 +1,4 @@
-"""The symbolic encoding (Algorithm 5, METHOD §5): bulk construction against naive per-point construction,
+"""The symbolic encoding (Algorithm 5, docs/method.md §5): bulk construction against naive per-point construction,
 enumeration, regions, exact counting, variable order, DDDMP round trip, out-of-memory errors."""
 
 from __future__ import annotations

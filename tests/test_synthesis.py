@@ -1,4 +1,4 @@
-"""Symbolic fixed points (METHOD §6) against an explicit-state solver on small random networks.
+"""Symbolic fixed points (docs/method.md §6) against an explicit-state solver on small random networks.
 
 Each random network has 2-3 subsystems with 3-6 states and 2 inputs, and either one internal variable shared
 by all subsystems (a random node relation x -> w, sometimes through an intermediate z) or one internal variable
@@ -411,7 +411,7 @@ def test_per_subsystem_method_is_refused_for_a_shared_internal_variable():
 
 
 def test_blocking_for_one_admissible_w_makes_the_input_inadmissible():
-    """METHOD §6: with w quantified per subsystem, an input that blocks for one w ∈ M̂(x) must not count."""
+    """docs/method.md §6: with w quantified per subsystem, an input that blocks for one w ∈ M̂(x) must not count."""
     lay = [SubsystemLayout(0, (2,), 2, (0,), "a", 0)]
     lo = np.zeros((2, 2, 2, 1), np.int32)
     hi = np.ones((2, 2, 2, 1), np.int32)
@@ -442,7 +442,7 @@ def test_small_example_end_to_end_against_the_explicit_solver():
     phi = region.contains(np.array(ex.states))
     expected = ex.cobuchi(phi)
     assert expected.sum() > phi.sum() // 2  # a non-trivial domain
-    np.testing.assert_array_equal(ex.reach(ex.safe(phi)), expected)  # as METHOD §6 found for consensus
+    np.testing.assert_array_equal(ex.reach(ex.safe(phi)), expected)  # as docs/method.md §6 found for consensus
     from pipelines.controller import controller_of
 
     meta = {"state_grid": res.network.composed_state_grid().describe(),

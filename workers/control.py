@@ -37,7 +37,7 @@ def run_synthesis(
     runs: int | None = None,
     client: Any = None,
 ) -> dict[str, Any]:
-    """Synthesize, save the controller, run the closed loop and draw the figures (METHOD §5-6).
+    """Synthesize, save the controller, run the closed loop and draw the figures (docs/method.md §5-6).
 
     Parameters
     ----------

@@ -7,7 +7,7 @@ in-process or a Dask cluster), never the stages:
 1. ``plan``: grids, regions and the distinct subsystems (identical ones are abstracted once);
 2. ``lipschitz``: the constants, given or estimated (Algorithm 4);
 3. ``subsystems``: Algorithm 1 per distinct subsystem, one :class:`~pipelines.abstraction.cells.CellTask` per
-   chunk of state cells, with the constants checked against the data (METHOD §3);
+   chunk of state cells, with the constants checked against the data (docs/method.md §3);
 4. ``interconnection``: Algorithms 2-3;
 5. ``audit``: Theorems 4.2 and 4.7 on random concrete transitions, in this process or, while synthesis runs,
    in a child process (:mod:`workers.processes.audit_beside`);
@@ -54,7 +54,7 @@ def _abstract_subsystem(
     members: list[Subsystem], constants: dict[str, ConstantRecord], executor: Executor, chunk_cells: int | None,
     progress: Progress, done_before: int, total: int,
 ) -> tuple[SubsystemRelation, dict]:
-    """Algorithm 1 for one distinct subsystem, its constants checked against its data (METHOD §3): a constant
+    """Algorithm 1 for one distinct subsystem, its constants checked against its data (docs/method.md §3): a constant
     the data contradict fails the job, or is raised and the relation computed again with it."""
     sub, spec = members[0], members[0].spec
     chunks = chunk_ranges(sub, chunk_cells, executor.chunk_points)

@@ -1,4 +1,4 @@
-"""Subsystem abstraction from data (Section 4.1, Algorithm 1, Definition 4.2; METHOD §2-3).
+"""Subsystem abstraction from data (Section 4.1, Algorithm 1, Definition 4.2; docs/method.md §2-3).
 
 * :mod:`.relation` — the relation of one subsystem (successor index ranges and blocking flags) and its chunks;
 * :mod:`.cells` — Algorithm 1 on a chunk of state cells (:class:`~.cells.CellTask`, the unit an executor runs);

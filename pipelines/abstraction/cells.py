@@ -3,7 +3,7 @@
 For every triple ``(x̂, û, ŵ)`` the black box is sampled on a sub-grid of the joint cell
 ``cell(x̂) × cell(ŵ)`` (clipped to the concrete boxes), a growth bound gives a box around the reachable set,
 and the successors are the cells the box meets. A triple whose box leaves the state box ``X`` is
-*blocking*: ``û`` is not admissible at ``x̂`` under ``ŵ`` (METHOD §2).
+*blocking*: ``û`` is not admissible at ``x̂`` under ``ŵ`` (docs/method.md §2).
 
 The relation is stored as per-dimension successor index ranges ``[lo, hi]`` and a blocking flag, arrays of
 shape ``(n_x, n_u, n_w[, n])`` indexed by the flat cell indices of the three grids. Work is split in chunks
@@ -522,7 +522,7 @@ def _abstract_block(
     lo = np.where(blocking[:, None], 0, first[chosen_part]).astype(np.int32)
     hi = np.where(blocking[:, None], -1, last[chosen_part]).astype(np.int32)
 
-    # Slopes for Lipschitz validation (METHOD §3): neighbours along x axes (w fixed) and w axes (x fixed).
+    # Slopes for Lipschitz validation (docs/method.md §3): neighbours along x axes (w fixed) and w axes (x fixed).
     if scalar:
         sx = _slope(dx, HX[:, 0])
         sw = _slope(dw, HW[:, 0]) if p else np.zeros(B)

@@ -1,7 +1,7 @@
 """Cost model of the per-cell stage (Algorithm 1): what a triple ``(x̂, û, ŵ)`` costs, in black-box evaluations.
 
 An executor sizes its tasks with :func:`triple_cost`; :func:`statistics_fraction` keeps the successor statistics
-of the SCP objectives that do not build the relation cheaper than the growth bound that does (METHOD §2: the
+of the SCP objectives that do not build the relation cheaper than the growth bound that does (docs/method.md §2: the
 report counts every method, but a statistic must not cost more than the abstraction).
 
 The constants were measured on one core (``bench_nd.py`` of the n-D work, numba 0.68, numpy 2): one

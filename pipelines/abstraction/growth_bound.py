@@ -1,6 +1,6 @@
 """Growth bounds (Definition 4.1): boxes that contain ``{f(x, u, w) : x in cell(x̂), w in cell(ŵ)}``.
 
-Three methods, all sound given Lipschitz constants ``L_x``, ``L_w`` in the infinity norm (METHOD §2):
+Three methods, all sound given Lipschitz constants ``L_x``, ``L_w`` in the infinity norm (docs/method.md §2):
 
 ``lipschitz``
     Lemma 4.3, the paper's conservative baseline: radius ``L_x ||r_x|| + L_w ||r_w||`` around
@@ -35,7 +35,7 @@ def subgrid_counts(samples: int, dims: int) -> tuple[int, ...]:
     """Points per dimension of a sub-grid with at most ``samples`` points in all, as even as possible.
 
     With ``dims = dim(x) + dim(w)`` this is how the ``N_C`` samples of a joint cell are laid out
-    (Theorem 4.4 uses ``eta_x / N_C^(1/dim)`` spacings; we sample ``x`` and ``w`` jointly, METHOD §2).
+    (Theorem 4.4 uses ``eta_x / N_C^(1/dim)`` spacings; we sample ``x`` and ``w`` jointly, docs/method.md §2).
     """
     if dims == 0:
         return ()
@@ -164,7 +164,7 @@ SCP_TIE_RTOL = 1e-12
 def scp_parameters_scalar(
     E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Solve the corrected SCP (Eq. 4.5, METHOD §2) exactly for a scalar state, in batch.
+    """Solve the corrected SCP (Eq. 4.5, docs/method.md §2) exactly for a scalar state, in batch.
 
     The LP per cell, with ``d_k = k h_x`` and ``r_k = E_k + rho``::
 

@@ -142,7 +142,7 @@ def pair_maxima_batch_last(vmax: np.ndarray, vmin: np.ndarray) -> np.ndarray:
 def scp_parameters_batch_last(
     E: np.ndarray, h_x: np.ndarray, rho: np.ndarray, L_x: float, weight_theta1: np.ndarray, tie_rtol: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`pipelines.abstraction.growth_bound.scp_parameters_batch_last`: the closed-form SCP (Eq. 4.5, METHOD §2) per
+    """:func:`pipelines.abstraction.growth_bound.scp_parameters_batch_last`: the closed-form SCP (Eq. 4.5, docs/method.md §2) per
     column, ``theta1 = clip(min_{d_i <= w} max_{d_j > w} (r_j - r_i) / (d_j - d_i), 0, L_x)``,
     ``theta2 = max(0, max_k r_k - theta1 d_k)``, with ``d_k = k h_x``, ``r_k = E_k + rho``.
 

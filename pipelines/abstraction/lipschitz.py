@@ -119,7 +119,7 @@ class ConstantRecord:
         d: dict = {"value": self.value, "source": self.source, "observed_max_slope": self.observed_max_slope}
         if self.given is not None:
             d["given"] = self.given
-            if self.source == "raised":  # how much the data made it grow (METHOD §3: say so in the report)
+            if self.source == "raised":  # how much the data made it grow (docs/method.md §3: say so in the report)
                 d["raised_by"] = self.value - self.given
                 d["raised_factor"] = self.value / self.given if self.given > 0 else None
         if self.where:
@@ -166,7 +166,7 @@ def describe_cell(sub: Subsystem, rec: SlopeRecord) -> str:
 def check_constants(
     sub: Subsystem, names: str, constants: dict[str, ConstantRecord], slopes: dict[str, SlopeRecord]
 ) -> bool:
-    """Check the constants against the largest slopes the per-cell stage observed (METHOD §3).
+    """Check the constants against the largest slopes the per-cell stage observed (docs/method.md §3).
 
     Records each observed slope. A slope above a constant either fails the job with a
     :class:`~pipelines.errors.LipschitzError` naming the cell and the slope (a given constant with

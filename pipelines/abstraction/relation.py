@@ -2,7 +2,7 @@
 
 A subsystem relation is stored as per-dimension successor index ranges ``[lo, hi]`` and a blocking flag, arrays
 of shape ``(n_x, n_u, n_w[, n])`` indexed by the flat cell indices of the state, input and internal-input grids
-(METHOD §2). It is computed in chunks of state cells: a :class:`CellTask` names one chunk and the constants it is
+(docs/method.md §2). It is computed in chunks of state cells: a :class:`CellTask` names one chunk and the constants it is
 computed with, :func:`pipelines.abstraction.cells.abstract_cells` turns it into a :class:`CellsResult`, and
 :func:`assemble` puts the chunks together.
 """
@@ -25,7 +25,7 @@ DEFAULT_CHUNK_POINTS = 2_000_000
 
 @dataclass(frozen=True)
 class SlopeRecord:
-    """The largest slope observed in the data, and where (for Lipschitz validation, METHOD §3)."""
+    """The largest slope observed in the data, and where (for Lipschitz validation, docs/method.md §3)."""
 
     slope: float = 0.0
     x_cell: int = -1

@@ -1,4 +1,4 @@
-"""The corrected SCP (Theorem 4.4, Eq. 4.5, METHOD §2) for any ``dim(x)``, solved exactly in batch.
+"""The corrected SCP (Theorem 4.4, Eq. 4.5, docs/method.md §2) for any ``dim(x)``, solved exactly in batch.
 
 Per triple and output row ``j`` the LP is::
 

@@ -3,7 +3,7 @@ and inputs, the initial state and whether it is in the controller's domain.
 
 Regions are drawn as the spec gives them (concrete boxes), not as their cell approximations: a reader checks
 the figure against the spec, and the domain drawn cell by cell beside them shows what the abstraction made of
-them (targets and safe sets from inside, obstacles from outside, METHOD §1).
+them (targets and safe sets from inside, obstacles from outside, docs/method.md §1).
 """
 
 from __future__ import annotations

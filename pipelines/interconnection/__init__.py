@@ -2,7 +2,7 @@
 
 Paper references name the labels of its source, because its printed numbering is ambiguous: Eq. (lasso) is
 the lasso problem, Lemma lem1 the error bound with Eq. (eps_hat), Eq. (e_func) the DAG edges, Theorem
-thrm_inter the soundness of IA ("Theorem 4.7" in METHOD), Definition intercon the interconnection map.
+thrm_inter the soundness of IA ("Theorem 4.7" in docs/method.md), Definition intercon the interconnection map.
 
 The map ``M`` (all states -> all internal variables) is a black box. We learn a sparse linear map ``M̄`` and
 intercept ``b`` from samples, certify per output ``j`` an error bound ``eps_j`` with
@@ -11,7 +11,7 @@ intercept ``b`` from samples, certify per output ``j`` an error bound ``eps_j`` 
 ``M̂(x̂) = {ŵ : ∃ẑ. ∧_node R_node}``. Soundness (Theorem thrm_inter): for every concrete ``x`` in
 ``cell(x̂)``, every cell containing ``M(x)`` is in ``M̂(x̂)``. Algorithm 3 as printed loops over every ``x̂``
 of the full product grid (exponential in ``N``); here nothing is enumerated beyond the product of at most
-``sigma`` one-dimensional grids (METHOD §4).
+``sigma`` one-dimensional grids (docs/method.md §4).
 
 Modules
 -------

@@ -2,7 +2,7 @@
 
 Algorithm 3 as printed loops over every ``x̂`` of the full product grid, which is exponential in ``N``. Here
 ``eps_j`` is a single bound per output, certified on the support of row ``j`` only, per mode (``error`` in the
-spec; METHOD §4):
+spec; docs/method.md §4):
 
 * ``linear`` (the spec declares ``M`` affine, :func:`eps_linear`): ``M̄`` is identified exactly;
   ``eps_j = 2 * max held-out residual + a floating-point margin``. A residual above ``1e-9`` relative to the
@@ -13,7 +13,7 @@ spec; METHOD §4):
   centre ``c`` and half-widths ``r`` (the paper's Eq. (eps_hat) with the neighbourhood a cell, and with the
   linear part bounded over the cell instead of at one point). ``eps_j`` is the maximum over cells.
 
-A given ``L_M`` is checked against slopes observed on random nearby pairs (:func:`check_lipschitz`, METHOD §3);
+A given ``L_M`` is checked against slopes observed on random nearby pairs (:func:`check_lipschitz`, docs/method.md §3);
 a larger slope is a :class:`LipschitzError`. Every bound is widened by a relative floating-point margin
 ``FP_RTOL`` (:func:`fp_margin`).
 """
@@ -42,7 +42,7 @@ __all__ = [
     "eps_certify",
 ]
 
-#: Largest number of cells of the support grid on which ``certify`` evaluates ``M`` (METHOD §4).
+#: Largest number of cells of the support grid on which ``certify`` evaluates ``M`` (docs/method.md §4).
 MAX_CERTIFY_CELLS = 4_000_000
 #: Relative held-out residual above which a map declared linear is refuted.
 LINEAR_RTOL = 1e-9
@@ -58,7 +58,7 @@ def fp_margin(row: np.ndarray, b: float, xmax: float) -> float:
 
 
 def check_lipschitz(sample: Sampler, L: float, count: int, rng: np.random.Generator) -> None:
-    """Given ``L_M`` against slopes of random nearby pairs (METHOD §3): a larger slope is unsound.
+    """Given ``L_M`` against slopes of random nearby pairs (docs/method.md §3): a larger slope is unsound.
 
     Pairs are ``x`` and ``x + d`` with ``d`` up to one cell width per coordinate (scaled down at random by up
     to 100), clipped to the box; the slope is ``|ΔM_j| / ||Δx||_inf``.
@@ -150,7 +150,7 @@ def eps_certify(
     cap: int,
     xmax: float,
 ) -> tuple[float, dict]:
-    """``eps_j`` from the Lipschitz bound on the support cells (Lemma lem1 made sound, METHOD §4).
+    """``eps_j`` from the Lipschitz bound on the support cells (Lemma lem1 made sound, docs/method.md §4).
 
     On a cell with centre ``c`` and half-widths ``r`` (support coordinates; the others are held at the box
     centre, which the support validation justifies):

@@ -1,7 +1,7 @@
 """The low-dimensional grids a node reads: axis grids, clipped cells, cell ranges, flat indexing of products.
 
 Every relation and every certification is computed on the product of at most a few one-dimensional grids
-(one per support coordinate or node input), never on the full product grid (METHOD §4). These helpers give
+(one per support coordinate or node input), never on the full product grid (docs/method.md §4). These helpers give
 the 1-D grid of one coordinate, the clipped cells of a 1-D grid (``cell ∩ [lb, ub]``, which hold every
 concrete value a cell stands for), the cells an interval meets, and row-major flat indexing of a product with
 any number of axes.
@@ -30,7 +30,7 @@ def axis_grid(grid: UniformGrid, i: int) -> UniformGrid:
 def cell_bounds(grid: UniformGrid) -> tuple[np.ndarray, np.ndarray]:
     """Centres and half-widths of every clipped cell of a 1-D grid, shape (size,) each.
 
-    The clipped cell ``cell ∩ [lb, ub]`` holds every concrete value the cell stands for (METHOD §1).
+    The clipped cell ``cell ∩ [lb, ub]`` holds every concrete value the cell stands for (docs/method.md §1).
     """
     lo, hi = grid.clipped_cells(np.arange(grid.size)[:, None])
     return (lo[:, 0] + hi[:, 0]) / 2, (hi[:, 0] - lo[:, 0]) / 2

@@ -1,6 +1,6 @@
 """Learning ``M̄`` (Section 4.2, Eq. (lasso)): lasso rows, supports, least-squares refit, support validation.
 
-Departures from the paper (METHOD §4), and why
+Departures from the paper (docs/method.md §4), and why
 -----------------------------------------------
 * Lasso alone over-selects: with ``alpha = 'cv'`` on the tank map and ``N_I = 80`` it typically keeps several
   spurious coordinates (e.g. 7 for ``w6 = sqrt(x4)``), because cross-validation tunes prediction, not

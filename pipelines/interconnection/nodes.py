@@ -12,7 +12,7 @@
   adds ``L_M`` times the half-width, 16, on top; building the tree would cost 33^4 entries per leaf for no
   information.
 * :func:`direct_node` (``direct`` mode, beyond the paper): an output whose support has at most ``sigma``
-  coordinates gets one node built straight from the black box, like a static subsystem (METHOD §2 ``hull``):
+  coordinates gets one node built straight from the black box, like a static subsystem (docs/method.md §2 ``hull``):
   per support cell, ``M_j`` is sampled on a sub-grid of ``samples_per_cell`` points (sub-cell spacing ``h``)
   and the node allows the cells meeting ``[min - L_M ||h/2||_inf, max + L_M ||h/2||_inf]``. Its reported
   ``eps_j`` is that margin (the largest over cells), *not* a bound on ``|M_j - M̄_j x - b_j|``.
@@ -120,7 +120,7 @@ def box_node(output: str, output_grid: UniformGrid, eps: float) -> NodeRelation:
 def direct_node(
     sample: Sampler, j: int, support: Sequence[int], L: float, samples_per_cell: int, extra: float
 ) -> tuple[NodeRelation, float]:
-    """Node ``w_j`` built straight from the black box on its support (beyond the paper; METHOD §2 ``hull``).
+    """Node ``w_j`` built straight from the black box on its support (beyond the paper; docs/method.md §2 ``hull``).
 
     Per support cell (clipped), ``M_j`` is sampled at the centres of a sub-grid of at most
     ``samples_per_cell`` sub-cells (spacing ``h``, non-support coordinates at the box centre); every point of

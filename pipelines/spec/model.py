@@ -242,7 +242,7 @@ class Region(_Model):
 
 
 class SpecificationSpec(_Model):
-    """What the controller must achieve on the composed state (Algorithm 5; METHOD §6).
+    """What the controller must achieve on the composed state (Algorithm 5; docs/method.md §6).
 
     ``safe`` is required for ``safe`` and optional for the other kinds, where it restricts every run to ``S``
     until (``reach``, ``reach_avoid``) or forever (``reach_and_stay``): "reach T while staying in S", "reach and

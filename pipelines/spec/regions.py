@@ -1,4 +1,4 @@
-"""Regions of the specification, approximated from inside by whole cells (METHOD §1).
+"""Regions of the specification, approximated from inside by whole cells (docs/method.md §1).
 
 A region is a union of boxes over the composed state. Its abstraction keeps a cell only if the cell lies
 wholly inside one of the boxes, so a concrete state in an abstract target cell satisfies the concrete
@@ -160,7 +160,7 @@ def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = 
 
 def spec_regions(spec: JobSpec, network: Network) -> dict[str, AbstractRegion]:
     """The specification's regions on the composed grid: targets and safe sets from inside, avoid sets from
-    outside (METHOD §1)."""
+    outside (docs/method.md §1)."""
     grid = network.composed_state_grid()
     regions: dict[str, AbstractRegion] = {}
     for name in ("target", "safe", "avoid"):

@@ -1,4 +1,4 @@
-"""The symbolic layer: the abstraction as BDDs (Algorithm 5, Section 4.3; METHOD §5). The only package that
+"""The symbolic layer: the abstraction as BDDs (Algorithm 5, Section 4.3; docs/method.md §5). The only package that
 imports ``dd``.
 
 Modules, by the paper's concepts:
@@ -7,7 +7,7 @@ Modules, by the paper's concepts:
   digits and bits, interval comparators and domain constraints, ``x -> x'`` renaming; :data:`~.model.Function`
   and :func:`~.model.and_exists` for the synthesis.
 * :mod:`.order` — the variable order (``interleaved`` / ``shared_top``) and the order of the subsystems' blocks.
-* :mod:`.tree` — bulk construction of BDDs from arrays as Shannon trees (METHOD §5: never one point at a time).
+* :mod:`.tree` — bulk construction of BDDs from arrays as Shannon trees (docs/method.md §5: never one point at a time).
 * :mod:`.relations` — the subsystem relations ``T_i`` and non-blocking sets ``NB_i`` (Definition 4.2), the
   interconnection relation ``M̂ = ∃z. ∧ R_node`` (Section 4.2, Theorem 4.7), regions and sets of states.
 * :mod:`.counting` — exact counts, uniform sampling and listing of the cells of a BDD.

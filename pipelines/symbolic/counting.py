@@ -1,4 +1,4 @@
-"""Counting, sampling and listing the cells of a BDD exactly (domain constraints applied; METHOD §5).
+"""Counting, sampling and listing the cells of a BDD exactly (domain constraints applied; docs/method.md §5).
 
 CUDD's model count is a double, inexact above 2**53 (consensus N = 8 has ~1.4e10 winning states and far more
 state-input pairs), so counts here are Python integers over a table of every node's model count

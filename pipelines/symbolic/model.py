@@ -1,4 +1,4 @@
-"""The symbolic model: one CUDD manager and the binary encoding of the abstraction (Algorithm 5; METHOD §5).
+"""The symbolic model: one CUDD manager and the binary encoding of the abstraction (Algorithm 5; docs/method.md §5).
 
 One :class:`SymbolicModel` owns one CUDD manager (``dd.cudd``) and every BDD built in it: the subsystem
 relations ``T_i(x_i, u_i, w_i, x'_i)`` and their non-blocking sets ``NB_i(x_i, u_i, w_i)``, the interconnection
@@ -18,7 +18,7 @@ Every grid dimension is a *digit* encoded in binary, most significant bit first:
 
 Bit ``b`` of digit ``d`` is the variable ``f"{d}_{b}"``, ``b = 0`` the most significant. A digit with ``K``
 cells has ``max(1, ceil(log2 K))`` bits; codes ``>= K`` are excluded by domain constraints
-(:meth:`SymbolicModel.domain`). METHOD §5 says ``ceil(log2(K+1))`` bits; ``ceil(log2 K)`` is enough for the
+(:meth:`SymbolicModel.domain`). docs/method.md §5 says ``ceil(log2(K+1))`` bits; ``ceil(log2 K)`` is enough for the
 codes ``0 .. K-1`` and saves a bit wherever ``K`` is a power of two.
 
 The variables are declared in the level order of :mod:`.order`, dynamic reordering off (ENGINEERING "dd/CUDD").

@@ -1,18 +1,18 @@
-"""The variable order of a symbolic model (Algorithm 5; METHOD §5: "choose the order on purpose and measure it").
+"""The variable order of a symbolic model (Algorithm 5; docs/method.md §5: "choose the order on purpose and measure it").
 
 Every grid dimension is a *digit* (``x{i}``, ``xn{i}``, ``u{s}``, ``w{j}``, ``z{k}``; :mod:`.model`), declared in
 level order with dynamic reordering off. Two orders:
 
-* ``"interleaved"`` (the tanks, METHOD §6): one block per subsystem, blocks in the order :func:`reader_order`
+* ``"interleaved"`` (the tanks, docs/method.md §6): one block per subsystem, blocks in the order :func:`reader_order`
   picks (each below the blocks it reads, chains contiguous) or, for cyclic couplings, :func:`block_order`
   (coupled subsystems close together); in a block first the bits of the internal variables it reads (each
   preceded by the ``z`` of its MDec tree) unless already declared, then its input bits, then current and next
   bits interleaved (``x{i}_0, xn{i}_0, x{i}_1, ...``). Internal variables nobody reads go on top.
-* ``"shared_top"`` (consensus, METHOD §6): every ``w`` then every ``z`` on top, then per subsystem the blocks
+* ``"shared_top"`` (consensus, docs/method.md §6): every ``w`` then every ``z`` on top, then per subsystem the blocks
   ``x_i``, ``u_i``, ``x'_i``.
 
 :func:`default_order` picks ``interleaved`` where each internal variable has one reader and ``shared_top``
-otherwise, the orders METHOD §6 found best for the tanks and consensus.
+otherwise, the orders docs/method.md §6 found best for the tanks and consensus.
 """
 
 from __future__ import annotations
@@ -228,7 +228,7 @@ def tree_owners(nodes: Sequence[NodeRelation]) -> dict[str, int]:
 
 
 def default_order(subsystems: Sequence[SubsystemLayout] | Sequence[Subsystem]) -> str:
-    """``interleaved`` where each internal variable has at most one reader, else ``shared_top`` (METHOD §6)."""
+    """``interleaved`` where each internal variable has at most one reader, else ``shared_top`` (docs/method.md §6)."""
     counts: dict[int, int] = {}
     for s in subsystems:
         for j in s.reads:

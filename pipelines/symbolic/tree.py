@@ -1,4 +1,4 @@
-"""Bulk construction of BDDs from arrays: Shannon trees built bottom-up (METHOD §5, "never one point at a time").
+"""Bulk construction of BDDs from arrays: Shannon trees built bottom-up (docs/method.md §5, "never one point at a time").
 
 A relation given per cell of some digits (the subsystem relations' interval arrays, the interconnection's node
 ranges) is built as a Shannon tree, bottom-up: every cell gets a leaf id (:func:`range_leaves`: ``np.unique``

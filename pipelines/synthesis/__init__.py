@@ -1,4 +1,4 @@
-"""Controller synthesis on the symbolic abstraction (Section 4.3, Algorithm 5; METHOD §6).
+"""Controller synthesis on the symbolic abstraction (Section 4.3, Algorithm 5; docs/method.md §6).
 
 Modules, by the paper's concepts:
 

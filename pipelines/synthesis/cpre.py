@@ -1,4 +1,4 @@
-"""The controllable predecessor of the composed abstraction (Section 4.3, Algorithm 5; METHOD §6).
+"""The controllable predecessor of the composed abstraction (Section 4.3, Algorithm 5; docs/method.md §6).
 
 The controlled predecessor of a set ``Z`` of composed abstract states is
 
@@ -6,7 +6,7 @@ The controlled predecessor of a set ``Z`` of composed abstract states is
 
 (every admissible internal input lets every subsystem move, and all successors lie in ``Z``). The composed
 transition relation is never built: the ``T_i`` stay partitioned and next-state variables are quantified one
-subsystem at a time (``and_exists``), METHOD §5-6.
+subsystem at a time (``and_exists``), docs/method.md §5-6.
 
 Two exact implementations, chosen automatically (:class:`ControllablePredecessor`):
 
@@ -18,10 +18,10 @@ Two exact implementations, chosen automatically (:class:`ControllablePredecessor
   early-quantification schedule (:func:`schedule`). Exactness: ``∀w∀x'.(∧_i(M̂_i ∧ T_i) → Z') =
   ∀x'.(∧_i ∃w_i(M̂_i ∧ T_i) → Z')`` because the ``w_i`` are disjoint.
 * ``shared`` (an internal variable read by several subsystems, e.g. consensus): ``w`` stays shared (quantifying
-  it per subsystem would let each subsystem see a different ``w``: sound but conservative, METHOD §6).
+  it per subsystem would let each subsystem see a different ``w``: sound but conservative, docs/method.md §6).
   ``CPre(Z) = ∃w.M̂ ∧ ¬BLK ∧ ¬∃w.[M̂ ∧ ∃x'.(∧_i T_i ∧ ¬Z')]`` with the blocking part
   ``BLK = ∨_i ∃w.(M̂ ∧ ¬NB_i)`` computed once (∃ distributes over ∨). The step ``∃w.[M̂ ∧ ...]`` is the known
-  bottleneck (METHOD §6: 67 % of CPre time at N = 8).
+  bottleneck (docs/method.md §6: 67 % of CPre time at N = 8).
 
 The fixed points (:mod:`.fixed_points`) that need the controller only at convergence use
 :meth:`ControllablePredecessor.predecessors` (``∃u.CPre`` in one ``and_exists``, never materialising ``CPre``).
@@ -139,7 +139,7 @@ def bad_inputs(
 
     The chain (``R_i`` = T̃_i or T_i) is conjoined one subsystem at a time; ``M`` is ``None`` for the
     per-subsystem CPre (``w`` already quantified in the chain), else the shared ``∃w`` step follows, the
-    bottleneck of METHOD §6. ``part`` is conjoined into the chain's first operand and into ``M̂``; it reads no
+    bottleneck of docs/method.md §6. ``part`` is conjoined into the chain's first operand and into ``M̂``; it reads no
     next-state bit, so it commutes with ``∃x'``. A set of current states commutes with ``∃w`` too, and the result
     is exact on it; a set of ``ŵ`` cells (the cluster's ranges, :mod:`workers.dask_parts`) gives the pairs bad for
     some admissible ``ŵ`` among them. ``M`` may come already conjoined with what the caller keeps (a Dask
@@ -211,7 +211,7 @@ def window_predecessors(
 
 # ====================================================================================== the object
 class ControllablePredecessor:
-    """``CPre`` of the composed abstraction with partitioned relations (module docstring; METHOD §6).
+    """``CPre`` of the composed abstraction with partitioned relations (module docstring; docs/method.md §6).
 
     Parameters
     ----------
@@ -349,7 +349,7 @@ class ControllablePredecessor:
         """Encode an abstraction (its network, subsystem relations and interconnection) and prepare its CPre.
 
         ``order`` defaults to :func:`~.symbolic.order.default_order` (``interleaved`` where each internal
-        variable has one reader, ``shared_top`` otherwise: the orders METHOD §6 found best for the tanks and
+        variable has one reader, ``shared_top`` otherwise: the orders docs/method.md §6 found best for the tanks and
         consensus).
         """
         if order is None:

@@ -13,7 +13,7 @@ resolution of the other subsystems' successors (a function of the history): the 
 function of ``I``'s history, so the strategy becomes one of ``I``'s game (with memory) under which every run of
 ``I`` stays, from some step on, in the projection ``φ_I = ∃x̂_{-I}. φ`` (and always in ``S_I``). The winning
 set of ``◇□φ_I`` in ``I``'s game, for any strategy with memory, is ``Reach_I(Safe_I(φ_I))`` (co-Büchi games are
-won by memoryless strategies, and their winning set is the attractor of the safety game's: METHOD §6). So
+won by memoryless strategies, and their winning set is the attractor of the safety game's: docs/method.md §6). So
 ``x̂_I ∈ Reach_I(Safe_I(φ_I))`` for every ``x̂ ∈ D``. The two fixed points of ``I``'s game run over ``I``'s own
 state bits: the tanks' groups of three and four tanks take under two seconds at spacing 1.25.
 

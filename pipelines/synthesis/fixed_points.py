@@ -1,10 +1,10 @@
-"""The fixed points of the synthesis (Algorithm 5; METHOD §6), as functions of a controllable predecessor.
+"""The fixed points of the synthesis (Algorithm 5; docs/method.md §6), as functions of a controllable predecessor.
 
 * :func:`safe`: safety ``□S`` as ``νZ. S ∧ ∃u.CPre(Z)``;
 * :func:`reach`, :func:`reach_avoid`: ``S U T`` as ``μZ. (T ∨ ∃u.CPre(Z)) ∧ S ∧ ¬A`` with a progress controller
   (``S`` everything unless a safe set is given, ``A`` empty for plain reachability);
 * :func:`cobuchi`: reach-and-stay ``□S ∧ ◇□φ`` as the co-Büchi ``μX. νY. (φ ∧ S ∧ ∃u.CPre(Y)) ∨ (S ∧ ∃u.CPre(X))``;
-* :func:`reach_safe`: the same as ``Reach_S(Safe(φ ∧ S))``; :func:`reach_and_stay` reports both (METHOD §6).
+* :func:`reach_safe`: the same as ``Reach_S(Safe(φ ∧ S))``; :func:`reach_and_stay` reports both (docs/method.md §6).
 
 Each takes a :class:`~.cpre.ControllablePredecessor` (SCOTS's ``solve_invariance_game`` style). By the feedback
 refinement relation (Theorem 4.2) and soundness of the abstraction (Theorem 4.8), the controllers refine to the
@@ -338,7 +338,7 @@ def cobuchi(
     cpre: ControllablePredecessor, phi: Function, *, safe: Function | None = None,
     progress: IterationProgress | None = None,
 ) -> SynthesisResult:
-    """``◇□φ`` as ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)`` (METHOD §6); with a safe set ``S``, ``□S ∧ ◇□φ`` as
+    """``◇□φ`` as ``μX. νY. (φ ∧ ∃u.CPre(Y)) ∨ ∃u.CPre(X)`` (docs/method.md §6); with a safe set ``S``, ``□S ∧ ◇□φ`` as
     ``μX. νY. (φ ∧ S ∧ ∃u.CPre(Y)) ∨ (S ∧ ∃u.CPre(X))``: every iterate lies in ``S``, so no run leaves it.
 
     Controller: a state that enters at outer iteration ``k+1`` (``X_{k+1} \\ X_k``) gets the inputs ``û`` with
@@ -416,7 +416,7 @@ def reach_and_stay(
     layered: bool = False, safe: Function | None = None, progress: IterationProgress | None = None,
     local_games: bool = True, checkpoints: Checkpoints | None = None, refine: Refinement | None = None,
 ) -> dict[str, SynthesisResult]:
-    """``◇□φ`` (``□S ∧ ◇□φ`` with a safe set ``safe``) by each of ``methods`` (METHOD §6 asks for both domains to
+    """``◇□φ`` (``□S ∧ ◇□φ`` with a safe set ``safe``) by each of ``methods`` (docs/method.md §6 asks for both domains to
     be reported).
 
     ``layered`` applies to ``reach_safe``; the co-Büchi controller is always explicit. ``progress``: see

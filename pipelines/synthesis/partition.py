@@ -1,4 +1,4 @@
-"""Partitioning the current states for ``∃u.CPre(Z)`` computed in parts (METHOD §6), the arithmetic only.
+"""Partitioning the current states for ``∃u.CPre(Z)`` computed in parts (docs/method.md §6), the arithmetic only.
 
 The fixed points spend nearly all of synthesis in ``∃u.CPre`` and CUDD is single-threaded, so the partitioned
 form (:meth:`~.cpre.ControllablePredecessor.predecessors`, with a ``partitioned`` factory such as

@@ -1,4 +1,4 @@
-"""The order of the relational products in ``∃x'. (∧_i R_i ∧ ¬Z')`` (early-quantification scheduling; METHOD §6).
+"""The order of the relational products in ``∃x'. (∧_i R_i ∧ ¬Z')`` (early-quantification scheduling; docs/method.md §6).
 
 :func:`schedule` orders the chain of a :class:`~.cpre.ControllablePredecessor` once, when it is prepared.
 """
@@ -19,7 +19,7 @@ def schedule(chain: Sequence[tuple[Function, list[str]]], start: set[str], bdd: 
     ``greedy`` picks next the relation that leaves the intermediate result with the fewest support variables
     (its support united with the running support, minus the next-state bits it lets us quantify), ties by
     narrower support, then network order: the classic heuristic for partitioned image computation.
-    ``widest_last`` sorts by support size (METHOD §6's advice); ``network`` keeps the given order.
+    ``widest_last`` sorts by support size (docs/method.md §6's advice); ``network`` keeps the given order.
 
     Why greedy: on the 10 tanks it kept the peak of one CPre at the size of its result and took the whole
     safety fixed point in about half the time of ``widest_last`` (``network`` in between; the reverse network

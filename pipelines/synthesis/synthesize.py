@@ -1,4 +1,4 @@
-"""A job's synthesis: encode the abstraction, solve its specification, report (Algorithm 5; METHOD §5-6).
+"""A job's synthesis: encode the abstraction, solve its specification, report (Algorithm 5; docs/method.md §5-6).
 
 :func:`synthesize` takes the three parts of an abstraction (the network, the subsystem relations, the
 interconnection abstraction) and the specification section of the job spec; it knows nothing of how the
@@ -147,7 +147,7 @@ def synthesize(
     built: dict[str, Function] = {}
 
     def states(name: str) -> Function:
-        # Targets and safe sets from inside, avoid sets from outside (METHOD §1): an abstract winning run then
+        # Targets and safe sets from inside, avoid sets from outside (docs/method.md §1): an abstract winning run then
         # satisfies the concrete specification. Built once: the domain bound and the fixed points both read them.
         if name not in built:
             built[name] = region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}",

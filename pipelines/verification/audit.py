@@ -1,6 +1,6 @@
 """The audit: concrete transitions drawn at random, each checked against the abstraction.
 
-Soundness (METHOD, "the one rule"): for a concrete state ``x`` in ``cell(x̂)``, an input ``û`` and an
+Soundness (docs/method.md, "the one rule"): for a concrete state ``x`` in ``cell(x̂)``, an input ``û`` and an
 internal input ``w`` in ``cell(ŵ)``, either ``û`` is blocking at ``(x̂, ŵ)`` or the cell of ``f(x, û, w)`` is
 among the abstract successors (Theorem 4.2 / Definition 4.2). For the interconnection, the cell of ``M(x)``
 is in ``M̂(x̂)`` (Theorem 4.7). A violation is a bug that makes every controller built on the abstraction

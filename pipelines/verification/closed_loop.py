@@ -1,4 +1,4 @@
-"""Closed loop: the concrete black boxes under a refined controller (Theorem 4.2, METHOD §6).
+"""Closed loop: the concrete black boxes under a refined controller (Theorem 4.2, docs/method.md §6).
 
 Refinement by the feedback refinement relation is memoryless quantization: measure ``x``, take its cell
 ``x̂``, apply any input of ``C(x̂)``, and step the concrete subsystems with ``w = M(x)``. Runs of the concrete
