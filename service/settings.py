@@ -29,7 +29,7 @@ and caps"), checked by :func:`service.manager.validate_spec` before a job is que
     minutes on two workers for a cheap expression (``examples/stress.yaml``: 1.6e10, ~40 s).
 ``max_tasks`` (10,000)
     Tasks of the per-cell stage (``options.chunk_cells``, or the default chunk), all submitted to the cluster at
-    once (50,001 tasks took the API process from 0.3 to 1.25 GB).
+    once (50,001 tasks take the API process from 0.3 to 1.25 GB).
 ``max_lipschitz_pairs`` (2,000,000)
     Pairs of one estimated Lipschitz constant (``batches x pairs x input points``), drawn at once in this
     process (~90 bytes a pair for a scalar system: ~180 MB).

@@ -56,8 +56,8 @@ CONNECT_TIMEOUT = 30.0
 #: Dask configuration of compabs's workers (``workers/dask.yaml``; the image copies it to ``/etc/dask``): the
 #: environment the nannies give the worker processes, glibc's malloc tuned for large numpy temporaries. Dask's own
 #: default, MALLOC_TRIM_THRESHOLD_=65536, turns off glibc's dynamic mmap threshold, so every large temporary of a
-#: task is mmapped and page-faulted afresh (tanks, one worker: task compute 3.75 s with it, 3.0 s without); the
-#: file's settings go further (stress per-cell stage 95.8 s -> 57.1 s CPU). It also slows Dask's own periodic work
+#: task is mmapped and page-faulted afresh (tanks, one worker: task compute 1.25x as long with it); the file's
+#: settings go further (the stress per-cell stage in 0.6x the CPU). It also slows Dask's own periodic work
 #: (profiler, event-loop ticks), which competes with the tasks for the cores. External workers: use the same file.
 DASK_CONFIG_FILE = Path(__file__).with_name("dask.yaml")
 
@@ -371,8 +371,8 @@ def _tolerate_unknown_removals(cluster: Any) -> None:
     A worker that dies while it registers (killed, out of memory at start) is announced to the LocalCluster as
     removed without ever having been added (the scheduler's WorkerStatusPlugin fails on its identity).
     distributed's handler then raises a KeyError that ends the watcher task, and ``cluster.close()`` re-raises
-    it and leaves the cluster half closed (a later ``Client.__del__`` waits 60 s on it). Seen after five worker
-    kills in quick succession (``tests/test_trust_cluster.py``). Such a removal changes nothing the cluster
+    it and leaves the cluster half closed (a later ``Client.__del__`` waits 60 s on it). Five worker kills in quick
+    succession bring it about (``tests/test_trust_cluster.py``). Such a removal changes nothing the cluster
     knows, so it is logged and skipped; every other message goes to distributed's handler.
     """
     update = cluster._update_worker_status

@@ -69,9 +69,8 @@ log = logging.getLogger(__name__)
 PARTS_PER_WORKER = 1
 """Parts of one call per worker thread. More parts than workers are handed out as workers free up
 (:mod:`workers.dispatch`), which evens out unequal parts, but each cut costs work the parts share or repeat: on
-16 cores (consensus N = 7) the busiest worker of a call took 1.53x the mean with one part per worker and 1.24x with
-two, while the parts' CPU grew from 120 to 192 s, and the synthesis took 18.0 against 24.6 s (8 workers: 27.8
-against 29.4 s; docs/benchmarks.md, "third lease")."""
+16 cores (consensus N = 7) two parts per worker bring the busiest worker of a call from 1.53x the mean to 1.24x,
+but the parts' CPU grows 1.6x and the synthesis takes about 1.4x as long (8 workers: 1.06x)."""
 
 SPLIT_FROM = 4
 """From this many parts of the shared CPre on, ``cut='auto'`` is the split cut, below it the window cut. Summed
@@ -277,10 +276,10 @@ class DaskPredecessors:
         """Where a task that :class:`~workers.dispatch.Dispatch` gave slot ``slot`` runs: that slot's worker, or
         another if that one is gone (a loose restriction).
 
-        Why not leave it to Dask: its scheduler placed the parts of a call by its estimates of their durations, and
-        on 16 workers (2-core machine, consensus N = 5, split cut) one call's 16 parts went to 6 workers, five
-        of them one after another on one worker, so the call took the time of five parts; pinned, every call of
-        the same runs had each part on a worker of its own."""
+        Why not leave it to Dask: its scheduler places the parts of a call by its estimates of their durations,
+        and on 16 workers (consensus N = 5, split cut) it can put one call's 16 parts on 6 workers, five of them one
+        after another on one worker, so that the call takes the time of five parts; pinned, each part has a worker
+        of its own."""
         if not slots:
             return {}
         return {"workers": [slots[slot % len(slots)]], "allow_other_workers": True}
@@ -440,8 +439,8 @@ def cut_digits(cpre: ControllablePredecessor, cut: str = "auto") -> tuple[str, t
     call of consensus N = 6, in CUDD cache lookups, two ``ŵ`` halves summed to 1.04x the whole, two state halves
     to 1.31x). ``window`` (the default there) gives each part the states whose admissible ``ŵ`` start in its
     range, so each part's answer is final and the parts are only OR-ed; ``w`` leaves the bad pairs of every part
-    to be joined and one ``∃u`` step to run in the job's process, which took a quarter of consensus N = 8's time
-    on two workers while the workers waited.
+    to be joined and one ``∃u`` step to run in the job's process, a quarter of consensus N = 8's time on two
+    workers, while the workers wait.
     """
     if cut not in CUTS:
         raise ValueError(f"cut must be one of {CUTS}, got {cut!r}")

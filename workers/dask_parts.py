@@ -160,7 +160,7 @@ def _care(held: Held, sym: Symmetry | None) -> Function:
     """``M̂`` on the orbit representatives of ``sym`` (``M̂`` itself without one), computed once per problem and
     symmetry instead of by each part of each call. With the order of :func:`~pipelines.synthesis.cpre.bad_inputs`'
     conjunctions (the part first), the parts' ``M̂ ∧ reps ∧ outside`` over a Reach(Safe) of consensus N = 6 on 16
-    workers went from 7.0 to 0.5 s of their 51 s of CPU (one process computes it once per call)."""
+    workers is 1 % of their CPU this way, 14 % computed by each part (one process computes it once per call)."""
     assert held.M is not None
     if sym is None:
         return held.M
@@ -192,11 +192,10 @@ def receive(key: str, problem: dict[str, Any]) -> None:
     (:func:`_problem`), and after, to load again: :data:`SENT_PROBLEMS` at most, the newest last.
 
     Why not a scattered future that the parts depend on: Dask brings every dependency to a task's worker before it
-    runs, and its active memory manager drops the replicas no waiting task needs a few seconds after a call, so each
-    call every worker fetched the whole problem again from the one worker left holding it, though it kept the
-    problem loaded all along. On 16 workers (2-core machine, consensus N = 7) the last part of each call was entered
-    7.8 and 5.2 s later (summed over the calls) in two runs that way, 0.8 s with the memory manager stopped; the
-    16-core machine had measured 12.5 s of such waiting.
+    runs, and its active memory manager drops the replicas no waiting task needs a few seconds after a call, so at
+    each call every worker would fetch the whole problem again from the one worker left holding it, though it keeps
+    the problem loaded all along. On 16 workers (consensus N = 7) that delays the last part of each call by several
+    times what it waits with the memory manager stopped, seconds summed over the calls.
     """
     _SENT[key] = problem
     _SENT.move_to_end(key)
@@ -300,8 +299,8 @@ def window_part(key: str, problem: Problem, Z: bytes, outside: Outside, digits: 
     With the ``classes`` of interchangeable subsystems: computed on the window's representatives and closed. A
     window is invariant (``M̂`` is), so the closures of the parts stay disjoint. The representatives go where
     the states go (the ``∃w`` step and the admissible pairs), not into the chain's first operand: on consensus
-    N = 6 the two windows' slower parts summed to 13.8 s over a Reach(Safe) that way, 14.7 s with them in the
-    chain too, 20.2 s without the representatives."""
+    N = 6, over a Reach(Safe), the two windows' slower parts take 1.07x as long with them in the chain too and
+    1.46x without the representatives."""
 
     def compute(held: Held, z: Function, out: Function | None, sym: Symmetry | None) -> Function:
         model, chain, admissible, M, u_bits, w_bits, *_ = held
@@ -353,7 +352,7 @@ def join_part(key: str, problem: Problem, digits: Sequence[str], start: Sequence
             states &= sym.representatives
         # the good pairs of the part's states, cut down by each range's bad ones in turn: every operand stays within
         # the part's states. The disjunction of the bad pairs spans every state of those ranges: over a Reach(Safe)
-        # of consensus N = 6 on 16 workers, OR-ing them and one ∃u took 9.0 s of the parts' CPU, this 3.1 s
+        # of consensus N = 6 on 16 workers, OR-ing them and one ∃u costs the parts about 3x the CPU of this
         good = admissible & states
         for part in (own, *others):  # own's answer is done with here once read (others' may serve a later join)
             kept = (_KEPT.pop if part is own else _KEPT.get)(part.kept, None) if part.kept else None

@@ -5,9 +5,9 @@ decides, each time a worker's part ends, what that worker runs next, so that no 
 
 Why not leave it to Dask: its scheduler places a task on a worker when the task is submitted (by estimated
 occupancy; its queuing until a thread frees applies only to "root-ish" task groups larger than twice the cluster's
-threads without worker restrictions), and placed its parts unevenly (on 16 workers, five parts of a call one after
-another on one worker, measured on consensus N = 5). Here each worker holds one part at a time: the first wave
-goes one part per worker, and each further part is submitted, pinned, when a worker's part ended.
+threads without worker restrictions), and can place the parts unevenly (on 16 workers, consensus N = 5: five parts
+of a call one after another on one worker). Here each worker holds one part at a time: the first wave goes one
+part per worker, and each further part is submitted, pinned, when a worker's part ends.
 
 With at most one range per worker the split cut's joins are submitted at once with the first phases, each on the
 worker of its own range's first phase and depending on the first phases it reads: Dask starts each when they have

@@ -1,10 +1,10 @@
 """Transparent huge pages for the job's own process: glibc's malloc asked for them at startup.
 
 CUDD walks its unique and computed tables at random, so its operations wait on TLB misses; where the kernel gives
-transparent huge pages on request (``madvise``, as on the machine measured), malloc asks only under
+transparent huge pages on request (``madvise``, a common setting), malloc asks only under
 ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` (glibc 2.35 on). The Dask workers get it from ``workers/dask.yaml``
-(its ``pre-spawn-environ``, where the measurement is: consensus synthesis 8 % faster in one process, 11-13 % on two
-workers). glibc reads the tunable once, when a process starts, so the command line starts itself again under it
+(its ``pre-spawn-environ``: consensus synthesis about 8 % faster in one process, 11-13 % on two workers). glibc
+reads the tunable once, when a process starts, so the command line starts itself again under it
 (:func:`restart_with_huge_pages`) before its commands that build BDDs. ``COMPABS_HUGE_PAGES=0`` keeps the process
 as started; elsewhere (not Linux, not glibc) nothing happens.
 """

@@ -4,8 +4,8 @@ An executor sizes its tasks with :func:`triple_cost`; :func:`statistics_fraction
 of the SCP objectives that do not build the relation cheaper than the growth bound that does (docs/method.md §2: the
 report counts every method, but a statistic must not cost more than the abstraction).
 
-The constants were measured on one core (``bench_nd.py`` of the n-D work, numba 0.68, numpy 2): one
-evaluation of a linear 2-3-D expression black box costs about 30 ns (the unit); the rest is relative to it.
+The unit is one evaluation of a linear 2-3-D expression black box on one core (about 30 ns with numba and numpy
+2); every other constant is relative to it, so the model sizes tasks the same on a faster or slower machine.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pipelines.abstraction.growth_bound import subgrid_counts
 from pipelines.network import Subsystem
 
 #: Per triple, after the black box: centre, boxes of every bound, successor cells, blocking, statistics.
-#: Measured 0.55-0.65 us (n = 2) and 0.85 us (n = 3) on the numpy path; about 0.15 us in the scalar kernel.
+#: About 0.55-0.65 us (n = 2) and 0.85 us (n = 3) on the numpy path; about 0.15 us in the scalar kernel.
 TRIPLE_WORK = {1: 5.0, 2: 20.0, 3: 28.0}
 #: Per triple, per additional state dimension beyond 3 (extrapolated).
 TRIPLE_WORK_PER_DIM = 8.0
@@ -55,7 +55,7 @@ def statistics_fraction(sub: Subsystem, method: str, objective: str) -> float:
     """Share of the triples on which the SCP objective(s) that do not build the relation are counted when the
     statistics are sampled (``cells.statistics_sample``).
 
-    :data:`STATISTICS_SAMPLE` for a scalar state (as before: its SCP is a closed form); for ``dim(x) > 1`` at most
+    :data:`STATISTICS_SAMPLE` for a scalar state (its SCP is a closed form); for ``dim(x) > 1`` at most
     that, and small enough that the sampled SCP work is at most :data:`STATISTICS_BUDGET` of the chosen bound's
     work (pair maxima and LPs scale with the square of the samples and with the LP size, the black box with the
     samples). Depends on the subsystem and the method only, never on chunking.

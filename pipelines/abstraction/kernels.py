@@ -1,5 +1,5 @@
 """Compiled kernels of the per-cell stage's scalar path (numba): :func:`scalar_block`, everything
-``subsystem._abstract_block`` computes after the black box for a scalar subsystem in one pass, and the kernels
+``cells._abstract_block`` computes after the black box for a scalar subsystem in one pass, and the kernels
 it is made of (the sample pass, the pair maxima, the closed-form SCP), instead of a few dozen numpy calls and
 their temporaries.
 
@@ -14,7 +14,8 @@ cache directory). :func:`warm_up` compiles them ahead of a timing. Tolerances co
 globals of another module: numba freezes a global into the compiled code, and its disk cache only notices
 changes to this file.
 
-``bench/run.py --cases floor`` measures them against the numpy path (docs/benchmarks.md).
+``bench/run.py --cases scp`` times them beside the numpy path and checks that both give the same bits
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations

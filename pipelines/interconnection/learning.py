@@ -19,7 +19,7 @@ Departures from the paper (docs/method.md §4), and why
   :func:`complete_support` walks from the base state to the moved one, switching half of the differing
   coordinates at a time (bisection, one evaluation per step), down to one coordinate whose switch changed
   ``M_j``, adds it and checks again on fresh states. A larger support is never unsound (only coarser);
-  the support stays what the final joint check accepts, as before.
+  the support is what the final joint check accepts.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ def union_count(boxes: list[IndexBox]) -> int:
     consecutive box boundaries of the first coordinate, of the slab width times the count of the union of
     the boxes covering that slab in the remaining coordinates. Sub-problems are memoised by the set of
     covering boxes, which repeats a lot for structured regions (the consensus windows: 32 boxes in 8-D in
-    milliseconds, where a disjoint decomposition took seconds).
+    milliseconds, where a disjoint decomposition takes seconds).
     """
     boxes = [b for b in boxes if _volume(b) > 0]
     if not boxes:

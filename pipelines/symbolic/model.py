@@ -65,9 +65,9 @@ DEFAULT_MEMORY_FRACTION = 0.75
 GC_LOOSE_UP_TO = 100_000
 #: Largest computed table (entries, 32 bytes each) CUDD may grow to. CUDD grows it only while its hit rate is high and
 #: to at most 4x the unique table's slots, so a small job keeps a small table (the tanks at spacing 2.5: 2 M entries,
-#: with this cap or 2^20). The cap used to be 2^20: at spacing 1.25 (safety iterates of 1-5 M nodes) that table
-#: thrashed and one CPre took 215 s instead of 35 s (and_exists recomputed what it had forgotten); CUDD grew the
-#: table to 2^24 entries (512 MB) there and no further.
+#: with this cap or 2^20). A cap of 2^20 is too small at spacing 1.25 (safety iterates of 1-5 M nodes): the table
+#: thrashes and one CPre takes about 6x as long (and_exists recomputes what it has forgotten); CUDD grows the table
+#: to 2^24 entries (512 MB) there and no further.
 MAX_CACHE_ENTRIES = 1 << 25
 
 

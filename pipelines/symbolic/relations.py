@@ -110,7 +110,7 @@ def subsystem_relations(
 
 #: Input cells of a node relation built as one Shannon tree; larger nodes are built slice by slice along their first
 #: input (:func:`node_relation`). The tree's index arrays cost ~130 bytes per cell: the 10 tanks at spacing 1.25
-#: have a node over 80^4 = 41 M cells, which took 5.2 GB in one tree and takes ~0.3 GB in slices.
+#: have a node over 80^4 = 41 M cells, which takes 5.2 GB in one tree and ~0.3 GB in slices.
 NODE_SLICE_CELLS = 1 << 21
 
 

@@ -1,7 +1,7 @@
 """Resumable safety fixed points: what a fixed point asks of a checkpoint store (issue 24).
 
 The safety fixed point of a large case runs for hours (the tanks at spacing 1.25: iterations of minutes each,
-``docs/benchmarks.md``); a job that is stopped (a session ending, a worker lost, a machine rebooted) should not
+``docs/benchmarks.md``); a job that is stopped (cancelled, a worker lost, a machine rebooted) should not
 start again from the target. :func:`~.fixed_points.safe` therefore hands its iterates to a :class:`Checkpoints`
 store as it goes and, when the store has one of the same problem, starts from it.
 

@@ -152,7 +152,7 @@ def bad_inputs(
         acc = and_exists(acc, rel, xn_bits)
     if M is not None:
         # the part first: a range of ŵ (a cluster's part) cuts M̂ down to its cells before the larger product with
-        # ``outside`` (16 parts of consensus N = 6, a Reach(Safe): 5.4 s of the parts' CPU the other way, 0.5 s)
+        # ``outside`` (16 parts of consensus N = 6, a Reach(Safe): the other way costs the parts 10x the CPU)
         care = M if part is None else M & part
         if outside is not None:
             care &= outside
@@ -169,8 +169,8 @@ def predecessors_of(
 
     ``M`` for the shared method, else ``None``. ``part`` restricts :func:`bad_inputs` (the chain's first operand
     too) and the admissible pairs; ``states`` only where the result is read (``M̂ ∧ outside`` at ``∃w``, the
-    admissible pairs), as the windows take theirs: the orbit representatives in the chain blew it up (the largest
-    call of consensus N = 8 took 201.5 s with them there, 73.8 s at ``∃w``).
+    admissible pairs), as the windows take theirs: the orbit representatives in the chain blow it up (the largest
+    call of consensus N = 8 takes about 2.7x as long with them there as at ``∃w``).
     """
     if states is not None and M is None:  # the per-subsystem chain has no later step to take them
         part, states = (states if part is None else part & states), None
@@ -228,13 +228,13 @@ class ControllablePredecessor:
     processes : int or 'auto'
         Parts of :meth:`predecessors` run at once by ``partitioned`` (this process included); ``1``: one
         process; ``'auto'``: :func:`resolve_processes` for the shared CPre, 1 for the per-subsystem one (on the
-        10 tanks each half of a split CPre took as long as the whole, since the halves share most sub-results
+        10 tanks each half of a split CPre takes as long as the whole, since the halves share most sub-results
         that one process computes once).
     parallel_after : float
         Seconds one single-process :meth:`predecessors` call must take before ``partitioned`` is started
-        (starting helper processes costs ~0.5 s; small games never need them). ``0``: from the first call on (the
-        first call of consensus N = 7 takes 2.0 s in one process on a 2-core machine, where 16 workers of a 16-core
-        one synthesize it in 11.7 s, about 1.4 s at that machine's speed).
+        (starting helper processes costs ~0.5 s; small games never need them). ``0``: from the first call on (where
+        many workers make the whole synthesis short, one process's first call is a large share of it: about an
+        eighth for consensus N = 7 on 16 workers).
     partitioned : callable, optional
         ``partitioned(cpre, processes)`` -> :class:`Partitioned`: how to run :meth:`predecessors` in parts
         (``workers.processes.partitioned_cpre.PartitionedPredecessors`` runs them in helper processes).
@@ -447,7 +447,7 @@ class ControllablePredecessor:
 
         Fixed points that need the controller only at convergence use this in their loop. With ``outside``
         the result is exact only on states in ``outside`` (a reach loop passes ``¬Z``: states already won need
-        no answer); the shared ``∃w.M̂ ∧ ...`` step then works on ``M̂ ∧ outside``, which measured 20 % less
+        no answer); the shared ``∃w.M̂ ∧ ...`` step then works on ``M̂ ∧ outside``, which takes about 20 % less
         time on consensus N = 5. ``within``: as in :meth:`cpre`. ``part``: a set of current states; the
         result is ``part ∧ ∃u.CPre(Z)``, computed on that part only, in this process (and ``states``, with a
         ``part``: see :func:`predecessors_of`).

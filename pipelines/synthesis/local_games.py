@@ -25,25 +25,26 @@ the projection ``X = ∃x̂_{-I}. W``, so ``O ∧ Y*`` still contains ``W``:
 
 **Groups.** One per subsystem ``i``: ``i`` and the subsystems whose states its relation reads (its upstream
 neighbours), at most half the network (a larger group costs nearly what the whole game does) and at most
-:data:`MAX_GROUP_BITS` current-state bits (a game's cost grows with its state space; the largest measured, five tanks
-at spacing 1.25 with 35 bits: all the games of that case took 4 s). The games run
+:data:`MAX_GROUP_BITS` current-state bits (a game's cost grows with its state space; five tanks at spacing 1.25,
+35 bits, still cost seconds for all the games of that case). The games run
 round after round in network order, each conjoining its ``Y*`` into ``O`` at once (the next game starts from the
 tighter ``O``), until a round changes nothing.
 
 **Cost.** Every relation of a local game is conjoined with the projection of ``adm ∧ O`` on the state and input
 bits it does not read (as :meth:`~.cpre.ControllablePredecessor.within` does): the bad pairs of a game then range
 only over neighbours' states that ``O`` still allows. Without it the game of tank 9 (tanks 6, 8, 9, whose relations
-read four more tanks) built 8·10^4-node bad sets and took 4.8 s of a 5.7 s round; with it the round takes 0.4 s.
+read four more tanks) builds 8·10^4-node bad sets and a round takes about 14 times as long.
 
-Measured on the 10 tanks (safety part of Reach(Safe), one process, same invariant): the bound holds 7.9·10^11 of
-the safe set's 2.0·10^12 states (the invariant 1.6·10^11) after about 1 s of local games (3 rounds), and the fixed
-point from it takes 2.3 s instead of 30.3 s (the synthesis 4.3 s instead of 29.1 s: ``bench/run.py``'s tanks case). Local groups of two levels of neighbours bounded tighter (1.61·10^11) but cost 12 s;
-single subsystems bound nothing (every tank alone is safe when its neighbours are chosen for it).
+On the 10 tanks (safety part of Reach(Safe), one process, same invariant) the bound holds 7.9·10^11 of the safe
+set's 2.0·10^12 states (the invariant 1.6·10^11) after 3 rounds of local games, and the fixed point from it takes
+about a thirteenth of the time from the safe set (``bench/run.py``'s tanks case prints both). Local groups of two
+levels of neighbours bound tighter (1.61·10^11) but cost more than the fixed point they shorten; single
+subsystems bound nothing (every tank alone is safe when its neighbours are chosen for it).
 
 **When the bound is used.** Only when it holds at most :data:`USE_BELOW` of ``S``'s states. A bound that removes
 little still has many more BDD nodes than ``S`` and makes the first iterates larger: at the tanks' spacing 1.25 it
-keeps 92 % of the target in 24,580 nodes, and the first iterations from it took 2, 7 and 19 s against 0.05, 1.0 and
-5.7 s from the target.
+keeps 92 % of the target in 24,580 nodes, and the first iterations from it take several times as long as from the
+target.
 """
 
 from __future__ import annotations

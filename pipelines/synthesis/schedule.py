@@ -21,9 +21,9 @@ def schedule(chain: Sequence[tuple[Function, list[str]]], start: set[str], bdd: 
     narrower support, then network order: the classic heuristic for partitioned image computation.
     ``widest_last`` sorts by support size (docs/method.md §6's advice); ``network`` keeps the given order.
 
-    Why greedy: on the 10 tanks it kept the peak of one CPre at the size of its result and took the whole
+    Why greedy: on the 10 tanks it keeps the peak of one CPre at the size of its result and takes the whole
     safety fixed point in about half the time of ``widest_last`` (``network`` in between; the reverse network
-    order did not finish).
+    order does not finish).
     """
     supports = [set(bdd.support(rel)) for rel, _ in chain]
     if how == "network":
@@ -37,7 +37,7 @@ def schedule(chain: Sequence[tuple[Function, list[str]]], start: set[str], bdd: 
     # Each relation's next-state bits are in ``running`` until it is picked, so the cost
     # |(running ∪ S_k) \ X_k| is |running| + |S_k \ running| - |X_k|, and only |S_k \ running| changes, by the
     # variables each pick adds or removes: kept per relation through an index from variable to relations. The
-    # plain form recomputed every union at every step, ~N^3: 5.7 s of 7.4 s of the set-up at N = 512.
+    # plain form recomputes every union at every step, ~N^3: three quarters of the set-up at N = 512.
     running = set(start)
     fresh = [len(s - running) for s in supports]  # |S_k \ running|
     readers: dict[Any, list[int]] = {}

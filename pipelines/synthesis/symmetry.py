@@ -16,12 +16,11 @@ the result under ``G``:
 Swaps that connect a set of subsystems generate every permutation of it, so ``R`` = the states whose codes
 increase along each connected set (:attr:`Symmetry.representatives`). ``R`` is taken where the result is read (the
 ``states`` of :func:`~.cpre.predecessors_of`: ``M̂ ∧ outside`` at the ``∃w`` step and the admissible pairs), not
-in the chain's first operand: it cuts across every agent's block, and there it blew the chain's intermediate
-products up (one process, consensus N = 8, Reach(Safe): 316 and 331 s that way, 205 s this way, the same evening).
-Against no symmetry at all, the chain's way had measured one process N = 8 314.6 s -> 220.9 s (``bench/synthesis.py
---no-symmetry``; closing takes about 12 s of it), N = 6 36.7 s -> 28.9 s. Parts running elsewhere (helper
-processes, the cluster's workers) each take the representatives of their own states and close their own answer,
-since closing distributes over the union of the parts: two workers N = 8 167.4 s -> 84.7 s.
+in the chain's first operand: it cuts across every agent's block, and there it blows the chain's intermediate
+products up (one process, consensus N = 8, Reach(Safe): about 1.6x the time of taking it where the result is
+read). Parts running elsewhere (helper processes, the cluster's workers) each take the representatives of their
+own states and close their own answer, since closing distributes over the union of the parts. What the symmetry
+buys, one process and the cluster, is what ``bench/synthesis.py --no-symmetry`` prints (docs/benchmarks.md).
 
 Only subsystems with a one-dimensional state grid are considered (their codes compare as numbers). Every set a
 call takes must be invariant: the iterates a fixed point builds from invariant sets are recognised as such
@@ -60,7 +59,7 @@ class Symmetry:
         The cells (codes inside the grid) whose codes do not decrease along each set: one state of every orbit of
         the grid's states, the only ones ``∃u.CPre`` can hold (its admissible pairs lie in the state domain).
         Leaving the codes past the grid out keeps them out of the chain's intermediate products (with them, and the
-        closing swapping input and next-state bits too, consensus N = 8 took 401.1 s instead of 220.9 s).
+        closing swapping input and next-state bits too, consensus N = 8 takes about 1.8x as long).
     """
 
     def __init__(self, model: SymbolicModel, classes: Sequence[Sequence[int]]) -> None:
@@ -94,7 +93,7 @@ class Symmetry:
         """``G · f``: the union of ``f``'s images under the group, in one pass of ``f ∪ s(f)`` over bubble sort's
         swaps (``n(n-1)/2`` per set of ``n``). Passes over the ``n - 1`` adjacent swaps until nothing changes need
         up to ``n`` of them and one more over the whole closed set to see it: on the sets a Reach(Safe) of
-        consensus N = 8 closes, 10.8 s that way against 4.5 s."""
+        consensus N = 8 closes, about 2.4x the time of one pass."""
         bdd = self.model.bdd
         for s in self._word:
             f = f | bdd.let(s, f)
@@ -108,7 +107,7 @@ class Symmetry:
 
 class InvariantSets:
     """Which sets a fixed point hands :meth:`.cpre.ControllablePredecessor.predecessors` are known invariant under its
-    symmetry without checking them (:meth:`Symmetry.invariant`: one substitution per generating swap, 2.4 s of
+    symmetry without checking them (:meth:`Symmetry.invariant`: one substitution per generating swap, seconds of
     a consensus N = 8 Reach(Safe) on the cluster, where the job's process does it alone between the calls).
 
     Sets combined from invariant sets are invariant. A call computed with the symmetry returns a closed set, so

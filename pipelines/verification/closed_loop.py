@@ -133,8 +133,8 @@ def simulate_many(
     """:func:`simulate` from each row of ``x0``, shape (R, n_total), the runs in lockstep.
 
     Every run is the run :func:`simulate` defines (same checks, same stopping rules); the black boxes are
-    evaluated once per step for all runs still going, which is what made 100 tank runs cost 7 s one at a time
-    (eleven expression evaluations per step and run). Inputs are drawn run by run, in row order, from ``rng``:
+    evaluated once per step for all runs still going (one at a time, 100 tank runs cost seconds: eleven expression
+    evaluations per step and run). Inputs are drawn run by run, in row order, from ``rng``:
     with one row this is exactly :func:`simulate`. ``progress(step, steps)`` is called after each step and
     with ``(steps, steps)`` at the end, also when every run ended early.
     """

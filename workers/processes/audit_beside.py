@@ -3,8 +3,8 @@
 Synthesis needs nothing the audit makes, and the audit (Theorems 4.2 and 4.7 checked on random transitions,
 :func:`~pipelines.verification.audit.audit_abstraction`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
 GIL: a thread would not overlap it, a process does. On the 10 tanks the 2.6 s audit then costs no wall time
-(the per-subsystem synthesis uses one core). The job still fails on a violation, after synthesis, as before: a
-violation never stopped synthesis, it sets the job's status at the end.
+(the per-subsystem synthesis uses one core). The job still fails on a violation, after synthesis: a violation
+never stops synthesis, it sets the job's status at the end.
 
 The child is ``python -m workers.processes.audit_beside IN OUT PARENT_PID`` (not ``multiprocessing``, whose ``spawn``
 re-runs the caller's ``__main__`` and whose ``fork`` copies a process that may hold Dask's threads). ``IN`` is a
