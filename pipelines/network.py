@@ -105,16 +105,37 @@ def _grid(g: GridSpec, name: str, kind: str) -> UniformGrid:
     return make(g.lb, g.ub, g.eta, g.origin, name=name)
 
 
+def replicate_count(s: SubsystemSpec, params: dict[str, float]) -> float:
+    """The number of copies ``replicate`` asks for, unchecked: a number, or an expression over the parameters
+    (``N``, ``N - 1``) evaluated by the whitelisted compiler (:meth:`CompiledExpression.constant`).
+
+    Raises
+    ------
+    SpecError
+        The expression names an undefined parameter or is not a safe constant expression.
+    """
+    from pipelines.errors import ExpressionError
+    from pipelines.expressions import compile_expression
+
+    r = s.replicate
+    if not isinstance(r, str):
+        return r
+    text = r.strip()
+    if text.isidentifier() and text not in params:
+        raise SpecError(f"subsystem '{s.name}': replicate names parameter '{text}', which is not defined")
+    try:
+        return compile_expression(text, {}, params, max_length=MAX_READ_LENGTH).constant()
+    except ExpressionError as exc:
+        raise SpecError(f"subsystem '{s.name}': replicate {text!r}: {exc}") from None
+
+
 def _replicas(s: SubsystemSpec, params: dict[str, float]) -> int:
-    r: int | float | str = s.replicate
-    if isinstance(r, str):
-        if r not in params:
-            raise SpecError(f"subsystem '{s.name}': replicate names parameter '{r}', which is not defined")
-        r = params[r]
+    r = replicate_count(s, params)
+    given = "" if not isinstance(s.replicate, str) or s.replicate.strip() in params else f" ({s.replicate.strip()!r})"
     if isinstance(r, bool) or not math.isfinite(r) or r != int(r) or int(r) < 1:
-        raise SpecError(f"subsystem '{s.name}': replicate must be a positive integer, got {r}")
+        raise SpecError(f"subsystem '{s.name}': replicate{given} must be a positive integer, got {r:g}")
     if r > MAX_REPLICAS:
-        raise SpecError(f"subsystem '{s.name}': replicate = {r:g} copies; at most {MAX_REPLICAS} are supported")
+        raise SpecError(f"subsystem '{s.name}': replicate{given} = {r:g} copies; at most {MAX_REPLICAS} are supported")
     return int(r)
 
 

@@ -86,6 +86,23 @@ class CompiledExpression:
         with np.errstate(all="ignore"):
             return self._assemble(env, batch)
 
+    def constant(self) -> float:
+        """The value of an expression that reads no variable (``N - 1`` over the spec's parameters).
+
+        Raises
+        ------
+        ExpressionError
+            The expression reads a variable, or has more than one component.
+        """
+        if self._used:
+            raise ExpressionError(f"expression {shown(self._text)} reads {', '.join(sorted(self._used))}; "
+                                  "a constant uses numbers and parameters only")
+        if self._out_dim != 1:
+            raise ExpressionError(f"expression {shown(self._text)} has {self._out_dim} components; a constant is "
+                                  "one number")
+        with np.errstate(all="ignore"):
+            return float(self._assemble({}, (1,))[0, 0])
+
     def _prepare(self, arrays: Mapping[str, object]) -> tuple[dict[str, np.ndarray], Batch]:
         unknown = [k for k in arrays if k not in self._variables]
         if unknown:

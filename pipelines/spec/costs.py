@@ -53,6 +53,7 @@ its value, the cap and how to get under it.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, fields, replace
 from functools import partial
@@ -60,7 +61,7 @@ from typing import Any
 
 from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS, default_chunk_cells
 from pipelines.errors import SpecError
-from pipelines.network import Network, Subsystem
+from pipelines.network import Network, Subsystem, replicate_count
 from pipelines.spec.model import JobSpec
 from pipelines.verification.audit import composition_transitions
 
@@ -174,8 +175,10 @@ def subsystem_count(spec: JobSpec) -> float:
     """Subsystems after ``replicate`` (a parameter that is not defined counts 1: ``build_network`` names it)."""
     total = 0.0
     for s in spec.subsystems:
-        r = s.replicate
-        count = float(spec.parameters.get(r, 1)) if isinstance(r, str) else float(r)
+        try:
+            count = float(replicate_count(s, dict(spec.parameters)))
+        except SpecError:
+            count = 1.0
         total += max(count, 0.0) if math.isfinite(count) else math.inf
     return total
 
@@ -186,7 +189,8 @@ def spec_costs(spec: JobSpec) -> list[Cost]:
     shown = f"{int(n)}" if math.isfinite(n) and n == int(n) else f"{n:g}"
     knob = ", ".join(f"subsystems[{i}].replicate" for i, s in enumerate(spec.subsystems) if s.replicate != 1)
     knob = knob or "subsystems"
-    named = sorted({f"parameters.{s.replicate}" for s in spec.subsystems if isinstance(s.replicate, str)})
+    named = sorted({f"parameters.{name}" for s in spec.subsystems if isinstance(s.replicate, str)
+                    for name in re.findall(r"[A-Za-z_][A-Za-z0-9_]*", s.replicate) if name in spec.parameters})
     costs = [Cost(
         "max_subsystems", knob, int(n) if math.isfinite(n) else 2**63,
         f"{knob}{' (' + ', '.join(named) + ')' if named else ''}: the spec has {shown} subsystems after replicate",

@@ -6,7 +6,7 @@ and a specification over the composed state. Dynamics and maps are safe expressi
 or, for local runs, a ``module:function`` name.
 
 Numbers that may vary between runs (the network size ``N``) are ``parameters``; they can be used in
-expressions and as ``replicate`` counts, and overridden from the command line (``--set N=16``).
+expressions and in ``replicate`` counts (``N - 1``), and overridden from the command line (``--set N=16``).
 """
 
 from __future__ import annotations
@@ -125,7 +125,9 @@ class SubsystemSpec(_Model):
     """
 
     name: str = Field(min_length=1, max_length=64)
-    replicate: int | str = Field(default=1, description="number of copies, or the name of an integer parameter")
+    replicate: int | str = Field(
+        default=1, description="number of copies: an integer, or an expression over the parameters (\"N\", \"N - 1\")",
+    )
     state: GridSpec
     input: GridSpec
     reads: list[int | ReadExpression] = Field(
@@ -148,6 +150,13 @@ class SubsystemSpec(_Model):
     scp_objective: Literal["paper", "radius"] = Field(
         default="paper", description="'paper' minimises 1'theta (Eq. 4.5); 'radius' the radius actually used"
     )
+
+    @field_validator("replicate")
+    @classmethod
+    def _replicate(cls, v):
+        if isinstance(v, str) and not 0 < len(v.strip()) <= MAX_READ_LENGTH:
+            raise ValueError(f"replicate is an integer or an expression of 1 to {MAX_READ_LENGTH} characters, got {v!r}")
+        return v
 
     @field_validator("reads")
     @classmethod
@@ -304,6 +313,11 @@ class OptionsSpec(_Model):
         default=600.0, gt=0, le=1e7,
         description="seconds one cluster task (a chunk of cells) may run before the job fails as hung; null: no "
         "limit. Not part of the spec's hash: changing it keeps the stored chunks (resume)",
+    )
+    time_limit: float | None = Field(
+        default=None, gt=0, le=1e7,
+        description="seconds of wall time the job may run under `compabs serve` before it is stopped and marked "
+        "failed (null: the server's default_time_limit; at most its max_time_limit). Not part of the spec's hash",
     )
     synthesis_processes: int | Literal["auto"] = Field(
         default="auto",
@@ -567,7 +581,7 @@ def spec_hash(spec: JobSpec) -> str:
     # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
     # timed out must resume.
     # synthesis_quotient and synthesis_refine change the synthesis only: the stored abstraction is reused.
-    timing_only = {"options": {"task_timeout", "synthesis_processes", "synthesis_on", "synthesis_parallel_after",
+    timing_only = {"options": {"task_timeout", "time_limit", "synthesis_processes", "synthesis_on", "synthesis_parallel_after",
                                "synthesis_quotient", "synthesis_refine"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
