@@ -101,7 +101,7 @@ EXAMPLES = ROOT / "examples"
 from service.arguments import count  # noqa: E402  (the CLI's own integer type, after the path is set)
 
 # ====================================================================================== the paper's figures
-#: What the paper reports (Ajeleye & Zamani, /work/shared/paper/data-driven-compositional-abstractions.tex), on a
+#: What the paper reports (Ajeleye & Zamani, data-driven compositional abstractions, Sec. 5), on a
 #: 64 GB MacBook with a modified SCOTS and CUDD, and where. "abstraction" is "abstracting and stacking of the
 #: abstraction BDD representations of the subsystems", "interconnection" is "constructing the interconnection
 #: abstraction"; synthesis times are not given.

@@ -1,4 +1,5 @@
-"""The package layout holds: ``service -> workers -> pipelines``, the method free of execution and storage.
+"""The package layout holds: ``service -> workers -> pipelines``, the method free of execution and storage; ``bench/``
+has no import cycle; the repository refers to no file outside itself; the prose of the three packages has no dates.
 
 The import graph is read from the source (``ast``), function-level and ``TYPE_CHECKING`` imports included, so a
 cycle cannot hide in a function body.
@@ -7,6 +8,9 @@ cycle cannot hide in a function body.
 from __future__ import annotations
 
 import ast
+import io
+import re
+import tokenize
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -14,6 +18,13 @@ PACKAGES = ("pipelines", "workers", "service")
 #: What the method must not import: execution, storage and the web (ARCHITECTURE).
 FORBIDDEN_IN_PIPELINES = {"dask", "distributed", "zarr", "fastapi", "subprocess", "multiprocessing"}
 MAX_LINES = 600
+#: A reference to a file a user of the repository does not have (the workspace around it, the method notes that
+#: docs/method.md replaces).
+OUTSIDE = re.compile(r"\.\./shared|/work/shared|METHOD\.md|METHOD §")
+#: A date: ISO (2026-11-27, 2026/11/27) or with the month's name (November 2026, 27 Nov 2026, Nov. 27, 2026).
+_MONTH = (r"(?:Jan(?:uary)?|Feb(?:ruary)?|Mar(?:ch)?|Apr(?:il)?|May|June?|July?|Aug(?:ust)?|Sept?(?:ember)?"
+          r"|Oct(?:ober)?|Nov(?:ember)?|Dec(?:ember)?)")
+DATE = re.compile(rf"\b(?:19|20)\d\d[-/][01]\d[-/][0-3]\d\b|\b{_MONTH}\.?\s+(?:[0-3]?\d(?:st|nd|rd|th)?,?\s+)?(?:19|20)\d\d\b")
 
 
 def modules(package: str) -> dict[str, Path]:
@@ -110,6 +121,58 @@ def test_no_module_is_over_600_lines():
     long = {str(p.relative_to(ROOT)): n for package in PACKAGES for p in modules(package).values()
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, long
+
+
+def repository_files(*suffixes: str) -> list[Path]:
+    """The repository's files with these suffixes, outside hidden directories (``.git``, ``.venv``, ...) and caches."""
+    return sorted(p for p in ROOT.rglob("*") if p.suffix in suffixes and p.is_file()
+                  and not any(part.startswith(".") or part == "__pycache__" for part in p.relative_to(ROOT).parts))
+
+
+def prose(path: Path) -> list[tuple[int, str]]:
+    """The docstrings and comments of a Python file (every string that is a statement of its own: module, class,
+    function and attribute docstrings), or the comments of a YAML file, as (line, text)."""
+    text = path.read_text()
+    if path.suffix in (".yaml", ".yml"):
+        return [(i, line[line.index("#"):]) for i, line in enumerate(text.splitlines(), 1) if "#" in line]
+    out = [(tok.start[0], tok.string) for tok in tokenize.generate_tokens(io.StringIO(text).readline)
+           if tok.type == tokenize.COMMENT]
+    for node in ast.walk(ast.parse(text, str(path))):
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            out.append((node.lineno, node.value.value))
+    return out
+
+
+def test_the_date_finder_finds_dates():
+    for dated in ("the same domain (2026-11-28, alternating)", "measured 2026/11/27", "on 27 November 2026",
+                  "in Nov 2026", "Nov. 27, 2026", "December 3rd, 2025"):
+        assert DATE.search(dated), dated
+    for undated in ("glibc 2.35", "N = 1024", "Meyer, Girard & Witrant 2017", "May 2x faster", "spacing 1.25",
+                    "2·10^12 states", "issue 24"):
+        assert not DATE.search(undated), undated
+
+
+def test_bench_has_no_import_cycle():
+    assert find_cycle(graph("bench")) is None
+
+
+def test_nothing_refers_to_files_outside_the_repository():
+    """A user has the repository only: no ``../shared``, ``/work/shared`` or the method notes that docs/method.md
+    replaces, in code, docs or configuration."""
+    me = Path(__file__).resolve()  # names the patterns
+    found = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}"
+             for p in repository_files(".py", ".md", ".yaml", ".yml") if p.resolve() != me
+             for i, line in enumerate(p.read_text().splitlines(), 1) if OUTSIDE.search(line)]
+    assert not found, "\n".join(found)
+
+
+def test_no_docstring_or_comment_carries_a_date():
+    """History lives in git and the issues: the prose of the three packages says why the code is as it is, now."""
+    found = [f"{p.relative_to(ROOT)}:{line}: {DATE.search(text).group()}"  # type: ignore[union-attr]
+             for package in PACKAGES for p in sorted((ROOT / package).rglob("*"))
+             if p.suffix in (".py", ".yaml", ".yml") and "__pycache__" not in p.parts
+             for line, text in prose(p) if DATE.search(text)]
+    assert not found, "\n".join(found)
 
 
 def test_the_readme_fits_on_a_screen():
