@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pipelines.array_controller import ArrayController, is_array_controller
 from pipelines.errors import CompabsError
 from pipelines.export.table import EXPORT_FORMAT, BDDTable, ExportedController, load_export, node_table, quantize
 from pipelines.grid import UniformGrid
@@ -322,18 +323,22 @@ class LayeredController(Controller):
 
 def load_controller(
     directory: str | os.PathLike[str], name: str = CONTROLLER_FILE
-) -> Controller | ExportedController:
-    """Load a controller written by ``compabs run`` (``DIR/controller.dddmp`` and ``DIR/controller.json``), or a
+) -> Controller | ArrayController | ExportedController:
+    """Load a controller written by ``compabs run`` (``DIR/controller.json`` with ``DIR/controller.dddmp``, or
+    with ``DIR/controller.npz`` for an explicit game's :class:`~.array_controller.ArrayController`), or a
     determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
     ``inputs(x)`` (:class:`~.export.table.ExportedController`)."""
     path = Path(directory)
     if path.is_file():
         if _is_export(path):
             return load_export(path)
-        directory, name = path.parent, path.name.removesuffix(".json").removesuffix(".dddmp")
+        directory, name = path.parent, path.name.removesuffix(".json").removesuffix(".dddmp").removesuffix(".npz")
     base = Path(directory) / name
-    if not base.with_name(base.name + ".json").exists():
+    head = base.with_name(base.name + ".json")
+    if not head.exists():
         raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
+    if is_array_controller(head):
+        return ArrayController.load(directory, name)
     model, roots, meta = load_all(base)
     if meta.get("form") != "layered":
         (bdd,) = roots

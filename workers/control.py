@@ -11,14 +11,19 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pipelines.array_controller import ArrayController
 from pipelines.controller import controller_of
 from pipelines.errors import SpecError
 from pipelines.spec.regions import closed_loop_regions, spec_regions
+from pipelines.synthesis import explicit
+from pipelines.synthesis.explicit import ExplicitGame, ExplicitResult, choose_backend
+from pipelines.synthesis.fixed_points import IterationProgress, SynthesisResult
 from pipelines.synthesis.synthesize import synthesize
 from pipelines.verification.closed_loop import run_closed_loop
 from workers import checkpoint_store, jobdir
@@ -66,7 +71,13 @@ def run_synthesis(
     kind = spec.specification.kind
     network = abstraction.network
     t0 = time.perf_counter()
-    progress("synthesis", 0, 1, "building BDDs and solving")
+    backend = choose_backend(opts.synthesis_backend if not opts.synthesis_quotient else "bdd", network,
+                             abstraction.relations)
+    if opts.synthesis_quotient and opts.synthesis_backend == "explicit":
+        raise SpecError("options.synthesis_quotient solves a quotient of the BDD game: set options.synthesis_backend "
+                        "to 'bdd' or 'auto', or synthesis_quotient to 0")
+    progress("synthesis", 0, 1, "building predecessor lists and solving" if backend == "explicit"
+             else "building BDDs and solving")
     events = 0
 
     def iteration(_: int, message: str) -> None:
@@ -75,20 +86,30 @@ def run_synthesis(
         progress("synthesis", events, events + 1, message)
 
     store = None
-    if out_dir is not None:  # a job stopped during a long safety fixed point resumes from its last iterate
-        key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
-                          abstraction.interconnection.nodes, quotient=opts.synthesis_quotient)
-        store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
-    initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
-    first, last = network.composed_state_grid().cells_touching(initial, initial)
-    cpre, results, syn_report = synthesize(
-        network, abstraction.relations, abstraction.interconnection, spec.specification,
-        reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
-        initial_cells=list(zip(first.tolist(), last.tolist())), quotient_level=opts.synthesis_quotient,
-        refine_rounds=opts.synthesis_refine, **partitioning(opts, client),
-    )
-    if store is not None:
-        syn_report["checkpoints"] = store.describe()
+    results: Mapping[str, SynthesisResult | ExplicitResult]
+    if backend == "explicit":
+        results, syn_report, make = _explicit_synthesis(abstraction, iteration)
+    else:
+        if out_dir is not None:  # a job stopped during a long safety fixed point resumes from its last iterate
+            key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
+                              abstraction.interconnection.nodes, quotient=opts.synthesis_quotient)
+            store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
+        initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
+        first, last = network.composed_state_grid().cells_touching(initial, initial)
+        cpre, bdd_results, syn_report = synthesize(
+            network, abstraction.relations, abstraction.interconnection, spec.specification,
+            reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
+            initial_cells=list(zip(first.tolist(), last.tolist())), quotient_level=opts.synthesis_quotient,
+            refine_rounds=opts.synthesis_refine, **partitioning(opts, client),
+        )
+        results = bdd_results
+
+        def make(result: Any, meta: dict[str, Any]) -> Any:
+            return controller_of(cpre, result, meta)
+
+        if store is not None:
+            syn_report["checkpoints"] = store.describe()
+    syn_report["backend"] = backend
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
     main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))
@@ -102,13 +123,13 @@ def run_synthesis(
         "spec": spec.model_dump(mode="json"),
         "domain_states": main.domain_states,
     }
-    controller = controller_of(cpre, main, meta)
+    controller = make(main, meta)
     files: list[str] = []
     if out_dir is not None:
         files = [p.name for p in controller.save(out_dir, jobdir.CONTROLLER)]
         for key, r in results.items():
             if key != main_key:
-                controller_of(cpre, r, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
+                make(r, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
                     out_dir, f"{jobdir.CONTROLLER}_{key}"
                 )
     if store is not None:
@@ -132,7 +153,8 @@ def run_synthesis(
     return {
         "domain_states": main.domain_states,
         "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
-        "controller": {"fixed_point": main_key, "form": "layered" if main.layers else "explicit",
+        "controller": {"fixed_point": main_key,
+                       "form": "array" if backend == "explicit" else "layered" if main.layers else "explicit",
                        "nodes": controller.nodes, "files": files},
         "synthesis": syn_report,
         "closed_loop": loop.summary(),
@@ -143,6 +165,33 @@ def run_synthesis(
                                        quotient=opts.synthesis_quotient)
         + ([] if store is None else store.warnings),
     }
+
+
+def _explicit_synthesis(
+    abstraction: Abstraction, progress: IterationProgress,
+) -> tuple[dict[str, ExplicitResult], dict[str, Any], Any]:
+    """The explicit back end (:mod:`pipelines.synthesis.explicit`): the game on the relation's boxes, its fixed
+    points, and a maker of :class:`~pipelines.array_controller.ArrayController` objects; the report says what
+    building the predecessor lists and each fixed point took."""
+    spec, network = abstraction.spec, abstraction.network
+    grid = network.composed_state_grid()
+    (relation,) = abstraction.relations.values()
+    game = ExplicitGame.from_relation(relation, grid.shape)
+    progress(0, f"predecessor lists: {game.transitions:,} transitions in {game.build_seconds:.2f} s")
+    t0 = time.perf_counter()
+    results = explicit.solve(game, spec.specification, grid, tuple(spec.options.fixed_points), progress=progress)
+    report = {
+        "build_seconds": game.build_seconds,
+        "fixed_point_seconds": time.perf_counter() - t0,
+        "game": game.describe(),
+        "results": {k: r.summary() for k, r in results.items()},
+    }
+    subsystem = network.subsystems[0].name
+
+    def make(result: ExplicitResult, meta: dict[str, Any]) -> ArrayController:
+        return ArrayController(result.admissible, result.layer, {**meta, "subsystem": subsystem})
+
+    return results, report, make
 
 
 def partitioning(options: Any, client: Any = None) -> dict[str, Any]:

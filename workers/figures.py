@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller, load_controller
 from pipelines.errors import CompabsError
 from pipelines.figures import figure_setting, phase_plane, save_figure, time_plot
@@ -48,7 +49,7 @@ def _figure_starts(starts: Sequence[Start]) -> list[Start]:
     return initial + [s for s in starts if s[0] != "initial"][:FIGURE_RUNS]
 
 
-def _draw(network: Network, controller: Controller, starts: Sequence[Start], steps: int,
+def _draw(network: Network, controller: Controller | ArrayController, starts: Sequence[Start], steps: int,
           initial_states: Sequence[dict], out_dir: Path, axes: Sequence[int]) -> list[Path]:
     """Run the concrete system from ``starts`` and draw every figure into ``out_dir``; returns their paths."""
     spec = network.spec
@@ -76,12 +77,13 @@ def _draw(network: Network, controller: Controller, starts: Sequence[Start], ste
             "choose": CHOICE, "steps": steps, "starts": [{"origin": o, "x0": x.tolist()} for o, x in chosen],
         })
     if network.state_dim >= 2:
-        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes, plane=partial(plane_mask, controller))
+        plane = controller.plane_mask if isinstance(controller, ArrayController) else partial(plane_mask, controller)
+        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes, plane=plane)
         paths.append(save_figure(fig, jobdir.figure(out_dir, "phase_plane")))
     return paths
 
 
-def draw_figures(network: Network, controller: Controller, loop: ClosedLoop, out_dir: str | os.PathLike[str], *,
+def draw_figures(network: Network, controller: Controller | ArrayController, loop: ClosedLoop, out_dir: str | os.PathLike[str], *,
                  axes: Sequence[int] = (0, 1)) -> list[str]:
     """Draw the job's figures after its closed loop (:func:`workers.control.run_synthesis`).
 
@@ -145,7 +147,7 @@ def _stored_starts(out: Path, n: int) -> tuple[list[Start], int] | None:
     return starts, steps
 
 
-def _initial_states(controller: Controller, spec: JobSpec) -> list[dict]:
+def _initial_states(controller: Controller | ArrayController, spec: JobSpec) -> list[dict]:
     """``x0`` and ``in_domain`` per initial state of the spec (as :attr:`ClosedLoop.initial_states`)."""
     out = []
     for x in spec.options.initial_states:
@@ -155,7 +157,7 @@ def _initial_states(controller: Controller, spec: JobSpec) -> list[dict]:
     return out
 
 
-def _seeded_starts(controller: Controller, spec: JobSpec, initial: list[dict], report: dict) -> tuple[list[Start], int]:
+def _seeded_starts(controller: Controller | ArrayController, spec: JobSpec, initial: list[dict], report: dict) -> tuple[list[Start], int]:
     """The starts the job's closed loop drew (:func:`run_closed_loop` with the generator of
     :func:`workers.control.run_synthesis`, ``seed + 1``), for a job whose example run does not keep them."""
     starts: list[Start] = [("initial", np.asarray(r["x0"], dtype=float)) for r in initial if r["in_domain"]]
@@ -209,7 +211,7 @@ def redraw_figures(job_dir: str | os.PathLike[str], *, axes: tuple[int, int] = (
         raise CompabsError(f"{out} holds no controller ({jobdir.CONTROLLER}.json): the job ran without synthesis, "
                            "and its figures are those of a controller")
     controller = load_controller(out)
-    if not isinstance(controller, Controller):  # pragma: no cover - a directory holds a BDD controller
+    if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - a job's own controller
         raise CompabsError(f"{out}: {jobdir.CONTROLLER}.json is not a synthesized controller")
     initial = _initial_states(controller, spec)
     stored = _stored_starts(out, network.state_dim)

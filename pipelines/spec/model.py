@@ -337,6 +337,13 @@ class OptionsSpec(_Model):
         description="seconds one fixed-point step must take in one process before the parts start (starting them "
         "costs about a second; small games never need them); 0: from the first step on. Not part of the spec's hash",
     )
+    synthesis_backend: Literal["auto", "explicit", "bdd"] = Field(
+        default="auto",
+        description="how the game is solved: 'explicit' = on the relation's boxes in memory (single systems without "
+        "internal inputs: pipelines/synthesis/explicit.py; controllers as arrays), 'bdd' = BDDs (any network), "
+        "'auto' = explicit where it applies and fits in half the available memory. Both give the same domain. Not "
+        "part of the spec's hash",
+    )
 
     synthesis_quotient: int = Field(
         default=0, ge=0, le=16,
@@ -582,7 +589,7 @@ def spec_hash(spec: JobSpec) -> str:
     # timed out must resume.
     # synthesis_quotient and synthesis_refine change the synthesis only: the stored abstraction is reused.
     timing_only = {"options": {"task_timeout", "time_limit", "synthesis_processes", "synthesis_on", "synthesis_parallel_after",
-                               "synthesis_quotient", "synthesis_refine"}}
+                               "synthesis_quotient", "synthesis_refine", "synthesis_backend"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 

@@ -1,0 +1,274 @@
+"""Controllers as arrays: the controllers of explicit games (:mod:`.synthesis.explicit`), refined by the feedback
+refinement relation (Theorem 4.2).
+
+An :class:`ArrayController` holds, per cell of the state grid, whether it is in the domain, the admissible inputs
+as a boolean row over the input grid's flat indices, and for progress controllers the layer (the iteration at
+which the cell entered the attractor). It answers every query of :class:`~.controller.Controller` (``inputs``,
+``choose``, ``in_domain``, ``sample_cells``, ...) with array indexing, for many states at once.
+
+On disk (docs/storage.md): ``NAME.json``, the header (``format`` :data:`ARRAY_FORMAT`, the grids, the job's
+meta, the SHA-256 of the arrays' file), and ``NAME.npz``, the arrays (``domain`` and ``admissible`` bit-packed,
+``layer``), read without pickles. A file whose checksum or shapes disagree with its header is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipelines.errors import CompabsError
+from pipelines.export.table import quantize
+from pipelines.grid import UniformGrid
+
+#: ``format`` of an array controller's header.
+ARRAY_FORMAT = "compabs-array-controller/1"
+
+
+class ArrayController:
+    """A controller ``C(x̂) ⊆ Û`` of a single system stored as arrays (module docstring).
+
+    Parameters
+    ----------
+    admissible : ndarray of bool, shape (n_x, n_u)
+        Inputs allowed at each flat cell of ``state_grid`` (a row of ``False`` outside the domain).
+    layer : ndarray of int, shape (n_x,), or None
+        A progress controller's layers (``-1`` outside the domain).
+    meta : dict
+        ``state_grid`` and ``input_grids`` (one grid: a single system) as grid descriptions, ``kind``, and what
+        the job recorded.
+    """
+
+    def __init__(self, admissible: np.ndarray, layer: np.ndarray | None, meta: dict[str, Any]) -> None:
+        self._meta = {**meta, "form": "array"}
+        self._state_grid = UniformGrid.from_description(meta["state_grid"])
+        self._input_grids = [UniformGrid.from_description(g) for g in meta["input_grids"]]
+        if len(self._input_grids) != 1:
+            raise CompabsError(f"an array controller has one input grid, got {len(self._input_grids)}")
+        admissible = np.asarray(admissible, dtype=bool)
+        shape = (self._state_grid.size, self._input_grids[0].size)
+        if admissible.shape != shape:
+            raise CompabsError(f"an array controller's inputs have shape {admissible.shape}, expected {shape}")
+        self._admissible = admissible
+        self._domain: np.ndarray = np.asarray(admissible.any(axis=1))
+        self._layer = None if layer is None else np.asarray(layer, dtype=np.int32).reshape(-1)
+        if self._layer is not None and (self._layer.size != shape[0] or
+                                        not np.array_equal(self._layer >= 0, self._domain)):
+            raise CompabsError("an array controller's layers do not match its domain")
+        self._bdd = None
+
+    # ------------------------------------------------------------------ what the controller is
+    @property
+    def meta(self) -> dict[str, Any]:
+        return dict(self._meta)
+
+    @property
+    def state_grid(self) -> UniformGrid:
+        return self._state_grid
+
+    @property
+    def input_grids(self) -> list[UniformGrid]:
+        return list(self._input_grids)
+
+    @property
+    def input_dim(self) -> int:
+        return self._input_grids[0].dim
+
+    @property
+    def admissible(self) -> np.ndarray:
+        """The inputs allowed at each flat cell, shape (n_x, n_u) (read-only view)."""
+        view = self._admissible.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def domain_mask(self) -> np.ndarray:
+        """Whether each flat cell is in the domain, shape (n_x,)."""
+        return self._domain.copy()
+
+    @property
+    def layers(self) -> np.ndarray | None:
+        """Per flat cell, the layer of a progress controller (``-1`` outside the domain), else ``None``."""
+        return None if self._layer is None else self._layer.copy()
+
+    @property
+    def nodes(self) -> int:
+        """Bytes of the arrays (an array controller has no BDD nodes; reports compare sizes by this)."""
+        return int(self._admissible.size // 8 + (0 if self._layer is None else self._layer.nbytes))
+
+    @property
+    def domain_states(self) -> int:
+        return int(self._domain.sum())
+
+    # ------------------------------------------------------------------ queries
+    def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`~.controller.Controller.cells` (:func:`~.export.table.quantize`)."""
+        return quantize(self._state_grid, X)
+
+    def cell(self, x: np.ndarray) -> np.ndarray | None:
+        idx, ok = self.cells(np.asarray(x, dtype=float).reshape(1, -1))
+        return idx[0] if ok[0] else None
+
+    def _flat(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, self._state_grid.dim)
+        ok = self._state_grid.on_grid(idx)
+        flat = np.zeros(idx.shape[0], dtype=np.int64)
+        flat[ok] = self._state_grid.ravel(idx[ok])
+        return flat, ok
+
+    def in_domain(self, idx: np.ndarray) -> np.ndarray:
+        """Whether composed cells, shape (B, n), are in the domain; bool (B,) (off the grid: not)."""
+        flat, ok = self._flat(idx)
+        return ok & self._domain[flat]
+
+    def layer_of(self, idx: np.ndarray) -> int | None:
+        """The cell's layer (progress controllers; ``0`` for any domain cell otherwise), ``None`` outside."""
+        flat, ok = self._flat(idx)
+        if not ok[0] or not self._domain[flat[0]]:
+            return None
+        return 0 if self._layer is None else int(self._layer[flat[0]])
+
+    def input_indices(self, idx: np.ndarray) -> np.ndarray:
+        """Flat input indices allowed at a cell, shape (k, 1)."""
+        flat, ok = self._flat(idx)
+        if not ok[0]:
+            return np.zeros((0, 1), dtype=np.int64)
+        return np.flatnonzero(self._admissible[flat[0]]).reshape(-1, 1)
+
+    def inputs(self, x: np.ndarray) -> np.ndarray:
+        """Admissible concrete inputs at the concrete state ``x``, shape (k, m); (0, m) outside the domain."""
+        idx = self.cell(x)
+        if idx is None:
+            return np.zeros((0, self.input_dim))
+        g = self._input_grids[0]
+        return g.points(g.unravel(self.input_indices(idx)[:, 0]))
+
+    def choose_many(self, X: np.ndarray, rng: np.random.Generator, how: str = "random") -> list[np.ndarray | None]:
+        """One admissible concrete input per row of ``X``, shape (B, n): uniform over the admissible inputs
+        (``"random"``) or the smallest input index (``"first"``); ``None`` outside the domain. All rows at once."""
+        idx, ok = self.cells(X)
+        flat, on = self._flat(idx)
+        ok &= on
+        ok[ok] = self._domain[flat[ok]]
+        rows = self._admissible[flat[ok]]
+        if how == "random":
+            k = rows.sum(axis=1)
+            pick = np.floor(rng.random(k.size) * k).astype(np.int64)
+            code = np.argmax(np.cumsum(rows, axis=1) > pick[:, None], axis=1)
+        else:
+            code = np.argmax(rows, axis=1)
+        g = self._input_grids[0]
+        points = g.points(g.unravel(code))
+        out: list[np.ndarray | None] = [None] * len(ok)
+        for j, r in enumerate(np.flatnonzero(ok)):
+            out[r] = points[j]
+        return out
+
+    def choose(self, x: np.ndarray, rng: np.random.Generator, how: str = "random") -> np.ndarray | None:
+        return self.choose_many(np.asarray(x, dtype=float).reshape(1, -1), rng, how)[0]
+
+    def sample_cells(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """Cells drawn uniformly (with replacement) from the domain, shape (count, n); empty if the domain is."""
+        cells = np.flatnonzero(self._domain)
+        if cells.size == 0 or count <= 0:
+            return np.zeros((0, self._state_grid.dim), dtype=np.int64)
+        return self._state_grid.unravel(cells[rng.integers(cells.size, size=count)])
+
+    def plane_mask(self, base: np.ndarray, i: int, j: int) -> np.ndarray:
+        """The domain on the plane of coordinates ``(i, j)`` through cell ``base``, shape (shape[i], shape[j])
+        (:func:`~.figures.domain.plane_mask` of a BDD controller)."""
+        shape = self._state_grid.shape
+        at: list[Any] = [int(v) for v in np.asarray(base).reshape(-1)]
+        at[i], at[j] = slice(None), slice(None)
+        plane = self._domain.reshape(shape)[tuple(at)]
+        return plane if i < j else plane.T
+
+    # ------------------------------------------------------------------ the BDD form, for the export
+    def to_bdd(self):
+        """The same controller as a BDD :class:`~.controller.Controller` over state and input bits (built in
+        bulk, :func:`~.symbolic.relations.pair_set`): what ``compabs export`` determinizes and minimises."""
+        if self._bdd is None:
+            from pipelines.controller import Controller
+            from pipelines.symbolic.model import SymbolicModel
+            from pipelines.symbolic.order import SubsystemLayout
+            from pipelines.symbolic.relations import pair_set
+
+            g, u = self._state_grid, self._input_grids[0]
+            layout = SubsystemLayout(0, tuple(g.shape), u.size, (), "0", 0, self._meta.get("subsystem", ""))
+            grids = {"state": [g.describe()], "input": [u.describe()], "internal": [], "intermediate": {}}
+            model = SymbolicModel([layout], [], grids=grids)
+            x, inp = np.nonzero(self._admissible)
+            f = pair_set(model, g.unravel(x), inp.reshape(-1, 1))
+            self._bdd = Controller(model, f, {**self._meta, "form": "explicit"})
+        return self._bdd
+
+    # ------------------------------------------------------------------ files
+    def save(self, directory: str | os.PathLike[str], name: str) -> tuple[Path, ...]:
+        """Write ``NAME.npz`` and its header ``NAME.json``; returns the paths (arrays first)."""
+        base = Path(directory) / name
+        arrays, head = base.with_name(base.name + ".npz"), base.with_name(base.name + ".json")
+        parts: dict[str, np.ndarray] = {"admissible": np.packbits(self._admissible, axis=1)}
+        if self._layer is not None:
+            parts["layer"] = self._layer
+        with open(arrays, "wb") as f:
+            np.savez_compressed(f, **parts)  # type: ignore[arg-type]
+        header = {
+            "format": ARRAY_FORMAT,
+            "meta": self._meta,
+            "roots": [arrays.name],
+            "shape": list(self._admissible.shape),
+            "layered": self._layer is not None,
+            "sha256": _sha256(arrays),
+        }
+        head.write_text(json.dumps(header, indent=1))
+        return arrays, head
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike[str], name: str) -> ArrayController:
+        """Read a controller written by :meth:`save`, checking the arrays against the header."""
+        base = Path(directory) / name
+        head_path = base.with_name(base.name + ".json")
+        try:
+            header = json.loads(head_path.read_text())
+            arrays = head_path.with_name(header["roots"][0])
+            shape = tuple(int(k) for k in header["shape"])
+            meta = dict(header["meta"])
+        except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+            raise CompabsError(f"{head_path}: not a readable array controller header ({exc})") from None
+        if header.get("format") != ARRAY_FORMAT:
+            raise CompabsError(f"{head_path}: format {header.get('format')!r}, expected {ARRAY_FORMAT!r}")
+        try:
+            digest = _sha256(arrays)
+        except OSError as exc:
+            raise CompabsError(f"{arrays}: cannot read the controller's arrays ({exc.strerror or exc})") from None
+        if digest != header.get("sha256"):
+            raise CompabsError(f"{arrays}: its checksum differs from the one in {head_path.name} (a damaged or "
+                               "replaced file); synthesize the controller again")
+        try:
+            with np.load(arrays, allow_pickle=False) as data:
+                admissible = np.unpackbits(data["admissible"], axis=1, count=shape[1]).astype(bool)
+                layer = data["layer"] if header.get("layered") else None
+        except (OSError, ValueError, KeyError) as exc:
+            raise CompabsError(f"{arrays}: not readable as an array controller ({exc})") from None
+        if admissible.shape != shape:
+            raise CompabsError(f"{arrays}: arrays of shape {admissible.shape}, the header says {shape}")
+        return cls(admissible, layer, meta)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def is_array_controller(header_path: str | os.PathLike[str]) -> bool:
+    """Whether a controller header (``NAME.json``) is an array controller's (its first bytes are enough)."""
+    with open(header_path, "rb") as f:
+        head = f.read(4096)
+    return ARRAY_FORMAT.encode() in head
