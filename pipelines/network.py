@@ -100,9 +100,72 @@ class Network:
 MAX_REPLICAS = 100_000
 
 
-def _grid(g: GridSpec, name: str, kind: str) -> UniformGrid:
+#: The most dimensions a box of numbers is broadcast over (beyond, lists say what is meant).
+MAX_BROADCAST = 64
+
+
+def _grid(g: GridSpec, name: str, kind: str, dim: int | None = None) -> UniformGrid:
+    """The grid of a box; a box of numbers is broadcast over ``dim`` dimensions when given."""
     make = UniformGrid.covering if kind == "cover" else UniformGrid.inside
-    return make(g.lb, g.ub, g.eta, g.origin, name=name)
+
+    def wide(v):
+        return v if dim is None or v is None or isinstance(v, list) else [v] * dim
+
+    return make(wide(g.lb), wide(g.ub), wide(g.eta), wide(g.origin), name=name)
+
+
+def _listed_dim(g: GridSpec) -> int | None:
+    """The length of the box's lists (equal: :class:`GridSpec`), ``None`` for a box of numbers."""
+    lengths = [len(v) for v in (g.lb, g.ub, g.eta, g.origin) if isinstance(v, list)]
+    return lengths[0] if lengths else None
+
+
+def box_dims(s: SubsystemSpec, si: int, params: dict[str, float]) -> tuple[int, int]:
+    """The dimensions of the state and input boxes of ``s`` (docs/spec.md, "Boxes and dimensions").
+
+    A box with lists has their length. A box of numbers is broadcast over the dimension the dynamics use: for the
+    state, the larger of the highest ``x[k]`` read plus one and the entries of a list ``[f1, ..., fn]``; for the
+    input, the highest ``u[k]`` read plus one; 1 for a ``module:function`` (whose text says nothing).
+
+    Raises
+    ------
+    SpecError
+        A broadcast state whose dynamics give another number of components than the dimension they read, or
+        more than :data:`MAX_BROADCAST` dimensions: naming the field and asking for a box per dimension.
+    """
+    from pipelines.errors import ExpressionError
+    from pipelines.expressions import compile_expression
+    from pipelines.expressions.dimensions import components_read, output_entries
+    from pipelines.spec.model import is_module_function
+
+    field = "ode" if s.ode is not None else "dynamics"
+    where = f"subsystems[{si}] ('{s.name}')"
+    text = s.source
+    read = not is_module_function(text)
+    n = _listed_dim(s.state) or (max(1, components_read(text, "x"), output_entries(text)) if read else 1)
+    m = _listed_dim(s.input) or (max(1, components_read(text, "u")) if read else 1)
+    for box, dim, var in (("state", n, "x"), ("input", m, "u")):
+        if _listed_dim(getattr(s, box)) is None and dim > MAX_BROADCAST:
+            raise SpecError(f"{where}.{box}: lb, ub and eta are numbers and {field} reads {var}[{dim - 1}]; a box of "
+                            f"numbers is broadcast over at most {MAX_BROADCAST} dimensions: write a box per "
+                            "dimension (lists for lb, ub and eta)")
+    wanted = components_read(text, "w") if read else 0
+    if wanted > len(s.reads):
+        given = f"{len(s.reads)} ({', '.join(f'w[{k}]' for k in range(len(s.reads)))})" if s.reads else "none"
+        raise SpecError(f"{where}.reads: {field} reads w[{wanted - 1}], but reads names {given} of the internal "
+                        "variables: list one entry in reads for each w[k] the dynamics use")
+    if _listed_dim(s.state) is None and n > 1 and read:
+        try:
+            out = compile_expression(text, {"x": n, "u": m, "w": max(len(s.reads), 1)}, params).output_dim()
+        except ExpressionError:
+            out = n  # the compiler's own message, when the network builds the black box
+        if out != n:
+            why = f"it reads x[{n - 1}]" if components_read(text, "x") == n else f"a list of {n} entries"
+            raise SpecError(f"{where}.state: lb, ub and eta are numbers, so the box is broadcast over the {n} "
+                            f"dimensions {field} uses ({why}), but {field} gives {out} component"
+                            f"{'s' if out > 1 else ''}, not one per state dimension: write a box per dimension "
+                            f"(lists for lb, ub and eta) or fix {field}")
+    return n, m
 
 
 def replicate_count(s: SubsystemSpec, params: dict[str, float]) -> float:
@@ -235,7 +298,8 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
     offset = 0
     # Internal grids are known once the map's output dimension is; the map needs the state dimension.
     copies = [_replicas(s, params) for s in spec.subsystems]
-    n_total = sum(s.state.dim * r for s, r in zip(spec.subsystems, copies))
+    dims = [box_dims(s, si, params) for si, s in enumerate(spec.subsystems)]
+    n_total = sum(n * r for (n, _), r in zip(dims, copies))
     imap, internal_grids = _internal(spec, n_total, params, allowed_modules)
     p = imap.out_dim
 
@@ -245,8 +309,8 @@ def build_network(spec: JobSpec, allowed_modules: Sequence[str] | None = ()) -> 
         for r in range(copies[si]):
             name = s.name if s.replicate == 1 else f"{s.name}[{r}]"
             where = f"subsystems[{si}] ('{name}')"
-            xg = _grid(s.state, f"{where}.state", "cover")
-            ug = _grid(s.input, f"{where}.input", "inside")
+            xg = _grid(s.state, f"{where}.state", "cover", dims[si][0])
+            ug = _grid(s.input, f"{where}.input", "inside", dims[si][1])
             wg = None
             if reads[r]:
                 wg = UniformGrid.product([internal_grids[j] for j in reads[r]])

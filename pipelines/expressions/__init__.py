@@ -22,6 +22,8 @@ Modules
     The AST -> closures compiler and :func:`compile_expression`.
 :mod:`~pipelines.expressions.compiled`
     :class:`CompiledExpression`, the callable result.
+:mod:`~pipelines.expressions.dimensions`
+    The dimensions a text implies (the highest ``x[k]`` it reads, its output list), from the parse tree.
 
 Shapes
 ------
