@@ -45,13 +45,14 @@ def _name(args: argparse.Namespace) -> str:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Write the export; print its sizes (JSON) and the files written."""
-    from pipelines.controller import load_controller
+    from pipelines.array_controller import ArrayController
+    from pipelines.controller import Controller, load_controller
     from pipelines.export.c import write_c
     from pipelines.export.emit import export_controller, write_csv, write_json
 
     ctrl = load_controller(args.dir, _name(args))
-    from pipelines.controller import Controller
-
+    if isinstance(ctrl, ArrayController):  # an explicit game's: the same controller as a BDD, then as any other
+        ctrl = ctrl.to_bdd()
     assert isinstance(ctrl, Controller)
     form = args.form if args.format != "csv" else "bdd"  # a CSV lists cells: no need for a tree
     export = export_controller(ctrl, form=form, rule=args.rule)
@@ -90,10 +91,13 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobdir.CONTROLLER) -> dict[str, Any]:
     """What ``compabs control`` reports at a state: its cell, the admissible inputs, the determinized one."""
+    from pipelines.array_controller import ArrayController
     from pipelines.controller import Controller, LayeredController, load_controller
     from pipelines.export.determinize import determinized_at, resolve_rule
 
     ctrl = load_controller(directory, name)
+    if isinstance(ctrl, ArrayController):
+        return _array_control_at(ctrl, parse_state(x_text, ctrl.state_grid.dim), rule)
     assert isinstance(ctrl, Controller)
     x = parse_state(x_text, ctrl.state_grid.dim)
     rule = resolve_rule(ctrl, rule)
@@ -117,6 +121,37 @@ def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobd
     assert codes is not None
     parts = [g.points(g.unravel(codes[s:s + 1])) for s, g in enumerate(ctrl.input_grids)]
     out["determinized"] = np.concatenate(parts, axis=1)[0].tolist()
+    return out
+
+
+def _array_control_at(ctrl: Any, x: np.ndarray, rule: str) -> dict[str, Any]:
+    """:func:`control_at` for an :class:`~pipelines.array_controller.ArrayController`: its inputs from the arrays;
+    the determinized one is the smallest admissible input index (a progress controller's inputs all lead into the
+    layer before the cell's, so ``earliest_layer`` and ``smallest_index`` choose the same)."""
+    from pipelines.export.determinize import RULES
+    from pipelines.export.table import ExportError
+
+    if rule not in RULES:
+        raise ExportError(f"unknown rule {rule!r}; expected one of {', '.join(RULES)}")
+    used = "earliest_layer" if rule == "auto" and ctrl.layers is not None and ctrl.meta.get("kind") != "safe" \
+        else ("smallest_index" if rule == "auto" else rule)
+    out: dict[str, Any] = {"x": x.tolist(), "cell": None, "cell_centre": None, "in_domain": False, "inputs": [],
+                           "determinized": None, "rule": used, "fixed_point": ctrl.meta.get("fixed_point")}
+    idx = ctrl.cell(x)
+    if idx is None:
+        out["reason"] = "outside the state box"
+        return out
+    out["cell"] = [int(v) for v in idx]
+    out["cell_centre"] = ctrl.state_grid.points(idx[None, :])[0].tolist()
+    if ctrl.layers is not None:
+        out["layer"] = ctrl.layer_of(idx)
+    inputs = ctrl.inputs(x)
+    out["inputs"] = inputs.tolist()
+    out["in_domain"] = bool(inputs.shape[0])
+    if not out["in_domain"]:
+        out["reason"] = "outside the controller's domain"
+        return out
+    out["determinized"] = inputs[0].tolist()
     return out
 
 

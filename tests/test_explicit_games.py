@@ -198,3 +198,49 @@ def test_explicit_is_refused_where_it_does_not_apply():
     assert explicit.choose_backend("auto", network, {}) == "bdd"
     with pytest.raises(SpecError, match="synthesis_backend is 'explicit', but the network has 2 subsystems"):
         explicit.choose_backend("explicit", network, {})
+
+
+REACH = """
+name: single_reach
+subsystems:
+  - name: plant
+    state: {lb: [-1, -1], ub: [1, 1], eta: [0.1, 0.1]}
+    input: {lb: -1, ub: 1, eta: 0.5}
+    dynamics: "[0.9 * x[0] + 0.1 * x[1], 0.8 * x[1] + 0.2 * u[0]]"
+    lipschitz: {x: 1.0}
+    samples: 4
+specification:
+  kind: reach_avoid
+  target: {boxes: [{lb: [-0.3, -0.3], ub: [0.3, 0.3]}]}
+  avoid: {boxes: [{lb: [0.4, -0.2], ub: [0.6, 0.2]}]}
+options: {audit_transitions: 2000, closed_loop_runs: 20, initial_states: [[0.8, 0.8]]}
+"""
+
+
+@pytest.mark.parametrize("kind", ["safe", "reach_avoid"])
+def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_agrees(tmp_path, kind):
+    from pipelines.controller import load_controller
+    from pipelines.export.emit import export_controller
+    from pipelines.spec.model import parse_spec
+    from workers.job import run_job
+
+    from .test_export_c import check, compile_driver
+    from .test_single_system import SINGLE
+
+    text = SINGLE if kind == "safe" else REACH
+    reports, controllers = {}, {}
+    for backend in ("explicit", "bdd"):
+        spec = parse_spec(text.replace("options: {", f"options: {{synthesis_backend: {backend}, "))
+        reports[backend] = run_job(spec, tmp_path / backend, in_process=True)
+        controllers[backend] = load_controller(tmp_path / backend)
+    e, b = reports["explicit"], reports["bdd"]
+    assert e["synthesis"]["backend"] == "explicit" and b["synthesis"]["backend"] == "bdd"
+    assert e["controller"]["form"] == "array" and e["domain_states"] == b["domain_states"] > 0
+    assert e["closed_loop"]["violations"] == 0 and e["closed_loop"]["runs"] > 0
+    ctrl = controllers["explicit"]
+    assert isinstance(ctrl, ArrayController)
+    g = ctrl.state_grid
+    cells = g.unravel(np.arange(g.size))
+    np.testing.assert_array_equal(ctrl.in_domain(cells), controllers["bdd"].in_domain(cells))
+    export = export_controller(ctrl.to_bdd())
+    check(ctrl, export, compile_driver(export, tmp_path / "c"), np.random.default_rng(0))
