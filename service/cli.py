@@ -24,7 +24,6 @@ import json
 import math
 import os
 import sys
-import textwrap
 import threading
 import time
 import traceback
@@ -37,6 +36,7 @@ import numpy as np
 from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
 from service.settings import local_caps
+from service.table import Row, format_table
 from workers import jobdir
 from workers.huge_pages import restart_with_huge_pages
 from workers.jobdir import json_default as _json_default
@@ -205,8 +205,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 # ====================================================================================== the run's summary
-#: Width of the summary's labels; its lines wrap at :data:`SUMMARY_WIDTH` columns.
-LABEL = 14
+#: The summary's lines wrap at :data:`SUMMARY_WIDTH` columns (:func:`service.table.format_table`).
 SUMMARY_WIDTH = 100
 
 
@@ -234,17 +233,9 @@ def share_text(part: float, whole: float) -> str:
     return f"{percent:.3g}%"
 
 
-def _line(label: str, *parts: str) -> str:
-    """One labelled line of the summary, ``parts`` joined by commas and wrapped between parts only (a number is
-    never parted from its unit)."""
-    glued = ", ".join(part.replace(" ", NBSP) for part in parts)
-    text = textwrap.fill(glued, SUMMARY_WIDTH, initial_indent=f"  {label:<{LABEL}}", subsequent_indent=" " * (LABEL + 2),
-                         break_on_hyphens=False, break_long_words=False)
-    return text.replace(NBSP, " ")
-
-
-#: Joins the words of one part of a summary line: textwrap breaks lines at ASCII whitespace only.
-NBSP = "\u00a0"
+def _line(label: str, *parts: str) -> Row:
+    """One labelled row of the summary (laid out with the others by :func:`service.table.format_table`)."""
+    return label, parts
 
 
 def _count(n: int, noun: str) -> str:
@@ -277,7 +268,7 @@ def _runner_parts(runner: dict) -> list[str]:
     return [f"{runner.get('chunks_computed', 0):,} computed", f"{runner.get('chunks_reused', 0):,} reused", where]
 
 
-def _file_lines(report: dict, out: Path) -> list[str]:
+def _file_lines(report: dict, out: Path) -> list[Row]:
     """The job's files: report, relations, controller (its header; a layered controller's DDDMP files lie beside
     it), figures."""
     lines = [_line("report", str(out / jobdir.REPORT)), _line("relations", str(out / jobdir.RELATIONS))]
@@ -315,10 +306,11 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
     from workers.stages import STAGES
 
     states = int(report["abstract_states"])
-    lines = [f"{report['name']}: {_count(states, 'abstract state')}, {report.get('subsystem_count', '?')} subsystems"]
+    header = f"{report['name']}: {_count(states, 'abstract state')}, {report.get('subsystem_count', '?')} subsystems"
+    lines: list[Row] = []
     for info in report.get("subsystems", []):
         members = info.get("members") or [info["name"]]
-        label = info["name"] + (f" ×{len(members)}" if len(members) > 1 else "")
+        label = info["name"] + (f" ×{len(members):,}" if len(members) > 1 else "")
         lines.append(_line(label, *_subsystem_parts(info)))
     for name, region in (report.get("regions") or {}).items():
         lines.append(_line(name, f"{_count(region['states'], 'state')} ({share_text(region['states'], states)})"))
@@ -364,7 +356,7 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
     seconds = report.get("stage_seconds", {})
     order = [s for s in STAGES if s in seconds] + [s for s in seconds if s not in STAGES]
     lines.append(_line("stages", *(f"{s.replace('_', ' ')} {seconds_text(seconds[s])}" for s in order)))
-    return lines + _file_lines(report, out)
+    return [header, *format_table(lines + _file_lines(report, out), SUMMARY_WIDTH)]
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
