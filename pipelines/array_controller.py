@@ -4,7 +4,8 @@ refinement relation (Theorem 4.2).
 An :class:`ArrayController` holds, per cell of the state grid, whether it is in the domain, the admissible inputs
 as a boolean row over the input grid's flat indices, and for progress controllers the layer (the iteration at
 which the cell entered the attractor). It answers every query of :class:`~.controller.Controller` (``inputs``,
-``choose``, ``in_domain``, ``sample_cells``, ...) with array indexing, for many states at once.
+``choose``, ``in_domain``, ``sample_cells``, ...) with array indexing, for many states at once. ``compabs export``
+turns it into the same controller as a BDD (:func:`~.export.emit.as_bdd`) and determinizes that.
 
 On disk (docs/storage.md): ``NAME.json``, the header (``format`` :data:`ARRAY_FORMAT`, the grids, the job's
 meta, the SHA-256 of the arrays' file), and ``NAME.npz``, the arrays (``domain`` and ``admissible`` bit-packed,
@@ -59,7 +60,6 @@ class ArrayController:
         if self._layer is not None and (self._layer.size != shape[0] or
                                         not np.array_equal(self._layer >= 0, self._domain)):
             raise CompabsError("an array controller's layers do not match its domain")
-        self._bdd = None
 
     # ------------------------------------------------------------------ what the controller is
     @property
@@ -186,25 +186,6 @@ class ArrayController:
         at[i], at[j] = slice(None), slice(None)
         plane = self._domain.reshape(shape)[tuple(at)]
         return plane if i < j else plane.T
-
-    # ------------------------------------------------------------------ the BDD form, for the export
-    def to_bdd(self):
-        """The same controller as a BDD :class:`~.controller.Controller` over state and input bits (built in
-        bulk, :func:`~.symbolic.relations.pair_set`): what ``compabs export`` determinizes and minimises."""
-        if self._bdd is None:
-            from pipelines.controller import Controller
-            from pipelines.symbolic.model import SymbolicModel
-            from pipelines.symbolic.order import SubsystemLayout
-            from pipelines.symbolic.relations import pair_set
-
-            g, u = self._state_grid, self._input_grids[0]
-            layout = SubsystemLayout(0, tuple(g.shape), u.size, (), "0", 0, self._meta.get("subsystem", ""))
-            grids = {"state": [g.describe()], "input": [u.describe()], "internal": [], "intermediate": {}}
-            model = SymbolicModel([layout], [], grids=grids)
-            x, inp = np.nonzero(self._admissible)
-            f = pair_set(model, g.unravel(x), inp.reshape(-1, 1))
-            self._bdd = Controller(model, f, {**self._meta, "form": "explicit"})
-        return self._bdd
 
     # ------------------------------------------------------------------ files
     def save(self, directory: str | os.PathLike[str], name: str) -> tuple[Path, ...]:

@@ -51,9 +51,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from pipelines.export.emit import export_controller, write_csv, write_json
 
     ctrl = load_controller(args.dir, _name(args))
-    if isinstance(ctrl, ArrayController):  # an explicit game's: the same controller as a BDD, then as any other
-        ctrl = ctrl.to_bdd()
-    assert isinstance(ctrl, Controller)
+    assert isinstance(ctrl, Controller | ArrayController)
     form = args.form if args.format != "csv" else "bdd"  # a CSV lists cells: no need for a tree
     export = export_controller(ctrl, form=form, rule=args.rule)
     default = Path(args.dir) / f"{_name(args)}_export"

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.array_controller import ArrayController
 from pipelines.errors import CompabsError, SpecError
+from pipelines.export.emit import as_bdd
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import enumerate_cells
 from pipelines.symbolic.model import SymbolicModel
@@ -162,7 +163,7 @@ def test_the_array_controller_answers_as_its_arrays(tmp_path):
     np.testing.assert_array_equal(ctrl.plane_mask(base, 0, 1), r.domain.reshape(g.shape))
     np.testing.assert_array_equal(ctrl.plane_mask(base, 1, 0), r.domain.reshape(g.shape).T)
     # the BDD form is the same controller, cell for cell
-    bdd = ctrl.to_bdd()
+    bdd = as_bdd(ctrl)
     m = bdd.model
     np.testing.assert_array_equal(as_pairs(m, bdd.relation, g.shape, r.admissible.shape[1]), r.admissible)
 
@@ -242,5 +243,5 @@ def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_a
     g = ctrl.state_grid
     cells = g.unravel(np.arange(g.size))
     np.testing.assert_array_equal(ctrl.in_domain(cells), controllers["bdd"].in_domain(cells))
-    export = export_controller(ctrl.to_bdd())
+    export = export_controller(ctrl)
     check(ctrl, export, compile_driver(export, tmp_path / "c"), np.random.default_rng(0))

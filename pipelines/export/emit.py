@@ -15,12 +15,16 @@ from typing import Any
 
 import numpy as np
 
+from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
 from pipelines.export.determinize import RULE_TEXT, bdd_table, determinize
 from pipelines.export.table import EXPORT_FORMAT, BDDTable, ExportedController, ExportError, TreeTable, codes_from_bits
 from pipelines.export.tree import decision_tree
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import count
+from pipelines.symbolic.model import SymbolicModel
+from pipelines.symbolic.order import SubsystemLayout
+from pipelines.symbolic.relations import pair_set
 
 FORMS = ("auto", "bdd", "tree")
 #: Largest state grid for which the exact tree is built (it labels every cell of the grid).
@@ -202,9 +206,21 @@ def sample_domain_cells(t: BDDTable, grid: UniformGrid, size: int, rng: np.rando
     return codes
 
 
-def export_controller(ctrl: Controller, form: str = "auto", rule: str = "auto",
+def as_bdd(ctrl: ArrayController) -> Controller:
+    """An explicit game's array controller as the same controller over state and input bits (built in bulk,
+    :func:`~pipelines.symbolic.relations.pair_set`), which the export determinizes and minimises as any other."""
+    g, (u,) = ctrl.state_grid, ctrl.input_grids
+    layout = SubsystemLayout(0, tuple(g.shape), u.size, (), "0", 0, ctrl.meta.get("subsystem", ""))
+    grids = {"state": [g.describe()], "input": [u.describe()], "internal": [], "intermediate": {}}
+    model = SymbolicModel([layout], [], grids=grids)
+    x, inputs = np.nonzero(ctrl.admissible)
+    return Controller(model, pair_set(model, g.unravel(x), inputs.reshape(-1, 1)), {**ctrl.meta, "form": "explicit"})
+
+
+def export_controller(ctrl: Controller | ArrayController, form: str = "auto", rule: str = "auto",
                       tree_max_cells: int = TREE_MAX_CELLS) -> Export:
-    """Determinize ``ctrl`` (:func:`~.determinize.determinize`) and minimise it.
+    """Determinize ``ctrl`` (:func:`~.determinize.determinize`; an array controller through :func:`as_bdd`) and
+    minimise it.
 
     ``form``: ``bdd`` (the node table, any size), ``tree`` (the exact decision tree; grids up to
     ``tree_max_cells``) or ``auto``: the one with fewer bytes (the tree is tried where the grid allows, and given
@@ -212,6 +228,8 @@ def export_controller(ctrl: Controller, form: str = "auto", rule: str = "auto",
     """
     if form not in FORMS:
         raise ExportError(f"unknown form {form!r}; expected one of {', '.join(FORMS)}")
+    if isinstance(ctrl, ArrayController):
+        ctrl = as_bdd(ctrl)
     m = ctrl.model
     D, used = determinize(ctrl, rule)
     table = bdd_table(m, D)
