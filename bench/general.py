@@ -1,16 +1,21 @@
-"""The ``general`` case of ``bench/run.py`` (issue 22): the field's standard benchmarks, side by side with SCOTS.
+"""The ``general`` case (issue 22; only when named, never under ``--quick``): the field's standard benchmarks, side by
+side with SCOTS.
 
 For each example (``examples/dcdc.yaml``, ``examples/vehicle.yaml``, ``examples/rooms.yaml``): the job end to end in
-one process (abstraction with the audit beside synthesis, synthesis, closed loop, files), its abstract states,
-transitions and winning domain, and the per-cell stage against the floor (the black box alone on the same samples,
-:func:`bench.run.child_floor`), printed beside SCOTS's figures (:data:`SCOTS`).
+one process (:func:`bench.end_to_end.child_end_to_end`: :func:`workers.job.run_job`, the audit beside synthesis,
+synthesis, closed loop, files), its abstract states, transitions and winning domain, and the per-cell stage against
+the floor (the black box alone on the same samples, :func:`bench.floor.child_floor`), printed beside SCOTS's figures
+(:data:`SCOTS`). The children are named, not imported: :func:`bench.harness.run_child` runs them.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
-#: SCOTS v0.2 (and Dionysos.jl) on the same problems, measured on this 2-core machine when issue 22 was written.
+from bench import harness
+
+#: SCOTS v0.2 (and Dionysos.jl) on the same problems, on a 2-core machine (this case does not run them again).
 #: SCOTS builds the abstraction from the model (a growth bound from the ODE's Jacobian), not from data.
 SCOTS: dict[str, dict[str, Any]] = {
     "dcdc": {
@@ -50,8 +55,18 @@ def transitions_of(subsystems: list[dict]) -> int:
     return total
 
 
-def bench_general(args, *, run_child, case_record, examples, worker_environ) -> dict:
-    """Run every example end to end and its floor; the parent side of the ``general`` case."""
+def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_child,
+                  case_record: Callable[..., dict] = harness.case_record, examples: Any = harness.EXAMPLES,
+                  worker_environ: Callable[[], dict[str, str]] | None = None) -> dict:
+    """Run every example end to end and its floor; the parent side of the ``general`` case (:func:`run`).
+
+    The keywords replace the harness's own (a test's fakes); ``worker_environ`` defaults to
+    :func:`workers.cluster.worker_environ`.
+    """
+    if worker_environ is None:
+        from workers.cluster import worker_environ as default_environ
+
+        worker_environ = default_environ
     rows: list[dict] = []
     for name in ("dcdc", "vehicle", "rooms"):
         spec = examples / f"{name}.yaml"
@@ -68,10 +83,10 @@ def bench_general(args, *, run_child, case_record, examples, worker_environ) -> 
         rec["scots"] = scots
         if scots:
             rec["vs_scots"] = {
-                "domain_states": _ratio(rec["domain_states"], scots["domain_states"]),
-                "transitions": _ratio(rec["transitions"], scots["transitions"]),
-                "subsystems_seconds": _ratio(rec["stages"].get("subsystems", {}).get("wall"),
-                                             scots["abstraction_seconds"]),
+                "domain_states": harness.ratio(rec["domain_states"], scots["domain_states"]),
+                "transitions": harness.ratio(rec["transitions"], scots["transitions"]),
+                "subsystems_seconds": harness.ratio(rec["stages"].get("subsystems", {}).get("wall"),
+                                                    scots["abstraction_seconds"]),
             }
         rows.append(rec)
     return {"case": "general", "status": "ok" if all(r["status"] == "ok" for r in rows) else "error",
@@ -83,11 +98,24 @@ def bench_general(args, *, run_child, case_record, examples, worker_environ) -> 
                          default=None)}
 
 
-def _ratio(a: float | None, b: float | None) -> float | None:
-    return a / b if a is not None and b not in (None, 0) else None
+def run(args: Any) -> dict:
+    """The case for ``bench/run.py --cases general``."""
+    rec = bench_general(args)
+    harness.baseline_progress(rec)
+    return rec
 
 
-def general_lines(c: dict, fmt) -> list[str]:
+def lines(c: dict) -> list[str]:
+    """The case's lines in the table: a heading and :func:`general_lines`."""
+    return ["  general: the field's benchmarks beside SCOTS (examples/dcdc, vehicle, rooms)", *general_lines(c)]
+
+
+def targets(c: dict, put: harness.Put) -> None:
+    """The case's targets in the table: :func:`general_targets`."""
+    general_targets(c, put)
+
+
+def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
     """The general case's table: ours beside SCOTS's per example."""
     out = [f"  {'example':<9}{'states':>11}{'transitions':>13}{'domain':>11}{'end-to-end s':>14}{'per-cell s':>12}"
            f"{'/floor':>8}{'audit':>10}{'viol.':>6}{'runs':>6}{'viol.':>6}   SCOTS (states, transitions, domain, s)"]
@@ -105,7 +133,7 @@ def general_lines(c: dict, fmt) -> list[str]:
     return out
 
 
-def general_targets(c: dict, put) -> None:
+def general_targets(c: dict, put: harness.Put) -> None:
     """Issue 22's "Done when" checks, through ``put(name, value, target, ok)``."""
     runs = {r["case"].split()[-1]: r for r in c["runs"]}
     dc = runs.get("dcdc")
@@ -114,7 +142,7 @@ def general_targets(c: dict, put) -> None:
         audit, loop = d.get("audit") or {}, d.get("closed_loop") or {}
         ok = dc["status"] == "ok" and dc["total_wall"] <= GENERAL_TARGETS["dcdc_seconds"]
         put("dcdc end to end s", dc["total_wall"], f"<= {GENERAL_TARGETS['dcdc_seconds']}", ok)
-        share = _ratio(dc["domain_states"], SCOTS["dcdc"]["domain_states"])
+        share = harness.ratio(dc["domain_states"], SCOTS["dcdc"]["domain_states"])
         put("dcdc domain / SCOTS", share, f">= {GENERAL_TARGETS['dcdc_domain_vs_scots']}",
             share is not None and share >= GENERAL_TARGETS["dcdc_domain_vs_scots"])
         put("dcdc audit transitions (violations)", audit.get("transitions_checked"), ">= 1e6, 0 violations",

@@ -1,6 +1,6 @@
 """Benchmark of the distributed runner: per-cell stage time with 1 and 2 workers, and the per-task overhead.
 
-    python bench/runner.py                 # the tank case (examples/tanks.yaml)
+    python bench/runner.py                 # the tank case (examples/tanks.yaml); or python -m bench.runner
     python bench/runner.py --stress 10     # samples x 10: tasks of default size (~2e6 evaluations)
     python bench/runner.py --overhead-only
 
@@ -25,14 +25,13 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from pipelines.abstraction.cells import CellTask, abstract_cells
+from pipelines.abstraction.relation import chunk_ranges
+from pipelines.network import build_network
+from pipelines.spec.model import JobSpec, load_spec
+from workers.job import run_abstraction
 
-from pipelines.abstraction.cells import CellTask, abstract_cells  # noqa: E402
-from pipelines.abstraction.relation import chunk_ranges  # noqa: E402
-from pipelines.network import build_network  # noqa: E402
-from pipelines.spec.model import JobSpec, load_spec  # noqa: E402
-from workers.job import run_abstraction  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def stressed(spec: JobSpec, factor: int) -> JobSpec:

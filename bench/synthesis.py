@@ -1,4 +1,5 @@
-"""The ``synthesis`` case of ``bench/run.py`` (issue 24): the consensus fixed point on the job's Dask workers.
+"""The ``synthesis`` case (issue 24; only when named, never under ``--quick``): the consensus fixed point on the job's
+Dask workers.
 
 Consensus (``examples/consensus.yaml``, shared ``w``, Reach(Safe)) is abstracted once in this process, then its
 synthesis runs in every mode on the same abstraction: in one process (the baseline), in helper processes of this
@@ -8,7 +9,10 @@ parts' summed seconds of the largest call against that call in one process (what
 domain is the one process's (it must be: every mode is exact).
 
     python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1[,2,...]] [--no-symmetry] [--compare-cuts P]
-                              [--rounds R] [--json OUT]
+                              [--rounds R] [--json OUT]          # or: python -m bench.synthesis ...
+
+``bench/run.py --cases synthesis`` runs it (:func:`run`) in a child process with ``--no-symmetry --compare-cuts 8``,
+``--N`` from ``--synthesis-N`` (default 8) and ``--rounds`` from ``--synthesis-rounds`` (default 2).
 
 ``--per-worker 1,2,3`` runs each cluster once per value: the parts of a call handed out as workers free up
 (:mod:`workers.dispatch`), more parts per worker evening out unequal parts at the cost of the sub-results they share.
@@ -23,8 +27,8 @@ among them), starting itself again under them if need be: its one process is the
 
 ``--rounds R`` runs one process and each cluster ``R`` times, alternating (one process, the clusters, one process,
 ...), each round's speed-ups against that round's one process; a target is judged on the median of the rounds'
-speed-ups. On this 2-core machine the same code's two workers took 100.3 to 108.9 s within ten minutes (consensus
-N = 8), so one round's ratio moves by several per cent with the hour; the extras (helper processes, ``--no-symmetry``,
+speed-ups. On a shared 2-core machine the same code's two workers vary by several per cent between runs minutes
+apart (consensus N = 8), and so does one round's ratio; the extras (helper processes, ``--no-symmetry``,
 ``--compare-cuts``, more parts per worker than the first round's best) run in the first round only.
 """
 
@@ -39,11 +43,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from service.arguments import count  # the CLI's own integer type
 
-from service.arguments import count  # noqa: E402  (the CLI's own integer type, after the path is set)
+ROOT = Path(__file__).resolve().parent.parent
 
 #: Issue 24's targets: 2 workers against one process on a 2-core machine; 16 workers on a 16-core one.
 TARGETS = {2: 1.8, 16: 8.0}
@@ -113,7 +115,9 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
         if not quiet:
             print(msg, flush=True)
 
-    from bench.run import tree_cpu  # the stage clock's count: live workers and reaped helpers
+    # the stage clock's count: live workers and reaped helpers (imported here: `python bench/synthesis.py` reads
+    # this module before it starts again as `python -m bench.synthesis`, where the package is importable)
+    from bench.harness import tree_cpu
 
     def run(mode: str, **kw: Any) -> dict[str, Any]:
         c0, m0 = tree_cpu(), machine_times()
@@ -337,7 +341,7 @@ def same_allocator_as_the_workers() -> None:
 
     The one process, the baseline, runs in this process, and the Dask workers get those settings from their
     nannies: measured under different allocators, the ratio would partly measure the allocator (huge pages alone
-    made one process 9 % faster on consensus N = 7)."""
+    make one process about 9 % faster on consensus N = 7)."""
     from workers.cluster import worker_environ
     from workers.huge_pages import restart_under
 
@@ -348,6 +352,40 @@ def same_allocator_as_the_workers() -> None:
     restart_under({**os.environ, **want})
 
 
+def run(args: Any) -> dict[str, Any]:
+    """The ``synthesis`` case of ``bench/run.py``: this module in a child process (it starts and stops its own
+    clusters), under the workers' allocator settings as its one process must be (:func:`same_allocator_as_the_workers`)."""
+    import subprocess
+    import tempfile
+
+    from workers.cluster import worker_environ
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "synthesis.json"
+        proc = subprocess.run([sys.executable, "-m", "bench.synthesis", "--N", str(args.synthesis_N), "--no-symmetry",
+                               "--compare-cuts", "8", "--rounds", str(args.synthesis_rounds), "--json", str(out)],
+                              cwd=ROOT, timeout=args.consensus_timeout * (6 + 2 * args.synthesis_rounds),
+                              env={**os.environ, **worker_environ()})
+        if proc.returncode != 0 or not out.exists():
+            return {"case": "synthesis", "status": f"failed (exit {proc.returncode})", "rows": []}
+        return {"case": "synthesis", "status": "ok", **json.loads(out.read_text())}
+
+
+def targets(rec: dict[str, Any], put: Any) -> None:
+    """Issue 24's targets: each worker count's speed-up (the median of the rounds'), and the same domain in every
+    mode."""
+    for k, target in rec.get("targets", {}).items():
+        v = target_speedup(rec, int(k))
+        if v is not None:
+            put(f"consensus synthesis, {k} Dask workers / one process", v, f">= {target}", v >= target)
+    same = [r["same_domain"] for r in rec["rows"]]
+    put("synthesis modes give the one process's domain", all(same), "all", bool(same) and all(same))
+
+
 if __name__ == "__main__":
+    if not __package__:  # `python bench/synthesis.py`: as `python -m bench.synthesis` (bench/__init__.py says why)
+        if not os.path.samefile(os.getcwd(), ROOT):
+            sys.exit(f"bench/synthesis.py: run it from the repository root ({ROOT}), or as python -m bench.synthesis")
+        os.execv(sys.executable, [sys.executable, "-m", "bench.synthesis", *sys.argv[1:]])
     same_allocator_as_the_workers()
     sys.exit(main())

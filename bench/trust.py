@@ -1,9 +1,11 @@
 """compabs trust campaign (issues 7 and 23): hostile inputs and injected faults, one table.
 
-    python bench/trust.py                 # run the campaign's tests (about 3 minutes here) and print the table
+    python bench/trust.py                 # run the campaign's tests (minutes) and print the table
     python bench/trust.py --fast          # without the slow share (fewer hypothesis examples)
     python bench/trust.py --collect FILE  # only print the table of a log an earlier run wrote
     python bench/trust.py --json out.json # also write the records and totals as JSON
+
+(From the repository root; ``python -m bench.trust`` is the same.)
 
 It runs pytest on the trust tests with ``COMPABS_TRUST_LOG`` naming a log file: each test appends what it tried
 (``tests/trust_log.py``: inputs tried, 4xx, 5xx, payloads executed, faults injected, jobs completed identical,
@@ -34,9 +36,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from tests.trust_log import COLUMNS, MUST_BE_ZERO, table, totals  # noqa: E402
 
 #: The campaign's own test files.
 TRUST_TESTS = [
@@ -108,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--collect", type=Path, default=None, help="print the table of an existing log, run nothing")
     p.add_argument("--json", type=Path, default=None, help="also write records and totals as JSON")
     args = p.parse_args(argv)
+    # tests/ is a package of the repository root, as bench/ is: importable here, not where this file is read as a
+    # script (bench/__init__.py)
+    from tests.trust_log import COLUMNS, MUST_BE_ZERO, table, totals
 
     status, seconds, failed = 0, 0.0, list[str]()
     if args.collect:
@@ -139,4 +141,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    if not __package__:  # `python bench/trust.py`: as `python -m bench.trust` (bench/__init__.py says why)
+        if not os.path.samefile(os.getcwd(), ROOT):
+            sys.exit(f"bench/trust.py: run it from the repository root ({ROOT}), or as python -m bench.trust")
+        os.execv(sys.executable, [sys.executable, "-m", "bench.trust", *sys.argv[1:]])
     sys.exit(main())

@@ -1,4 +1,4 @@
-"""``bench/run.py --quick`` runs and writes a complete JSON report (issue 6).
+"""``bench/run.py --quick`` runs and writes a complete JSON report (issue 6); the package's parts, one at a time.
 
 Times are never asserted (the machine is small and shared): only that every case reports every field, that
 the ratios measured in the run are finite and positive, and that the batched SCP agrees with the reference LP.
@@ -97,7 +97,7 @@ def test_quick_benchmark(tmp_path):
 
 def test_tree_cpu_counts_a_child_that_started_and_ended_between_two_looks():
     """Synthesis helpers live only inside the synthesis stage: their CPU must still reach the stage's figure."""
-    from bench.run import tree_cpu
+    from bench.harness import tree_cpu
 
     before = tree_cpu()
     subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass"],
@@ -110,7 +110,7 @@ def test_the_synthesis_case_prints_its_own_table_and_targets():
     issue 24's verdicts are printed (a run of bench/run.py once lost its whole table to a KeyError here)."""
     import io
 
-    from bench.run import print_table, targets
+    from bench.suite import print_table, targets
 
     row = {"iterations": 9, "domain_states": 14475269953, "same_domain": True}
     synthesis = {"case": "synthesis", "status": "ok", "N": 8, "cores": 2, "per_worker": 1, "abstraction_seconds": 1.1,
@@ -135,7 +135,7 @@ def test_the_synthesis_targets_are_judged_on_the_median_of_the_rounds():
     and bench/run.py's targets; one round reads as before."""
     import io
 
-    from bench.run import print_table, targets
+    from bench.suite import print_table, targets
     from bench.synthesis import speedups, target_speedup
 
     row = {"iterations": 9, "domain_states": 5, "same_domain": True, "parallel": {}}
@@ -232,7 +232,7 @@ def test_the_synthesis_case_estimates_a_core_per_worker_from_the_parts_cpu_secon
 def test_the_local_games_baseline_runs_both_ways_and_prints_its_ratio():
     """The tanks' local-games baseline (here on examples/small.yaml): one abstraction synthesized from the bound
     and from the safe set, the same domains, and a line with the ratio."""
-    from bench.run import _local_games_lines, child_local_games
+    from bench.end_to_end import child_local_games, local_games_lines
 
     events: list[dict] = []
     child_local_games({"spec": str(ROOT / "examples" / "small.yaml")}, events.append)
@@ -240,23 +240,23 @@ def test_the_local_games_baseline_runs_both_ways_and_prints_its_ratio():
     assert runs["local_games"]["domains"] == runs["from_safe_set"]["domains"]
     assert all(v > 0 for v in runs["local_games"]["domains"].values())
     record = {"status": "ok", "error": None, "runs": runs, "ratio": 2.0, "same_domains": True}
-    (line,) = _local_games_lines(record)
+    (line,) = local_games_lines(record)
     assert "from the local games' bound" in line and "2x, same domains: True" in line
 
 
 def test_the_bench_json_keeps_the_local_games_groups():
-    """``_jsonable`` keeps the depth of ``synthesis.results.<name>.local_games.groups`` (lists of subsystems) and
+    """``jsonable`` keeps the depth of ``synthesis.results.<name>.local_games.groups`` (lists of subsystems) and
     still cuts what is deeper."""
-    from bench.run import _jsonable
+    from bench.harness import jsonable
 
     report = {"synthesis": {"results": {"reach_safe": {"local_games": {"groups": [[0, 1], [1, 2, 3]]}}}}}
-    assert _jsonable({"report": report})["report"] == report
+    assert jsonable({"report": report})["report"] == report
     deep: dict = {}
     node = deep
     for _ in range(12):
         node["k"] = {}
         node = node["k"]
-    cut = _jsonable(deep)
+    cut = jsonable(deep)
     depth = 0
     while isinstance(cut, dict):
         cut, depth = cut["k"], depth + 1
@@ -268,7 +268,7 @@ def test_the_stage_clock_ignores_events_from_other_threads():
     race the main thread's marks (a negative wall once) and steal the time of the stage running meanwhile."""
     import threading
 
-    from bench.run import StageClock
+    from bench.harness import StageClock
 
     events: list[dict] = []
     clock = StageClock(events.append)
@@ -298,7 +298,8 @@ def test_the_synthesis_bench_refuses_counts_below_one(argv, capsys):
 
 def test_the_fine_tanks_case_reports_its_memory_target_and_what_its_domain_is():
     """The ``tanks_fine`` case's target line and domain line (issue 24), from a record as the case writes it."""
-    from bench.run import TARGETS, _domain_line, targets
+    from bench.end_to_end import TARGETS, domain_line
+    from bench.suite import targets
 
     rec = {"status": "ok", "peak_rss_mb": 2172.0}
     assert targets({"cases": {"tanks_fine": rec}})["tanks at 1.25 end to end, peak RSS MB"] == (
@@ -308,7 +309,62 @@ def test_the_fine_tanks_case_reports_its_memory_target_and_what_its_domain_is():
     syn = {"quotient": {"level": 1, "cells_per_block": 2},
            "domain_bound": {"domain_states_at_most": 3.447e17,
                             "initial_states_outside": [{"index": 0, "group": ["tank4", "tank5", "tank7"]}]}}
-    line = _domain_line(271428793532416, syn)
+    line = domain_line(271428793532416, syn)
     assert "from the quotient of level 1" in line and "not maximal" in line
     assert "maximal domain <= 3.45e+17" in line and "#0 (tank4+tank5+tank7)" in line
-    assert "(maximal)" in _domain_line(5, {"domain_bound": {}})
+    assert "(maximal)" in domain_line(5, {"domain_bound": {}})
+
+
+def test_the_stage_clock_moves_the_head_of_a_segment_to_another_stage():
+    """The end-to-end child's audit segment holds the figures and the wait for the audit: ``move`` gives the first
+    seconds (and their share of the CPU) to ``other``, and both stages still add up to the segment."""
+    from bench.harness import StageClock
+
+    events: list[dict] = []
+    clock = StageClock(events.append)
+    clock._charge("audit", 4.0, 2.0)
+    clock.move(3.0, "audit", "other")
+    assert clock.stages == {"audit": {"wall": 1.0, "cpu": 0.5}, "other": {"wall": 3.0, "cpu": 1.5}}
+    assert sum(e["wall"] for e in events) == 4.0
+    clock.move(-1.0, "audit", "other")  # nothing to move
+    clock.move(1.0, "plan", "other")  # no such segment
+    assert clock.stages["other"] == {"wall": 3.0, "cpu": 1.5}
+
+
+def test_the_end_to_end_case_runs_the_job_through_run_job():
+    """The end-to-end child (in this process, on examples/small.yaml) runs the job as ``compabs run`` does: every
+    stage timed, the audit's stage the wait for it beside synthesis, the figures under ``other``."""
+    from bench.end_to_end import child_end_to_end
+
+    events: list[dict] = []
+    child_end_to_end({"spec": str(ROOT / "examples" / "small.yaml"), "workers": 0}, events.append)
+    stages: dict[str, float] = {}
+    for e in events:
+        if e["type"] == "stage":
+            stages[e["stage"]] = stages.get(e["stage"], 0.0) + e["wall"]
+    for stage in ("plan", "lipschitz", "subsystems", "interconnection", "audit", "synthesis", "closed_loop", "other"):
+        assert stage in stages, stage
+    assert all(v >= 0 for v in stages.values()), stages
+    info = [e for e in events if e["type"] == "info"]
+    assert info[0]["abstract_states"] == 33**2  # before the job, kept if it is killed
+    last = info[-1]
+    assert last["domain_states"] > 0 and "audit" not in last["stage_seconds"]
+    assert last["audit"]["transitions_checked"] > 0 and last["audit"]["violations"] == 0
+    assert math.isclose(stages["audit"], last["audit"]["waited_seconds"], abs_tol=1e-6)
+    assert last["closed_loop"]["violations"] == 0 and last["synthesis"]["relation_build_seconds"] >= 0
+
+
+@pytest.mark.parametrize("command", [["bench/run.py"], ["-m", "bench"], ["-m", "bench.run"], ["bench/synthesis.py"],
+                                     ["bench/trust.py"], ["bench/runner.py"]])
+def test_the_scripts_run_from_the_repository_root(command):
+    """``python bench/run.py`` starts itself again as ``python -m bench`` (no ``sys.path`` edit); each script
+    answers ``--help`` from the repository root."""
+    proc = subprocess.run([sys.executable, *command, "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "usage:" in proc.stdout
+
+
+def test_a_script_run_from_elsewhere_says_where_to_run_it(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run.py"), "--help"], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 1 and "run it from the repository root" in proc.stderr
