@@ -8,9 +8,10 @@ under ``/docs-assets`` (this server's copies: no CDN).
 
 The lifespan opens the job store, connects the Dask cluster (an embedded ``LocalCluster`` of
 ``settings.workers`` processes, or ``settings.scheduler``; none with ``settings.in_process``), re-queues the
-jobs an earlier process left running (:meth:`JobManager.recover`) and starts the queue; on shutdown it asks
-running jobs to stop where they can resume, then closes the cluster. Run it in one process
-(``compabs serve``): every process would start its own cluster and job threads.
+jobs an earlier process left running (:meth:`JobManager.recover`) and starts the queue; each job runs in a
+process tree of its own (:mod:`service.supervisor`), never in this process. On shutdown it stops running jobs
+where they can resume, then closes the cluster. Run it in one process
+(``compabs serve``): every process would start its own cluster and its own job processes.
 
 Errors are JSON ``{"detail": "..."}`` everywhere: a spec error (any :class:`~pipelines.errors.CompabsError`)
 is 422 with its message, a cap 413/422/429 naming the cap and its value, a bug 500 without a traceback. The
@@ -250,7 +251,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if not settings.in_process:
                 from workers.cluster import connect
 
-                # A synchronous client, made off the event loop: job threads use it with blocking calls.
+                # A synchronous client, made off the event loop: /health and the supervisors use it with blocking calls.
                 conn = await anyio.to_thread.run_sync(connect, settings.scheduler, settings.workers)
                 client, cluster = conn
                 log.info("Dask scheduler %s, dashboard %s", cluster["scheduler"], cluster["dashboard"])

@@ -4,19 +4,20 @@ Submission validates everything that can be checked without running: the body pa
 every expression compiles against the whitelist (``build_network``), the regions are non-empty and the caps
 hold. Only then is the job stored as ``queued``, so bad input never reaches a worker.
 
-Running: a :class:`JobManager` starts up to ``max_running`` jobs, oldest first, each in its own thread that
-calls :func:`workers.job.run_job` with the API's long-lived Dask client. The thread's progress
-callback persists events (throttled to one per ``PROGRESS_INTERVAL`` seconds per stage, plus each stage's
-first and last) and is where cancellation happens: once the job's flag is set it raises
-:class:`~workers.job.JobCancelled`, which unwinds the stage; on a cluster the runner's mapper then cancels
-the job's outstanding Dask tasks.
+Running: a :class:`JobManager` starts up to ``max_running`` jobs, oldest first, each in its own process tree
+(:mod:`service.supervisor`, :mod:`service.job_process`) watched by a thread of the API that only waits: the job
+process writes its progress and its outcome to the job store, and the API reads them from there. DELETE stops the
+job's process group (``SIGTERM``, ``SIGKILL`` after ``stop_grace`` seconds) and with it its Dask tasks (a client
+that goes away releases them; a worker still running one after :data:`TASK_GRACE` seconds is restarted). Every job
+has a wall-time limit (``options.time_limit``, else ``default_time_limit``, at most ``max_time_limit``): a job
+past it is stopped the same way and marked failed, with the reason.
 
 Restart: jobs the store shows as ``running`` when an API starts were interrupted (the process died or was
-stopped mid-job). :meth:`JobManager.recover` puts them back in the queue; the runner then reuses every chunk
-already marked done in the job's relation store, and synthesis starts its safety fixed point from the last
-iterate it stored (:mod:`workers.checkpoint_store`). A job interrupted more than ``max_resumes`` times, or whose
-cancel was requested before the API died, is ended (failed, with the reason, or cancelled) instead: a job is
-never left ``running`` without a thread running it.
+stopped mid-job). :meth:`JobManager.recover` kills a job process that outlived its API, then puts the jobs back
+in the queue; the runner reuses every chunk already marked done in the job's relation store, and synthesis starts
+its safety fixed point from the last iterate it stored (:mod:`workers.checkpoint_store`). A job interrupted more
+than ``max_resumes`` times, or whose cancel was requested before the API died, is ended (failed, with the reason,
+or cancelled) instead: a job is never left ``running`` without a process running it.
 """
 
 from __future__ import annotations
@@ -31,20 +32,17 @@ from typing import Any
 
 import yaml
 
-from pipelines.errors import CompabsError, SpecError
+from pipelines.errors import SpecError
 from pipelines.spec.loader import load_json, load_yaml
 from pipelines.spec.model import JobSpec, parse_spec
 from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, UnsupportedMediaType
-from service.models import job_json, summarize
+from service.models import job_json
 from service.settings import Settings
 from service.store import ACTIVE, JobRecord, JobStatus, JobStore
-from workers import checkpoint_store, jobdir
-from workers.job import JobCancelled, run_job
+from service.supervisor import EXIT_STOPPED, JobProcess, describe_exit, end_job, kill_orphans
 
 log = logging.getLogger("compabs.service")
 
-#: Seconds between stored progress events of one stage (a stage's first and last event are always stored).
-PROGRESS_INTERVAL = 0.25
 #: Content types read as YAML (which also reads JSON); ``application/json`` is read as JSON.
 YAML_TYPES = frozenset({"application/yaml", "application/x-yaml", "text/yaml", "text/x-yaml", "text/plain"})
 
@@ -127,38 +125,62 @@ def validate_spec(spec: JobSpec, settings: Settings) -> None:
     except CostError as exc:
         raise CapExceeded(exc.cap_name, exc.cap, exc.message) from None
     spec_regions(spec, network)
+    limit = spec.options.time_limit
+    if limit is not None and limit > settings.max_time_limit:
+        raise CapExceeded("max_time_limit", int(settings.max_time_limit),
+                          f"options.time_limit: the job asks for {limit:g} s of wall time, and this server's cap "
+                          f"max_time_limit is {settings.max_time_limit:g} s: ask for at most that, or leave it out "
+                          f"(the default is {settings.default_time_limit:g} s)")
 
 
 # ============================================================================================ running
-@dataclass
-class _Flag:
-    """A running job's stop request: ``cancel`` (DELETE) ends it cancelled, ``interrupt`` (API stop) re-queues it."""
+#: Seconds between the supervisor's looks at a running job (its process, its stop request, its time limit, its
+#: newest event for the API's event streams).
+POLL = 0.2
+#: Seconds a stopped cluster job's tasks may go on running on the workers before those workers are restarted.
+TASK_GRACE = 5.0
 
-    event: threading.Event = field(default_factory=threading.Event)
-    reason: str = ""
-    interrupt: bool = False
-
-    def set(self, reason: str, interrupt: bool = False) -> None:
-        if not self.event.is_set():
-            self.reason, self.interrupt = reason, interrupt
-            self.event.set()
+#: Why the API stopped a running job: DELETE, its time limit, the API stopping (the job is resumed later).
+CANCEL, TIME_LIMIT, INTERRUPT = "cancel", "time_limit", "interrupt"
 
 
 @dataclass
 class _Running:
-    thread: threading.Thread
-    flag: _Flag
+    """A running job: its supervisor thread, its process once started, and the API's stop request."""
+
+    time_limit: float
+    thread: threading.Thread | None = None
+    process: JobProcess | None = None
+    stop: threading.Event = field(default_factory=threading.Event)
+    reason: str = ""
+
+    def request(self, reason: str) -> None:
+        if not self.stop.is_set():
+            self.reason = reason
+            self.stop.set()
+
+
+def time_limit(spec_json: str, settings: Settings) -> float:
+    """A job's wall-time limit in seconds: ``options.time_limit``, else the server's ``default_time_limit``; at
+    most ``max_time_limit`` (a larger one is refused at submission)."""
+    given = (json.loads(spec_json).get("options") or {}).get("time_limit")
+    limit = float(given) if given else settings.default_time_limit
+    return min(limit, settings.max_time_limit)
 
 
 class JobManager:
-    """The queue and the job threads of one API process.
+    """The queue and the supervisors of the job processes of one API process.
+
+    Up to ``max_running`` jobs run at once, each in its own process tree (:class:`~service.supervisor.JobProcess`)
+    watched by a thread of this process that does nothing else: the API answers while any job computes.
 
     Parameters
     ----------
     settings : Settings
     store : JobStore
     client : distributed.Client, optional
-        The long-lived Dask client jobs run on (``None`` with ``settings.in_process``).
+        The API's Dask client (``None`` with ``settings.in_process``): ``/health`` counts its workers, and the job
+        processes join its cluster (``cluster["scheduler"]``) with its credentials.
     cluster : dict, optional
         ``workers.cluster.connect``'s info (``scheduler``, ``dashboard``, ...).
     """
@@ -171,6 +193,15 @@ class JobManager:
         self._lock = threading.RLock()
         self._running: dict[str, _Running] = {}
         self._stopping = False
+        self._env: dict[str, str] = {}
+        if client is not None:
+            from workers.cluster import credentials_env
+            from workers.errors import ClusterError
+
+            try:
+                self._env = credentials_env(client)
+            except ClusterError:  # no credential files (an insecure scheduler accepted on purpose): nothing to hand on
+                self._env = {}
 
     # ------------------------------------------------------------------ submission
     def check_capacity(self) -> None:
@@ -212,7 +243,8 @@ class JobManager:
         return self.store.require(job_id)
 
     def cancel(self, job_id: str) -> JobRecord:
-        """Cancel a job: a queued one at once; a running one once its thread stops (its Dask tasks cancelled).
+        """Cancel a job: a queued one at once; a running one once its process group has been stopped (within
+        ``stop_grace`` seconds plus a moment), its Dask tasks with it.
 
         Returns the job as it is now; cancelling an ended job changes nothing.
 
@@ -226,23 +258,25 @@ class JobManager:
             if rec.terminal:
                 return rec
             entry = self._running.get(job_id)
-            if rec.status == JobStatus.QUEUED or entry is None:  # running with no thread here: nothing to stop
-                return self._end(job_id, JobStatus.CANCELLED) or rec
+            if rec.status == JobStatus.QUEUED or entry is None:  # running with no process here: nothing to stop
+                return end_job(self.store, self.settings, job_id, JobStatus.CANCELLED) or rec
             self.store.request_cancel(job_id)
-            entry.flag.set("cancelled by request")
+            entry.request(CANCEL)
             return self.store.get(job_id) or rec
 
     # ------------------------------------------------------------------ lifecycle
     def recover(self) -> None:
-        """End or re-queue the jobs an earlier API process left ``running`` (call once, before :meth:`start`)."""
+        """End or re-queue the jobs an earlier API process left ``running`` (call once, before :meth:`start`),
+        after killing any job process of it that is still alive."""
+        kill_orphans(self.settings.data_dir / "run")
         for rec in self.store.list(limit=1_000_000, statuses=(JobStatus.RUNNING,)):
             if rec.id in self._running:
                 continue
             if rec.cancel_requested:
-                self._end(rec.id, JobStatus.CANCELLED)
+                end_job(self.store, self.settings, rec.id, JobStatus.CANCELLED)
             elif rec.attempts > self.settings.max_resumes:
-                self._end(
-                    rec.id, JobStatus.FAILED,
+                end_job(
+                    self.store, self.settings, rec.id, JobStatus.FAILED,
                     error=f"the API stopped {rec.attempts} times while this job was running, so it is not resumed "
                     f"again (max_resumes = {self.settings.max_resumes}); its finished chunks are kept in the job's "
                     "directory. Submit the spec again to retry, or check the server log for what stops the API.",
@@ -255,16 +289,16 @@ class JobManager:
         self._kick()
 
     def begin_shutdown(self) -> None:
-        """Start no more jobs; ask running ones to stop where they can resume (they are re-queued).
+        """Start no more jobs; stop the running ones where they can resume (they are re-queued).
 
         Safe to call from a signal handler: it takes no lock.
         """
         self._stopping = True
         for e in list(self._running.values()):
-            e.flag.set("interrupted: the API is stopping; the job resumes when it starts again", interrupt=True)
+            e.request(INTERRUPT)
 
     def shutdown(self, timeout: float = 10.0) -> None:
-        """:meth:`begin_shutdown`, then wait up to ``timeout`` seconds for the job threads.
+        """:meth:`begin_shutdown`, then wait up to ``timeout`` seconds for the job processes to stop.
 
         A job still running after that stays ``running`` in the store and is resumed by the next start.
         """
@@ -273,18 +307,19 @@ class JobManager:
             entries = list(self._running.values())
         deadline = time.monotonic() + timeout
         for e in entries:
-            e.thread.join(max(0.0, deadline - time.monotonic()))
+            if e.thread is not None:
+                e.thread.join(max(0.0, deadline - time.monotonic()))
 
     @property
     def running_ids(self) -> list[str]:
         with self._lock:
             return list(self._running)
 
-    def _end(self, job_id: str, status: JobStatus, **fields: Any) -> JobRecord | None:
-        """End a job ``cancelled`` or ``failed``; its synthesis checkpoints go (:func:`workers.checkpoint_store.remove`:
-        such a job is never resumed, and a large case's iterates take hundreds of MB). Its other files stay."""
-        checkpoint_store.remove(self.settings.jobs_dir / job_id / jobdir.CHECKPOINTS)
-        return self.store.set_status(job_id, status, **fields)
+    def process_of(self, job_id: str) -> JobProcess | None:
+        """The process running the job ``job_id`` now (``None``: it is not running here)."""
+        with self._lock:
+            entry = self._running.get(job_id)
+            return None if entry is None else entry.process
 
     def _kick(self) -> None:
         """Start queued jobs, oldest first, while fewer than ``max_running`` run."""
@@ -300,77 +335,82 @@ class JobManager:
                 )
                 if started is None or started.status != JobStatus.RUNNING:
                     continue
-                flag = _Flag()
-                thread = threading.Thread(target=self._run, args=(rec.id, flag), name=f"compabs-job-{rec.id}", daemon=True)
-                self._running[rec.id] = _Running(thread, flag)
-                thread.start()
+                entry = _Running(time_limit(rec.spec, self.settings))
+                # The supervisor thread starts the process itself: a job process dies with the thread that started
+                # it (PR_SET_PDEATHSIG), so that must be the thread that lives as long as the job.
+                entry.thread = threading.Thread(target=self._supervise, args=(rec.id, entry),
+                                                name=f"compabs-job-{rec.id}", daemon=True)
+                self._running[rec.id] = entry
+                entry.thread.start()
 
-    # ------------------------------------------------------------------ the job thread
-    def _progress(self, job_id: str, flag: _Flag):
-        last: dict[str, float] = {}
-
-        def progress(stage: str, done: int, total: int, message: str) -> None:
-            if flag.event.is_set():
-                raise JobCancelled(flag.reason)
-            now = time.monotonic()
-            if stage not in last or done <= 0 or done >= total or now - last[stage] >= PROGRESS_INTERVAL:
-                last[stage] = now
-                self.store.add_progress(job_id, stage, done, total, message)
-
-        return progress
-
-    def _run(self, job_id: str, flag: _Flag) -> None:
+    # ------------------------------------------------------------------ the supervisor thread
+    def _supervise(self, job_id: str, entry: _Running) -> None:
         try:
-            self._execute(job_id, flag)
+            self._watch(job_id, entry)
         except Exception:  # a store write failed: log it; the next start re-queues the job
-            log.exception("job %s: recording its outcome failed", job_id)
+            log.exception("job %s: supervising its process failed", job_id)
         finally:
             with self._lock:
                 self._running.pop(job_id, None)
             self._kick()
+        if entry.reason in (CANCEL, TIME_LIMIT) and self.client is not None and not self._stopping:
+            from workers.cluster import stop_released_tasks
 
-    def _execute(self, job_id: str, flag: _Flag) -> None:
+            restarted = stop_released_tasks(self.client, TASK_GRACE)
+            if restarted:
+                log.info("job %s: restarted workers %s, which still ran its tasks", job_id, ", ".join(restarted))
+
+    def _watch(self, job_id: str, entry: _Running) -> None:
+        code: int | None = None
+        proc = None
+        if not entry.stop.is_set():
+            try:
+                proc = JobProcess(job_id, self.settings, self.cluster.get("scheduler") if self.client else None,
+                                  self._env)
+            except OSError as exc:
+                end_job(self.store, self.settings, job_id, JobStatus.FAILED,
+                        error=f"the server could not start the job's process: {exc}")
+                return
+            entry.process = proc
+            while code is None:
+                code = proc.wait(POLL)
+                self.store.refresh_seq(job_id)  # the job process's events, for the event streams
+                if code is None and proc.elapsed() > entry.time_limit:
+                    entry.request(TIME_LIMIT)
+                if code is None and entry.stop.is_set():
+                    code = proc.stop(self.settings.stop_grace)
+            proc.finish()
+            self.store.refresh_seq(job_id)
+        self._record(job_id, entry, code, proc)
+
+    def _record(self, job_id: str, entry: _Running, code: int | None, proc: JobProcess | None) -> None:
+        """The job's status after its process ended, unless the process recorded its outcome itself."""
         rec = self.store.get(job_id)
-        if rec is None:
+        if rec is None or rec.terminal:
             return
-        out = self.settings.jobs_dir / job_id
-        try:
-            spec = parse_spec(json.loads(rec.spec))
-            report = run_job(
-                spec, out, client=self.client, in_process=self.settings.in_process or self.client is None,
-                progress=self._progress(job_id, flag), allowed_modules=tuple(self.settings.allowed_modules),
-                caps=self.settings.caps(),
-            )
-        except Exception as exc:
-            if flag.interrupt or self._stopping:
-                # Stopped by (or failing because of) the API's shutdown, e.g. its Dask client closing: resume later.
-                # Not counted as an attempt: the job did nothing wrong.
-                log.info("job %s interrupted by the API stopping (%s); re-queued", job_id, type(exc).__name__)
-                self.store.set_status(job_id, JobStatus.QUEUED, attempts_delta=-1)
-            elif isinstance(exc, JobCancelled):
-                self._end(job_id, JobStatus.CANCELLED)
-            elif isinstance(exc, CompabsError):
-                self._end(job_id, JobStatus.FAILED, error=str(exc))
-            else:
-                log.exception("job %s failed with an internal error", job_id)
-                self._end(
-                    job_id, JobStatus.FAILED,
-                    error=f"internal error ({type(exc).__name__}: {exc}); the server log has the details. "
-                    "Please report it with the spec.",
-                )
-            return
-        summary = summarize(report)
-        closed = report.get("closed_loop") or {}
-        error = None
-        if summary["audit_violations"]:
-            error = (f"the audit found {summary['audit_violations']} concrete transitions missing from the abstraction "
-                     "(a soundness bug); report.json in the job's directory has the details")
-        elif closed.get("violations"):
-            error = f"{closed['violations']} closed-loop runs violated the specification: {closed.get('first_violation')}"
-        if error:
-            self._end(job_id, JobStatus.FAILED, error=error, summary=summary, figures=[])
+        if entry.reason == CANCEL or rec.cancel_requested:
+            end_job(self.store, self.settings, job_id, JobStatus.CANCELLED)
+        elif entry.reason == INTERRUPT or (self._stopping and code == EXIT_STOPPED):
+            # Stopped by the API's shutdown: resume later. Not counted as an attempt: the job did nothing wrong.
+            log.info("job %s interrupted by the API stopping; re-queued", job_id)
+            self.store.set_status(job_id, JobStatus.QUEUED, attempts_delta=-1)
+        elif entry.reason == TIME_LIMIT:
+            stage = next(reversed(rec.stages), None) if rec.stages else None
+            where = f" during stage '{stage}'" if stage else ""
+            end_job(self.store, self.settings, job_id, JobStatus.FAILED,
+                    error=f"the job ran past its time limit of {entry.time_limit:g} s{where} and was stopped "
+                    f"(options.time_limit; this server's default is {self.settings.default_time_limit:g} s, its cap "
+                    f"max_time_limit {self.settings.max_time_limit:g} s). Its finished chunks are kept: submit it "
+                    "again with a larger options.time_limit, or make it smaller.")
         else:
-            self.store.set_status(job_id, JobStatus.SUCCEEDED, summary=summary, figures=list(report.get("figures", [])))
+            how = describe_exit(code if code is not None else -1)
+            tail = proc.log_tail() if proc is not None else ""
+            log.error("job %s: its process ended with %s without recording an outcome; its log (%s) ends:\n%s",
+                      job_id, how, proc.log_path if proc else "-", tail)
+            hint = " (killed: out of memory?)" if code == -9 else ""
+            end_job(self.store, self.settings, job_id, JobStatus.FAILED,
+                    error=f"the job's process ended with {how}{hint} before recording an outcome; the server log "
+                    "has the details. Please report it with the spec.")
 
 
 def new_store(settings: Settings) -> JobStore:

@@ -1,8 +1,8 @@
 """``compabs serve``: the REST API and dashboard in one uvicorn process.
 
-One process only (never ``uvicorn --workers N``): each process would start its own Dask cluster and its own
-job threads over the same job store. Jobs run on the embedded two-worker ``LocalCluster`` unless
-``--scheduler`` (or ``COMPABS_SCHEDULER``) names one. The token is read from an environment variable
+One process only (never ``uvicorn --workers N``): each process would start its own Dask cluster and its own job
+processes over the same job store. Each job runs in a process tree of its own (:mod:`service.supervisor`); its
+tasks run on the embedded two-worker ``LocalCluster`` unless ``--scheduler`` (or ``COMPABS_SCHEDULER``) names one. The token is read from an environment variable
 (``COMPABS_TOKEN``, or the one ``--token-env`` names), never from the command line, where ``ps`` shows it.
 
 ``compabs credentials DIR`` (:func:`add_credentials_parser`) writes a cluster's TLS credentials for a deployment: the
@@ -114,7 +114,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     class Server(uvicorn.Server):
         def handle_exit(self, sig: int, frame: FrameType | None) -> None:
-            # Tell running jobs at once, not after the graceful wait: the signal may also have reached the Dask
+            # Stop running jobs at once, not after the graceful wait: the signal may also have reached the Dask
             # workers (a process group, `docker stop`), and a job failing for that must be re-queued, not failed.
             manager = getattr(app.state, "manager", None)
             if manager is not None:

@@ -11,6 +11,12 @@ Caps (each refusal names the cap and its value, so a user knows what to change o
     Request bodies larger than this are refused before anything is parsed. The largest paper case spec is ~3 kB.
 ``max_concurrent_jobs`` (16)
     Queued plus running jobs; a submission beyond it is refused with ``QueueFull``.
+``max_running`` (2)
+    Jobs running at once, each in its own process tree (:mod:`service.supervisor`).
+``default_time_limit`` (1 h), ``max_time_limit`` (4 h), ``stop_grace`` (3 s)
+    A job's wall-time limit is ``options.time_limit``, else ``default_time_limit``; a spec asking for more than
+    ``max_time_limit`` is refused (422). A job past its limit, or cancelled, gets ``SIGTERM`` and, ``stop_grace``
+    seconds later, ``SIGKILL`` (its whole process group), and is marked failed (cancelled) with the reason.
 
 The cost model's caps (:class:`pipelines.spec.costs.Caps`; what each counts: that module and docs/spec.md "Costs
 and caps"), checked by :func:`service.manager.validate_spec` before a job is queued, each refusal a
@@ -113,8 +119,21 @@ class Settings(BaseModel):
     )
     max_concurrent_jobs: int = Field(default=16, ge=1, description="queued + running jobs beyond which POST /jobs is refused")
     max_running: int = Field(
-        default=1, ge=1, le=64,
-        description="jobs running at once (each on the shared cluster; synthesis of each runs in this process)",
+        default=2, ge=1, le=64,
+        description="jobs running at once, each in its own process tree (their cluster tasks share the workers)",
+    )
+    default_time_limit: float = Field(
+        default=3600.0, gt=0, le=1e7,
+        description="wall-time limit of a job that sets no options.time_limit, seconds; a job past its limit is "
+        "stopped and marked failed",
+    )
+    max_time_limit: float = Field(
+        default=4 * 3600.0, gt=0, le=1e7,
+        description="largest options.time_limit a job may ask for, seconds (a larger one is refused with a 422)",
+    )
+    stop_grace: float = Field(
+        default=3.0, gt=0, le=600,
+        description="seconds a stopped job's processes get to end on SIGTERM before they are killed (SIGKILL)",
     )
     max_resumes: int = Field(
         default=3, ge=0,

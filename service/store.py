@@ -1,6 +1,6 @@
 """The job store: jobs, their status, timestamps and progress events in SQL (SQLAlchemy 2).
 
-An SQLite file by default (WAL mode, so the API's readers never wait for the job thread's writes), any
+An SQLite file by default (WAL mode, so the API's readers never wait for the job processes' writes), any
 SQLAlchemy URL otherwise (``postgresql+psycopg://...`` for a shared deployment). Everything the API shows is
 read from here, so it survives an API restart.
 
@@ -14,9 +14,11 @@ Tables
     ``(job_id, seq)``: ``seq`` counts 1, 2, 3, ... per job and is the SSE event id; ``kind`` is ``progress``
     (data ``{stage, done, total, message}``) or ``status`` (data: the job's JSON at that moment).
 
-Writes come from the API's event loop (submissions, cancels) and from job threads (progress, status): one
-engine, one short session per write, and one lock that serialises writes in this process (SQLite has one
-writer anyway, and the per-job ``seq`` is read and incremented inside the lock).
+Writes come from the API (submissions, cancels, the supervisor's status changes) and from each job's own process
+(progress, its outcome): one engine per process, one short session per write, and one lock that serialises writes
+in this process. Between processes, SQLite's write lock does: every write transaction starts with ``BEGIN
+IMMEDIATE`` (it takes the lock before reading the row it changes, so the per-job ``seq`` is read and incremented
+under it, and a writer waits up to ``busy_timeout`` instead of failing on a snapshot another process changed).
 """
 
 from __future__ import annotations
@@ -160,9 +162,15 @@ class EventRecord:
     data: dict[str, Any]
 
 
+#: Execution option of the engine that writes: its transactions begin with ``BEGIN IMMEDIATE`` on SQLite.
+_WRITE = "compabs_write"
+
+
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+    # The driver's own transaction handling off: _sqlite_begin emits BEGIN (SQLAlchemy's documented recipe).
+    dbapi_connection.isolation_level = None
     cur = dbapi_connection.cursor()
-    # WAL: readers (the API) never block on the writer (a job thread) and vice versa. NORMAL sync is safe with
+    # WAL: readers (the API) never block on the writer (a job process) and vice versa. NORMAL sync is safe with
     # WAL (a power cut may lose the last commits, never corrupt the file). busy_timeout covers a second process
     # (an admin's sqlite3 shell) holding the write lock for a moment.
     cur.execute("PRAGMA journal_mode=WAL")
@@ -170,6 +178,12 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cur.execute("PRAGMA busy_timeout=10000")
     cur.execute("PRAGMA foreign_keys=ON")
     cur.close()
+
+
+def _sqlite_begin(conn: Any) -> None:
+    # Reads: a deferred transaction (a consistent snapshot, no lock). Writes: the write lock first, waiting for
+    # another process's write (the job processes write progress while the API writes statuses).
+    conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get(_WRITE) else "BEGIN")
 
 
 class JobStore:
@@ -211,7 +225,9 @@ class JobStore:
             raise ValueError(f"db_url {u.render_as_string(hide_password=True)}: {exc}") from None
         if u.get_backend_name() == "sqlite":
             event.listen(self.engine, "connect", _sqlite_pragmas)
-        Base.metadata.create_all(self.engine)
+            event.listen(self.engine, "begin", _sqlite_begin)
+        self._writer: Engine = self.engine.execution_options(**{_WRITE: True})
+        Base.metadata.create_all(self._writer)
 
     def close(self) -> None:
         self.engine.dispose()
@@ -257,8 +273,18 @@ class JobStore:
             return [EventRecord(r.seq, r.kind, r.data) for r in s.scalars(q)]
 
     def known_seq(self, job_id: str) -> int | None:
-        """The newest event number this process wrote for the job (``None``: none since start)."""
+        """The newest event number this process wrote or saw for the job (``None``: none since start)."""
         return self._seq.get(job_id)
+
+    def refresh_seq(self, job_id: str) -> int | None:
+        """Read the job's newest event number from the database into :meth:`known_seq` (events written by its job
+        process); ``None`` when there is no such job."""
+        with Session(self.engine) as s:
+            seq = s.scalar(select(JobRow.last_seq).where(JobRow.id == job_id))
+        if seq is not None:
+            with self._lock:
+                self._seq[job_id] = max(int(seq), self._seq.get(job_id, 0))
+        return seq
 
     # ------------------------------------------------------------------ writes
     def _add_event(self, s: Session, row: JobRow, kind: str, data: dict[str, Any]) -> None:
@@ -272,7 +298,7 @@ class JobStore:
 
         With ``new`` the row is inserted first (``create``); otherwise a missing job gives ``None``.
         """
-        with self._lock, Session(self.engine) as s, s.begin():
+        with self._lock, Session(self._writer) as s, s.begin():
             row = new if new is not None else s.get(JobRow, job_id)
             if row is None:
                 return None

@@ -314,7 +314,7 @@ def test_post_jobs_refuses_each_knob_over_its_cap(make_client, monkeypatch, name
     def forbidden(*args: Any, **kwargs: Any) -> Any:
         raise AssertionError("a job ran")
 
-    monkeypatch.setattr(manager, "run_job", forbidden)
+    monkeypatch.setattr(manager, "JobProcess", forbidden)
     c = make_client(**given)
     t0 = time.perf_counter()
     r = c.post("/jobs", json=case_spec(mutate), headers=AUTH)

@@ -238,7 +238,7 @@ def test_caps_are_422_naming_the_cap(make_client, settings, mutate, match):
 
 
 def test_concurrency_cap_is_429_and_delete_frees_a_place(make_client):
-    c = make_client(max_concurrent_jobs=2)
+    c = make_client(max_concurrent_jobs=2, max_running=1)
     first = submit(c, heavy())
     second = submit(c, heavy())
     r = c.post("/jobs", json=quick(), headers=AUTH)

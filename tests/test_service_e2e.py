@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import psutil
 import pytest
 import yaml
 
@@ -218,8 +219,13 @@ def test_api_killed_mid_job_resumes_after_restart(tmp_path):
         wait_until(lambda: chunks_done(first.job(job_id)) >= 4, 120, "four chunks done", [first.proc])
         before = first.job(job_id)
         assert before["status"] == "running" and chunks_done(before) < 33, before
+        job_pid = int((data / "run" / f"{job_id}.pid").read_text().split()[0])  # the job's own process
+        job_process = psutil.Process(job_pid)
         os.kill(first.proc.popen.pid, signal.SIGKILL)  # the API process only: no shutdown, no cleanup
         first.proc.popen.wait(30)
+        # The job's process dies with its API (it would otherwise compute beside the resumed job).
+        wait_until(lambda: not job_process.is_running() or job_process.status() == psutil.STATUS_ZOMBIE, 30,
+                   "the job's process to die with the API")
         first.close()  # its Dask workers follow their parent; this reaps whatever is left of the group
 
         second = Server(data, tmp_path / "serve-2.log", port)

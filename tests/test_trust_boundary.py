@@ -10,7 +10,7 @@
   keys in every example (accepted, the same spec stored), and the expanded-size bound exact to one value.
 
 The store's integrity and the command line: ``tests/test_trust_boundary_cli.py``. Nothing runs: the API's queue
-never starts a job and ``run_job`` is a guard that counts a payload executed. Cases are drawn from
+never starts a job and starting a job process is a guard that counts a payload executed. Cases are drawn from
 ``COMPABS_TRUST_SEED`` (default 23); every wrong outcome is listed, with the seed, after the row is recorded.
 """
 
@@ -76,7 +76,7 @@ def guard(what: str) -> Callable[..., Any]:
 def api(tmp_path_factory) -> Iterator[TestClient]:
     """The real app (SQLite store, in-process jobs); its queue never starts a job."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("service.manager.run_job", guard("run_job (API)"))
+        mp.setattr("service.manager.JobProcess", guard("a job process (API)"))
         settings = Settings(data_dir=tmp_path_factory.mktemp("boundary"), in_process=True, token=TOKEN,
                             max_concurrent_jobs=10**9)
         with TestClient(create_app(settings), raise_server_exceptions=False) as c:

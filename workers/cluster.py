@@ -30,6 +30,7 @@ import logging
 import os
 import shutil
 import tempfile
+import time
 import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -560,3 +561,39 @@ def client_info(client: Any) -> dict[str, Any]:
         "dashboard": _dashboard(client),
         "embedded": False,
     }
+
+
+def _released_running(dask_worker: Any) -> int:
+    """Tasks this worker is still running although no client wants their result any more (state ``cancelled``:
+    Dask cannot interrupt a running task, it lets it finish and drops the result)."""
+    state = dask_worker.state
+    return sum(1 for ts in (*state.executing, *state.long_running) if ts.state == "cancelled")
+
+
+def stop_released_tasks(client: Any, grace: float = 5.0, poll: float = 0.25, settle: float = 1.0) -> list[str]:
+    """Restart the workers that still run released tasks after ``grace`` seconds; returns their addresses.
+
+    A job process that is stopped (killed, or its futures cancelled) releases its tasks, but a task already running
+    on a worker runs on: a long synthesis part would hold its worker for minutes after the job is gone. Dask reruns
+    what else a restarted worker was running (other jobs lose time, never results). Best effort: a cluster that
+    does not answer is left alone. The first ``settle`` seconds are the scheduler's, to notice the job's client is
+    gone and tell the workers.
+    """
+    start = time.monotonic()
+    deadline = start + grace
+    busy: list[str] = []
+    while True:
+        try:
+            busy = sorted(a for a, n in client.run(_released_running, on_error="ignore").items() if n)
+        except Exception:  # the cluster is closing or unreachable: nothing to stop here
+            return []
+        now = time.monotonic()
+        if (not busy and now - start >= settle) or now >= deadline:
+            break
+        time.sleep(poll)
+    if busy:
+        try:
+            client.restart_workers(busy, timeout=60, raise_for_error=False)
+        except Exception:
+            logger.warning("could not restart workers %s, which still run a stopped job's tasks", busy)
+    return busy
