@@ -430,7 +430,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--scheduler", default=None, help="tls://HOST:PORT of a Dask scheduler (or COMPABS_SCHEDULER); credentials from COMPABS_TLS_*")
     r.add_argument("--workers", type=count(1, 256), default=2, help="worker processes of the embedded local cluster "
                    "(1 to 256)")
-    r.add_argument("--in-process", action="store_true", help="no cluster: run the per-cell stage in this process")
+    where = r.add_mutually_exclusive_group()
+    where.add_argument("--in-process", dest="in_process", action="store_const", const=True, default=None,
+                       help="no cluster: run the per-cell stage in this process (the default for small jobs)")
+    where.add_argument("--cluster", dest="in_process", action="store_const", const=False,
+                       help="start the embedded cluster even for a small job")
     r.add_argument("--overwrite", action="store_true", help="if --out holds relations of another spec, delete them")
     r.add_argument("--json", action="store_true", help="print the report (as report.json) instead of the summary")
     r.add_argument("--fail-on-empty-domain", action="store_true",

@@ -520,3 +520,17 @@ def test_store_write_outside_a_chunk_is_refused(tmp_path, client):
     with pytest.raises(StoreError, match="not one chunk"):
         write_chunk(store.url, group, abstract_cells(sub, 2, 6, 1.76, 0.16, "scp", "paper"), 0.0)
     assert store.markers(group) == {}
+
+
+def test_small_jobs_run_in_process_unless_told_otherwise():
+    """``in_process=None`` (the CLI's default): a small job skips the embedded cluster, a large one or one given a
+    cluster does not, and an explicit choice is kept."""
+    from pipelines.network import build_network
+    from pipelines.spec.model import load_spec
+    from workers.job import runs_in_process
+
+    small = build_network(load_spec(EXAMPLES / "small.yaml"))
+    large = build_network(load_spec(EXAMPLES / "consensus.yaml"))
+    assert runs_in_process(small) and not runs_in_process(large)
+    assert not runs_in_process(small, scheduler="tls://127.0.0.1:8786") and not runs_in_process(small, client=object())
+    assert not runs_in_process(small, in_process=False) and runs_in_process(large, in_process=True)

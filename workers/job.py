@@ -211,6 +211,27 @@ def run_abstraction(
     return Abstraction(spec, network, relations, ia, report, pending_audit=pending)
 
 
+#: Black-box evaluations of the per-cell stage below which a job that would start an embedded cluster runs in
+#: process instead (``in_process=None``): a few seconds on one core, less than starting and stopping two workers.
+IN_PROCESS_EVALUATIONS = 20_000_000
+#: Composed abstract states above which a job keeps the cluster anyway (its synthesis may run parts there).
+IN_PROCESS_STATES = 10_000_000
+
+
+def runs_in_process(network: Network, *, client: Any = None, scheduler: str | None = None,
+                    in_process: bool | None = None) -> bool:
+    """Whether a job runs its per-cell stage in this process: as asked, or (``in_process=None``) when no cluster
+    is given and the job is small (:data:`IN_PROCESS_EVALUATIONS`, :data:`IN_PROCESS_STATES`), so a small job
+    does not pay for an embedded cluster."""
+    if in_process is not None:
+        return in_process
+    if client is not None or scheduler is not None:
+        return False
+    evaluations = sum(s.triples * s.spec.samples * s.spec.rhs_evaluations
+                      for s in (m[0] for m in network.unique_subsystems().values()))
+    return evaluations <= IN_PROCESS_EVALUATIONS and network.abstract_states <= IN_PROCESS_STATES
+
+
 def _executor(spec: JobSpec, network: Network, store: RelationStore, *, client: Any, scheduler: str | None,
               workers: int, in_process: bool) -> tuple[Executor, Any]:
     """The executor a job asks for, and the cluster connection to close afterwards (or ``None``)."""
@@ -232,7 +253,7 @@ def abstract_job(
     client: Any = None,
     scheduler: str | None = None,
     workers: int = 2,
-    in_process: bool = False,
+    in_process: bool | None = False,
     progress: Progress = no_progress,
     allowed_modules: Sequence[str] | None = None,
     audit: bool = True,
@@ -246,7 +267,8 @@ def abstract_job(
     ``out_dir`` is the job directory or an fsspec URL; its relation store is ``out_dir/relations.zarr`` and chunks
     marked done there by an earlier run of the same spec are reused. The per-cell tasks run on ``client`` (a
     service's long-lived Dask client, not closed), on the scheduler ``scheduler`` (default: ``COMPABS_SCHEDULER``,
-    else an embedded cluster of ``workers`` processes), or in this process (``in_process``).
+    else an embedded cluster of ``workers`` processes), or in this process (``in_process``; ``None``: in this
+    process when no cluster is given and the job is small, :func:`runs_in_process`).
 
     Returns the abstraction and the report's ``runner`` section (``scheduler``, ``workers``, ``dashboard``,
     ``embedded``, ``store``, chunk counts, ``task_compute_seconds``). With ``keep_cluster`` the abstraction's
@@ -269,6 +291,7 @@ def abstract_job(
     # that cannot be written or holds another job, or a stale store fails at once, and leaves no new directory.
     validated = validate_spec(spec, allowed_modules=allowed_modules, caps=caps)
     network = validated.network
+    in_process = runs_in_process(network, client=client, scheduler=scheduler, in_process=in_process)
     local = "://" not in os.fspath(out_dir)
     created = None
     if local:
@@ -316,7 +339,7 @@ def run_job(
     client: Any = None,
     scheduler: str | None = None,
     workers: int = 2,
-    in_process: bool = False,
+    in_process: bool | None = False,
     progress: Progress | None = None,
     allowed_modules: Sequence[str] | None = None,
     audit: bool = True,
