@@ -346,7 +346,9 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
     audit = report.get("audit", {})
     if audit.get("transitions_checked"):
         parts = [_count(audit["transitions_checked"], "transition"), _count(audit["violations"], "violation")]
-        lines.append(_line("audit", *parts, *(["beside synthesis"] if audit.get("beside_synthesis") else [])))
+        how = ["beside synthesis"] if audit.get("beside_synthesis") else ["read back from the first run"] if audit.get(
+            "stored") else []
+        lines.append(_line("audit", *parts, *how))
     else:
         lines.append(_line("audit", "not run"))
     if "runner" in report:

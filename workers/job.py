@@ -34,14 +34,13 @@ from pipelines.abstraction.cells import CellTask
 from pipelines.abstraction.lipschitz import ConstantRecord, check_constants, resolve_constant
 from pipelines.abstraction.relation import CellsResult, SubsystemRelation, assemble, chunk_ranges
 from pipelines.errors import CompabsError
-from pipelines.interconnection import abstract_interconnection
 from pipelines.network import Network, Subsystem, build_network
 from pipelines.spec.costs import Caps
 from pipelines.spec.model import JobSpec, spec_hash
 from pipelines.spec.regions import spec_regions
 from pipelines.spec.validate import Validation, check_cells, validate_spec
 from pipelines.verification.audit import audit_abstraction
-from workers import jobdir
+from workers import jobdir, resume
 from workers.control import run_synthesis
 from workers.errors import StoreError
 from workers.executors import Executor, InProcess, OnDask
@@ -109,6 +108,7 @@ def run_abstraction(
     audit: bool = True,
     audit_beside: bool = False,
     validated: Validation | None = None,
+    resume_dir: Path | None = None,
 ) -> Abstraction:
     """Run the abstraction stages of a job (plan to audit) and build its report.
 
@@ -128,6 +128,9 @@ def run_abstraction(
     validated : Validation, optional
         The spec's :func:`~pipelines.spec.validate.validate_spec`, if the caller ran it: its network and regions
         (with their exact counts) are the plan, not built and counted again.
+    resume_dir : Path, optional
+        The job directory: an interconnection and an audit a run of this spec stored there are read back
+        (:mod:`workers.resume`).
 
     Raises
     ------
@@ -173,14 +176,19 @@ def run_abstraction(
 
     t0 = time.perf_counter()
     progress("interconnection", 0, 1, "sampling the map")
-    ia = abstract_interconnection(network, rng)
-    progress("interconnection", 1, 1, f"{len(ia.nodes)} nodes")
+    ia, read_back = resume.interconnection(resume_dir, spec, network, rng)
+    progress("interconnection", 1, 1, f"{len(ia.nodes)} nodes" + (", read back" if read_back else ""))
     seconds["interconnection"] = time.perf_counter() - t0
 
     audit_report: dict[str, Any] = {"transitions_checked": 0, "violations": 0}
     pending = None
+    stored = resume.stored_audit(resume_dir, spec, interconnection_read_back=read_back,
+                                 chunks_computed=executor.stats.chunks_computed)
     if audit and spec.options.audit_transitions:
-        if audit_beside:
+        if stored is not None:
+            audit_report = stored
+            progress("audit", 1, 1, "read back: the first run checked these relations")
+        elif audit_beside:
             from workers.processes.audit_beside import BackgroundAudit
 
             # The child reports each part it finishes; the relay thread calls progress (the service's callback
@@ -194,6 +202,7 @@ def run_abstraction(
             audit_report = audit_abstraction(network, relations, ia, spec.options.audit_transitions, rng,
                                              lambda done, total, part: progress("audit", done, total, part))
             seconds["audit"] = time.perf_counter() - t0
+            resume.keep_audit(resume_dir, spec, audit_report)
 
     counts = {k: r.states for k, r in regions.items()}  # exact counts cost a sweep each: once per region
     report = {
@@ -205,7 +214,7 @@ def run_abstraction(
         "subsystem_count": len(network.subsystems),
         "stage_seconds": seconds,
         "subsystems": infos,
-        "interconnection": ia.describe(),
+        "interconnection": {**ia.describe(), **({"read_back": True} if read_back else {})},
         "audit": audit_report,
     }
     return Abstraction(spec, network, relations, ia, report, pending_audit=pending)
@@ -303,7 +312,8 @@ def abstract_job(
         kept = False
         try:
             result = run_abstraction(spec, executor=executor, progress=progress, allowed_modules=allowed_modules,
-                                     audit=audit, audit_beside=audit_beside, validated=validated)
+                                     audit=audit, audit_beside=audit_beside, validated=validated,
+                                     resume_dir=Path(out_dir) if local else None)
             try:
                 store.consolidate()
                 if local:  # what `compabs audit` checks
@@ -402,6 +412,7 @@ def run_job(
             result.report["stage_seconds"].update(extra.pop("stage_seconds"))
             result.report.update(extra)
         result.finish_audit(progress)
+        resume.keep_audit(out, spec, result.report["audit"])
     finally:
         result.cancel_audit()  # an error or a cancellation: stop the child (nothing when finished)
         result.close_cluster()

@@ -10,6 +10,7 @@
     DIR/trajectory.png, phase_plane.png, closed_loop_example.json   the figures and the runs they show
     DIR/report.json                  written last, atomically: a report means the job's files are complete
     DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
+    DIR/resume.json                  what a run of the same spec reads back (:mod:`workers.resume`)
     DIR/checkpoints/                 the safety fixed points' last iterates while synthesis runs, removed once the
                                      controller is written or the service ends the job cancelled or failed
                                      (:mod:`workers.checkpoint_store` reads and writes them)
@@ -64,6 +65,7 @@ CONTROLLER = "controller"
 CHECKPOINTS = "checkpoints"
 EXAMPLE_RUN = "closed_loop_example.json"
 AUDIT = "audit.json"
+RESUME = "resume.json"
 #: Version of the interconnection files' layout.
 INTERCONNECTION_FORMAT = 1
 
@@ -129,7 +131,7 @@ def _writable(directory: Path) -> None:
 
 def _job_files(out: Path) -> list[Path]:
     """The job files (other than the relation store) in ``out``, report.json first."""
-    named = [out / n for n in (REPORT, SPEC, AUDIT, INTERCONNECTION_META, INTERCONNECTION_ARRAYS, EXAMPLE_RUN,
+    named = [out / n for n in (REPORT, SPEC, AUDIT, RESUME, INTERCONNECTION_META, INTERCONNECTION_ARRAYS, EXAMPLE_RUN,
                                "trajectory.png", "phase_plane.png", "domain_slice.png")]
     named += sorted(p for ext in ("dddmp", "json", "zip") for p in out.glob(f"{CONTROLLER}*.{ext}"))
     return [p for p in dict.fromkeys(named) if p.is_file()]
