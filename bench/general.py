@@ -10,16 +10,19 @@ the floor (the black box alone on the same samples, :func:`bench.floor.child_flo
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
 from bench import harness
+from bench.harness import Emit
 
 #: SCOTS v0.2 (and Dionysos.jl) on the same problems, on a 2-core machine (this case does not run them again).
 #: SCOTS builds the abstraction from the model (a growth bound from the ODE's Jacobian), not from data.
 SCOTS: dict[str, dict[str, Any]] = {
     "dcdc": {
-        "abstraction_seconds": 0.36,
+        "abstraction_seconds": 0.354,
+        "synthesis_seconds": 0.013,
         "transitions": 3.8e6,
         "states": 800 * 799,
         "domain_states": 593_089,
@@ -27,10 +30,11 @@ SCOTS: dict[str, dict[str, Any]] = {
         "source": "SCOTS v0.2 examples/dcdc (safety), grid 800 x 799 (its absolute rounding tolerance)",
     },
     "vehicle": {
-        "abstraction_seconds": 4.4,
+        "abstraction_seconds": 4.97,
+        "synthesis_seconds": 0.32,
         "transitions": 35.8e6,
-        "states": None,
-        "domain_states": None,
+        "states": 91_035,
+        "domain_states": 48_018,
         "other": "",
         "source": "SCOTS v0.2 examples/vehicle (reach-avoid around 15 obstacles)",
     },
@@ -53,6 +57,65 @@ def transitions_of(subsystems: list[dict]) -> int:
         if mean is not None and live is not None:
             total += round(mean * live)
     return total
+
+
+#: The examples whose games both back ends solve (single systems; the rooms are a network: BDDs only).
+BACKEND_EXAMPLES = ("dcdc", "vehicle")
+
+
+def child_backends(p: dict, emit: Emit) -> None:
+    """One example's game on both back ends, from one abstraction (in this process, no audit): the explicit
+    solver's predecessor lists and fixed points (:mod:`pipelines.synthesis.explicit`), and the BDD solver's
+    relations, CPre set-up and fixed points (:func:`~pipelines.synthesis.synthesize.synthesize`), each split into
+    building and fixed point; the BDDs' construction throughput (transitions per second of building the relation
+    BDDs); whether the two domains are the same set of cells."""
+    import numpy as np
+
+    from pipelines.spec.model import load_spec
+    from pipelines.symbolic.counting import enumerate_cells
+    from pipelines.synthesis import explicit
+    from pipelines.synthesis.synthesize import synthesize
+    from workers.job import run_abstraction
+
+    spec = load_spec(p["spec"], p.get("set"))
+    emit({"type": "stage", "stage": "abstraction"})
+    ab = run_abstraction(spec, audit=False)
+    network, grid = ab.network, ab.network.composed_state_grid()
+    (relation,) = ab.relations.values()
+    transitions = explicit.transitions(relation)
+    methods = tuple(spec.options.fixed_points)
+    emit({"type": "stage", "stage": "explicit"})
+    game = explicit.ExplicitGame.from_relation(relation, grid.shape)
+    t0 = time.perf_counter()
+    results = explicit.solve(game, spec.specification, grid, methods)
+    solve_seconds = time.perf_counter() - t0
+    emit({"type": "row", "row": {"backend": "explicit", "build_seconds": game.build_seconds,
+                                 "fixed_point_seconds": solve_seconds, "transitions": transitions,
+                                 "domains": {k: r.domain_states for k, r in results.items()}}})
+    emit({"type": "stage", "stage": "bdd"})
+    t0 = time.perf_counter()
+    cpre, bdd_results, report = synthesize(network, ab.relations, ab.interconnection, spec.specification,
+                                           reach_and_stay_methods=methods, processes=1)
+    total = time.perf_counter() - t0
+    try:
+        m = cpre.model
+        same = {}
+        for k, r in bdd_results.items():
+            cells = enumerate_cells(m, r.domain, m.x_digits())
+            mask = np.zeros(grid.size, dtype=bool)
+            mask[grid.ravel(cells)] = True
+            same[k] = bool(np.array_equal(mask, results[k].domain))
+    finally:
+        cpre.close()
+    relation_seconds = sum(report["relation_seconds"].values())
+    emit({"type": "row", "row": {
+        "backend": "bdd", "build_seconds": report["build_seconds"], "relation_seconds": relation_seconds,
+        "fixed_point_seconds": total - report["build_seconds"], "transitions": transitions,
+        "transitions_per_second": harness.ratio(transitions, relation_seconds),
+        "domains": {k: r.domain_states for k, r in bdd_results.items()}, "same_domains": same}})
+
+
+CHILDREN = {"backends": child_backends}
 
 
 def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_child,
@@ -79,6 +142,11 @@ def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_chi
         frows = [e["row"] for e in floor["events"] if e["type"] == "row"]
         rec["floor"] = {"status": floor["status"], "error": floor["error"],
                         "ratio": max((r["ratio_cpu"] for r in frows), default=None), "rows": frows}
+        if name in BACKEND_EXAMPLES:
+            both = run_child("backends", {"spec": str(spec)}, args.point_timeout, args.mem_limit_gb * 1024,
+                             env=worker_environ())
+            rec["backends"] = {"status": both["status"], "error": both["error"],
+                               "rows": {e["row"]["backend"]: e["row"] for e in both["events"] if e["type"] == "row"}}
         scots = SCOTS.get(name)
         rec["scots"] = scots
         if scots:
@@ -130,6 +198,19 @@ def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
                    f"{fmt(r['stages'].get('subsystems', {}).get('wall')):>12}{fmt(r['floor']['ratio']):>8}"
                    f"{fmt(audit.get('transitions_checked')):>10}{fmt(audit.get('violations')):>6}"
                    f"{fmt(loop.get('runs')):>6}{fmt(loop.get('violations')):>6}   {scots}")
+    out.append(f"  {'synthesis':<9}{'explicit: build s':>19}{'fixed pt s':>12}{'BDD: build s':>14}{'relations s':>13}"
+               f"{'fixed pt s':>12}{'BDD trans/s':>13}{'same domain':>13}   SCOTS synthesis s")
+    for r in c["runs"]:
+        both = (r.get("backends") or {}).get("rows") or {}
+        if not both:
+            continue
+        e, b = both.get("explicit") or {}, both.get("bdd") or {}
+        same = b.get("same_domains") or {}
+        out.append(f"  {r['case'].split()[-1]:<9}{fmt(e.get('build_seconds')):>19}{fmt(e.get('fixed_point_seconds')):>12}"
+                   f"{fmt(b.get('build_seconds')):>14}{fmt(b.get('relation_seconds')):>13}"
+                   f"{fmt(b.get('fixed_point_seconds')):>12}{fmt(b.get('transitions_per_second')):>13}"
+                   f"{('yes' if same and all(same.values()) else 'NO' if same else '-'):>13}"
+                   f"   {fmt((r.get('scots') or {}).get('synthesis_seconds'))}")
     return out
 
 

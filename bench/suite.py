@@ -53,7 +53,7 @@ NOT_QUICK = ("tanks_fine", "consensus", "general", "synthesis")
 BASELINES = {"floor": floor, "scp": scp, "workers": two_workers, "bdd": bdd}
 #: The child cases by kind (``--child``), from every case module.
 CHILDREN = {**end_to_end.CHILDREN, **scalability.CHILDREN, **floor.CHILDREN, **scp.CHILDREN, **two_workers.CHILDREN,
-            **bdd.CHILDREN}
+            **bdd.CHILDREN, **general.CHILDREN}
 #: The paper's figures, in the JSON output.
 PAPER = {**end_to_end.PAPER, "scalability": scalability.PAPER}
 
