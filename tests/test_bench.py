@@ -368,3 +368,21 @@ def test_a_script_run_from_elsewhere_says_where_to_run_it(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run.py"), "--help"], cwd=tmp_path, capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 1 and "run it from the repository root" in proc.stderr
+
+
+def test_the_general_case_solves_a_single_system_on_both_back_ends(tmp_path):
+    """The ``backends`` child (in this process): one abstraction, both back ends' building and fixed-point times,
+    the BDDs' construction throughput, and the same domain as a set of cells."""
+    from bench.general import child_backends
+
+    from .test_single_system import SINGLE
+
+    spec = tmp_path / "single.yaml"
+    spec.write_text(SINGLE)
+    events: list[dict] = []
+    child_backends({"spec": str(spec)}, events.append)
+    rows = {e["row"]["backend"]: e["row"] for e in events if e["type"] == "row"}
+    e, b = rows["explicit"], rows["bdd"]
+    assert e["domains"] == b["domains"] and e["domains"]["safe"] > 0 and b["same_domains"] == {"safe": True}
+    assert e["transitions"] == b["transitions"] > 0 and b["transitions_per_second"] > 0
+    assert min(e["build_seconds"], e["fixed_point_seconds"], b["relation_seconds"], b["fixed_point_seconds"]) >= 0
