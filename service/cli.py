@@ -269,14 +269,15 @@ def _runner_parts(runner: dict) -> list[str]:
 
 
 def _file_lines(report: dict, out: Path) -> list[Row]:
-    """The job's files: report, relations, controller (its header; a layered controller's DDDMP files lie beside
-    it), figures."""
+    """The job's files: report, relations, controller (its header; its DDDMP files, or an explicit game's arrays, lie
+    beside it), figures."""
     lines = [_line("report", str(out / jobdir.REPORT)), _line("relations", str(out / jobdir.RELATIONS))]
     files = list(report.get("controller", {}).get("files", []))
     headers = [f for f in files if f.endswith(".json")]
     if headers:
         others = len(files) - len(headers)
-        more = f" (and {_count(others, 'BDD file')} beside it)" if others else ""
+        kind = "array file" if report.get("controller", {}).get("form") == "array" else "BDD file"
+        more = f" (and {_count(others, kind)} beside it)" if others else ""
         lines.append(_line("controller", *(str(out / f) for f in headers[:-1]), str(out / headers[-1]) + more))
     elif files:
         lines.append(_line("controller", *(str(out / f) for f in files)))

@@ -223,3 +223,13 @@ def test_the_summary_says_a_domain_from_a_quotient_is_not_maximal(small_job):
     report["synthesis"]["quotient"]["refine_rounds"] = 2
     domain = _labelled("\n".join(summary_lines(report, job)))["domain"]
     assert "from the quotient of level 1, grown on the fine grid (2 rounds at most), not maximal" in domain
+
+
+
+def test_the_summary_names_an_array_controllers_files(tmp_path):
+    """An explicit game's controller is a header and its arrays, and the summary says so."""
+    from service.cli import _file_lines
+
+    report = {"controller": {"form": "array", "files": ["controller.npz", "controller.json"]}}
+    text = "\n".join(str(row) for row in _file_lines(report, tmp_path))
+    assert "controller.json (and 1 array file beside it)" in text and "BDD file" not in text
