@@ -352,7 +352,8 @@ def test_an_empty_domain_is_said_in_the_warnings():
     spec = parse_spec(_integrator_spec(specification, initial_states=[[1.0, 1.0]]))
     report = run_synthesis(run_abstraction(spec, audit=False), None)
     assert report["domain_states"] == 0 and report["closed_loop"]["runs"] == 0
-    first, second = report["warnings"]
+    first, second, why = report["warnings"]
     assert first == EMPTY_DOMAIN.format(regions="target or safe set")
     assert first.startswith("the winning domain is empty: no controller exists on this abstraction")
     assert "options.initial_states[0] = [1.0, 1.0]" in second
+    assert why.startswith("why the winning domain is empty: the target and the safe set share no whole cell")

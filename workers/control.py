@@ -26,6 +26,7 @@ from pipelines.synthesis.explicit import ExplicitGame, ExplicitResult, choose_ba
 from pipelines.synthesis.fixed_points import IterationProgress, SynthesisResult
 from pipelines.synthesis.synthesize import synthesize
 from pipelines.verification.closed_loop import run_closed_loop
+from pipelines.verification.empty_domain import explain_empty_domain
 from workers import checkpoint_store, jobdir
 from workers.checkpoint_store import DirectoryCheckpoints, problem_key
 from workers.dask_cpre import on_cluster, parts_for
@@ -163,7 +164,9 @@ def run_synthesis(
         "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
                                        loop.initial_states, has_safe=spec.specification.safe is not None,
                                        quotient=opts.synthesis_quotient)
-        + ([] if store is None else store.warnings),
+        + ([] if store is None else store.warnings)
+        + (explain_empty_domain(network, abstraction.relations, abstraction.interconnection, spec)
+           if main.domain_states == 0 else []),
     }
 
 
