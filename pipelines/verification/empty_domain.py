@@ -177,20 +177,25 @@ def _classify(sub: Subsystem, rel: SubsystemRelation, region: np.ndarray, lost: 
                     f"{'' if wholly else 'partly '}outside the region: the inputs{rng_text} cannot counter the drift")
 
 
-def _admitted_w(sub: Subsystem, region: AbstractRegion, ia: InterconnectionAbstraction, network: Network
-                ) -> np.ndarray:
-    """Which internal cells of ``sub`` the interconnection admits from states of the region (box corners and
-    :data:`W_SAMPLES` random states; a product over the variables it reads); bool (n_w,)."""
-    if sub.internal_grid is None or not sub.reads:
-        return np.ones(sub.n_w_cells, dtype=bool)
+def _admitted_cells(region: AbstractRegion, ia: InterconnectionAbstraction) -> list[np.ndarray]:
+    """Per internal variable, the cells the interconnection admits from states of the region (its boxes' corners
+    and :data:`W_SAMPLES` random states); bool (size_j,) each."""
+    if ia.p == 0:
+        return []
     rng = np.random.default_rng(0)
     boxes = list(region.boxes)
     volumes = np.array([float(math.prod(int(h - lo_ + 1) for lo_, h in zip(lo, hi))) for lo, hi in boxes])
     picks = rng.choice(len(boxes), W_SAMPLES, p=volumes / volumes.sum())
     states = [np.array([lo for lo, _ in boxes]), np.array([hi for _, hi in boxes])]
     states.append(np.array([rng.integers(boxes[b][0], boxes[b][1] + 1) for b in picks]))
-    masks = ia.allowed_cells(np.concatenate(states))
-    per_read = [masks[j].any(axis=0) for j in sub.reads]
+    return [np.asarray(np.any(mask, axis=0), dtype=bool) for mask in ia.allowed_cells(np.concatenate(states))]
+
+
+def _admitted_w(sub: Subsystem, admitted: list[np.ndarray]) -> np.ndarray:
+    """The internal cells of ``sub`` (the product over the variables it reads) of :func:`_admitted_cells`."""
+    if sub.internal_grid is None or not sub.reads:
+        return np.ones(sub.n_w_cells, dtype=bool)
+    per_read = [admitted[j] for j in sub.reads]
     if len(per_read) == 1:
         return np.asarray(per_read[0], dtype=bool)
     return np.asarray(np.logical_and.reduce(np.ix_(*per_read)), dtype=bool).reshape(-1)
@@ -277,9 +282,10 @@ def explain_empty_domain(network: Network, relations: dict[str, SubsystemRelatio
         region, name = regions["target"], "target"
     games: dict[tuple[str, bytes, bytes], LocalGame] = {}
     named: dict[int, list[str]] = {}  # identical games (replicas): told once, naming every subsystem
+    cells = _admitted_cells(region, ia)
     for sub in network.subsystems:
         mask = _projection(region, sub)
-        admitted = _admitted_w(sub, region, ia, network)
+        admitted = _admitted_w(sub, cells)
         key = (sub.key, np.packbits(mask).tobytes(), np.packbits(admitted).tobytes())
         if key not in games:
             games[key] = local_game(sub, relations[sub.key], mask, admitted)
