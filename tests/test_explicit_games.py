@@ -245,3 +245,42 @@ def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_a
     np.testing.assert_array_equal(ctrl.in_domain(cells), controllers["bdd"].in_domain(cells))
     export = export_controller(ctrl)
     check(ctrl, export, compile_driver(export, tmp_path / "c"), np.random.default_rng(0))
+
+
+def _reduced(name: str):
+    """The field's examples as tests/test_figures_examples.py reduces them (fewer samples, every second input)."""
+    import yaml
+
+    from pipelines.spec.model import parse_spec
+
+    from .conftest import EXAMPLES
+
+    data = yaml.safe_load((EXAMPLES / f"{name}.yaml").read_text())
+    if name == "dcdc":
+        data["subsystems"][0]["samples"] = 4
+    else:
+        data["subsystems"][0]["input"]["eta"] = 0.6
+    return parse_spec(yaml.safe_dump(data))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("name", ["dcdc", "vehicle"])
+def test_the_examples_domains_are_the_same_set_on_both_back_ends(name):
+    """SCOTS's examples, from one abstraction: the explicit and the BDD fixed points win the same cells."""
+    from pipelines.synthesis.synthesize import synthesize
+    from workers.job import run_abstraction
+
+    spec = _reduced(name)
+    ab = run_abstraction(spec, audit=False)
+    grid = ab.network.composed_state_grid()
+    (relation,) = ab.relations.values()
+    results = explicit.solve(explicit.ExplicitGame.from_relation(relation, grid.shape), spec.specification, grid)
+    cpre, bdd_results, _ = synthesize(ab.network, ab.relations, ab.interconnection, spec.specification)
+    try:
+        assert results.keys() == bdd_results.keys()
+        for key, r in bdd_results.items():
+            assert r.domain_states == results[key].domain_states > 0
+            np.testing.assert_array_equal(as_cells(cpre.model, r.domain, grid.shape), results[key].domain)
+    finally:
+        cpre.close()

@@ -29,6 +29,7 @@ from matplotlib.image import AxesImage
 from matplotlib.patches import Rectangle
 
 import workers.figures as worker_figures
+from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller, load_controller
 from pipelines.figures import FigureSetting, phase_plane, time_plot
 from pipelines.figures.domain import block_factors, block_levels, plane_mask
@@ -89,7 +90,7 @@ class Job:
     name: str
     spec: JobSpec
     network: Network
-    controller: Controller
+    controller: Controller | ArrayController
     report: dict
     out: Path
     figures: dict[str, Figure]
@@ -141,7 +142,7 @@ def run_example(name: str, tmp: Path) -> Job:
     jobdir.write_spec(out, spec)
     jobdir.write_report(out, {**abstraction.report, **report})
     controller = load_controller(out)
-    assert isinstance(controller, Controller)
+    assert isinstance(controller, Controller | ArrayController)  # single systems: an explicit game's arrays
     example = json.loads((out / jobdir.EXAMPLE_RUN).read_text())
     return Job(name, spec, abstraction.network, controller, report, out, figures, drawn["runs"], drawn["setting"],
                example)

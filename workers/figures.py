@@ -77,8 +77,7 @@ def _draw(network: Network, controller: Controller | ArrayController, starts: Se
             "choose": CHOICE, "steps": steps, "starts": [{"origin": o, "x0": x.tolist()} for o, x in chosen],
         })
     if network.state_dim >= 2:
-        plane = controller.plane_mask if isinstance(controller, ArrayController) else partial(plane_mask, controller)
-        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes, plane=plane)
+        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes, plane=partial(plane_mask, controller))
         paths.append(save_figure(fig, jobdir.figure(out_dir, "phase_plane")))
     return paths
 

@@ -28,8 +28,9 @@ def plane_mask(controller: Any, base: np.ndarray, i: int, j: int) -> np.ndarray:
 
     Parameters
     ----------
-    controller : Controller
-        Its ``model`` (the symbolic model: bits, manager) and ``domain`` (a BDD over current-state bits).
+    controller : Controller or ArrayController
+        Its ``model`` (the symbolic model: bits, manager) and ``domain`` (a BDD over current-state bits), or its own
+        ``plane_mask`` (:meth:`~pipelines.array_controller.ArrayController.plane_mask`).
     base : ndarray of int, shape (n,)
         Cell indices; those of coordinates other than ``i`` and ``j`` fix the plane.
     i, j : int
@@ -41,6 +42,9 @@ def plane_mask(controller: Any, base: np.ndarray, i: int, j: int) -> np.ndarray:
         The plane has more than :data:`MAX_PLANE_CELLS` cells, or the domain depends on bits other than the
         current state's.
     """
+    own = getattr(controller, "plane_mask", None)
+    if own is not None:  # an array controller slices its own domain
+        return own(base, i, j)
     model = controller.model
     bdd = model.bdd
     ki, kj = model.state_sizes[i], model.state_sizes[j]
