@@ -34,14 +34,14 @@ CASES = {
     "drift": (_spec("x[0] + 3 + 0.1 * u[0] + 0 * w[0]", {"x": 1.01, "w": 0.01}, safe(9.5, 10.5)),
               "cannot keep its state in its part of the safe set ([9.5, 10.5], 1 cell) even with the most favourable "
               "internal variables: the inputs cannot counter the drift",
-              "at x ≈ 10 (cell [9.5, 10.5]) the closest successors of any input u = -2 are [11.5, 13.5], outside"),
+              "at x ≈ 10 (cell [9.5, 10.5]) the closest successors of any input (u = -2) are [11.5, 13.5], outside"),
     # The same drift with the whole box safe: the top cells' successors leave the state box.
     "blocking": (_spec("x[0] + 3 + 0.1 * u[0] + 0 * w[0]", {"x": 1.01, "w": 0.01}, safe(-0.5, 32.5)),
                  "every input is blocking near the boundary, its successors leaving the state box",
                  "the successors of every input leave the state box [-0.5, 32.5]"),
     # L_x = 3: every image spans 4 cells, the safe set 2.
     "wide": (_spec("x[0] + 0.1 * u[0] + 0 * w[0]", {"x": 3, "w": 0.01}, safe(9.5, 11.5)),
-             "every image of some cells is wider than the region there, through the growth bound",
+             "every image of some cells is wider than a cell and spills out of the region, through the growth bound",
              "4 cells of x[0] where the region has 2"),
     # x+ = w + 0.1 u: the state follows w, which the interconnection knows within ±4.8 cells only.
     "interconnection": (_spec("w[0] + 0.1 * u[0]", {"x": 0.01, "w": 1.01}, safe(9.5, 12.5),

@@ -51,7 +51,7 @@ CAUSES = ("blocking", "wide", "drift")
 CAUSE_WORDS = {"blocking": "blocking", "wide": "wider than the region", "drift": "drifting out"}
 CAUSE_TEXT = {
     "blocking": "every input is blocking near the boundary, its successors leaving the state box",
-    "wide": "every image of some cells is wider than the region there, through the growth bound",
+    "wide": "every image of some cells is wider than a cell and spills out of the region, through the growth bound",
     "drift": "the inputs cannot counter the drift",
 }
 
@@ -126,55 +126,69 @@ def _point_text(values: np.ndarray) -> str:
     return f"{values[0]:.4g}" if values.size == 1 else "(" + ", ".join(f"{v:.4g}" for v in values) + ")"
 
 
-def _classify(sub: Subsystem, rel: SubsystemRelation, region: np.ndarray, lost: np.ndarray, w_ok: np.ndarray
+def _outside(region: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Cells of each successor box ``lo[k] .. hi[k]`` outside ``region``, shape (k,)."""
+    return np.array([np.prod(high - low + 1) - np.count_nonzero(region[tuple(slice(a, b + 1) for a, b in zip(low, high))])
+                     for low, high in zip(lo, hi)])
+
+
+def _classify(sub: Subsystem, rel: SubsystemRelation, region: np.ndarray, lost: np.ndarray
               ) -> tuple[dict[str, list[int]], str]:
-    """Why each cell lost at the first step is lost (:data:`CAUSES`), and the first of the most frequent cause."""
+    """Why each cell lost at the first step is lost (:data:`CAUSES`), and the first of the most frequent cause.
+
+    ``blocking``: no input is admissible. ``wide``: every image is wider than the region there, or the closest
+    image still covers the cell itself (an input holds the state, the growth bound spills it out of the region).
+    ``drift``: the closest image has left the cell (every input moves the state out)."""
     n = sub.n
     runs = np.stack([_run_lengths(region, d).reshape(-1) for d in range(n)], axis=-1)  # (n_x, n)
     causes: dict[str, list[int]] = {c: [] for c in CAUSES}
-    flat = np.flatnonzero(lost.reshape(-1))
-    for x in flat.tolist():
-        live = ~rel.blocking[x] & w_ok[None, :]
-        if not live.any():
+    seen: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, int, bool]] = {}  # per cell: u, lo, hi, closest, wider
+    for x in np.flatnonzero(lost.reshape(-1)).tolist():
+        u, w = np.nonzero(~rel.blocking[x])
+        if u.size == 0:
             causes["blocking"].append(x)
             continue
-        lo, hi = rel.lo[x][live].astype(np.int64), rel.hi[x][live].astype(np.int64)
-        meets = [region[tuple(slice(a, b + 1) for a, b in zip(low, high))].any() for low, high in zip(lo, hi)]
-        wide = np.all(np.any(hi - lo + 1 > runs[x], axis=-1)) and any(meets)
-        causes["wide" if wide else "drift"].append(x)
+        lo, hi = rel.lo[x][u, w].astype(np.int64), rel.hi[x][u, w].astype(np.int64)
+        outside = _outside(region, lo, hi)
+        k = int(np.argmin(outside))
+        idx = sub.state_grid.unravel(np.array([x]))[0]
+        wider = bool(np.all(np.any(hi - lo + 1 > runs[x], axis=-1)) and np.any(outside < np.prod(hi - lo + 1, axis=-1)))
+        holds = bool(np.all((lo[k] <= idx) & (idx <= hi[k])))
+        causes["wide" if wider or holds else "drift"].append(x)
+        seen[x] = (u, lo, hi, k, wider)
     cause = max(CAUSES, key=lambda c: len(causes[c]))
     if not causes[cause]:
         return causes, ""
     x = causes[cause][0]
     idx = sub.state_grid.unravel(np.array([x]))[0]
     where = f"at x ≈ {_point_text(sub.state_grid.points(idx[None])[0])} (cell {_cells_text(sub, idx, idx)})"
-    inputs = sub.input_grid.all_points() if sub.input_grid.size <= 10_000 else None
-    span = _cells_text(sub, np.zeros(n, dtype=np.int64), np.asarray(sub.state_grid.shape) - 1)
     if cause == "blocking":
+        span = _cells_text(sub, np.zeros(n, dtype=np.int64), np.asarray(sub.state_grid.shape) - 1)
         return causes, (f"{where} the successors of every input leave the state box {span}: a larger state box, "
                         "or dynamics that stay inside it")
-    live = ~rel.blocking[x] & w_ok[None, :]
-    u, w = np.argwhere(live).T
-    lo, hi = rel.lo[x][u, w].astype(np.int64), rel.hi[x][u, w].astype(np.int64)
-    u_text = lambda k: "" if inputs is None else f" u = {_point_text(inputs[u[k]])}"  # noqa: E731
-    if cause == "wide":
+    u, lo, hi, k, wider = seen[x]
+    inputs = sub.input_grid.all_points() if sub.input_grid.size <= 10_000 else None
+
+    def with_u(j: int) -> str:
+        return "" if inputs is None else f" (u = {_point_text(inputs[u[j]])})"
+
+    narrow = " or the 'hull' growth bound" if rel.method != "hull" else ""
+    fix = f": a finer grid (eta), more samples{narrow} narrow the images (L_x = {rel.L_x:g}, {rel.method})"
+    if cause == "wide" and wider:
         width = hi - lo + 1
         over = width - runs[x]  # how much wider than the region there, per dimension
-        k = int(np.argmin(over.max(axis=-1)))
-        d = int(np.argmax(over[k]))
-        return causes, (f"{where} every input's successors span more cells than the region has there: the narrowest"
-                        f"{u_text(k)} reaches {_cells_text(sub, lo[k], hi[k])}, {width[k, d]} cells of x[{d}] where "
-                        f"the region has {runs[x, d]}: a finer grid (eta), more samples or a tighter growth bound "
-                        f"('hull'; L_x = {rel.L_x:g}) narrows the images")
-    # drift: narrow enough, but no image lands inside; the closest is the one with the fewest cells outside.
-    outside = np.array([np.prod(high - low + 1) - np.count_nonzero(region[tuple(slice(a, b + 1) for a, b in zip(low, high))])
-                        for low, high in zip(lo, hi)])
-    k = int(np.argmin(outside))
-    wholly = outside[k] == np.prod(hi[k] - lo[k] + 1)
-    rng_text = "" if inputs is None else (f" (u from {_point_text(inputs.min(axis=0))} to "
-                                          f"{_point_text(inputs.max(axis=0))})")
-    return causes, (f"{where} the closest successors of any input{u_text(k)} are {_cells_text(sub, lo[k], hi[k])}, "
-                    f"{'' if wholly else 'partly '}outside the region: the inputs{rng_text} cannot counter the drift")
+        j = int(np.argmin(over.max(axis=-1)))
+        d = int(np.argmax(over[j]))
+        return causes, (f"{where} the narrowest successors of any input{with_u(j)} are {_cells_text(sub, lo[j], hi[j])}, "
+                        f"{width[j, d]} cells of x[{d}] where the region has {runs[x, d]}{fix}")
+    if cause == "wide":
+        return causes, (f"{where} the closest successors of any input{with_u(k)} are {_cells_text(sub, lo[k], hi[k])}: "
+                        f"they cover the cell itself and spill out of the region, the image being wider than a cell{fix}")
+    wholly = _outside(region, lo[k:k + 1], hi[k:k + 1])[0] == np.prod(hi[k] - lo[k] + 1)
+    span = "" if inputs is None else (f" (u from {_point_text(inputs.min(axis=0))} to "
+                                      f"{_point_text(inputs.max(axis=0))})")
+    return causes, (f"{where} the closest successors of any input{with_u(k)} are {_cells_text(sub, lo[k], hi[k])}, "
+                    f"{'' if wholly else 'partly '}outside the region: the inputs{span} cannot counter the drift")
 
 
 def _admitted_cells(region: AbstractRegion, ia: InterconnectionAbstraction) -> list[np.ndarray]:
@@ -226,7 +240,7 @@ def local_game(sub: Subsystem, rel: SubsystemRelation, region_mask: np.ndarray, 
     game = LocalGame(sub, region_mask, z, adverse, rounds)
     if not z.any():
         assert first is not None
-        game.first_lost, game.example = _classify(sub, rel, region_mask, first, np.ones(sub.n_w_cells, dtype=bool))
+        game.first_lost, game.example = _classify(sub, rel, region_mask, first)
     return game
 
 
