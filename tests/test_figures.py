@@ -209,7 +209,7 @@ def test_the_job_draws_its_figures_deterministically(rover):
     out, _, report = rover
     assert report["figures"] == ["trajectory.png", "phase_plane.png"]
     example = json.loads((out / jobdir.EXAMPLE_RUN).read_text())
-    assert example["choose"] == "first" and example["starts"][0] == {"origin": "initial", "x0": [1.0, 1.0]}
+    assert example["choose"] == "steady" and example["starts"][0] == {"origin": "initial", "x0": [1.0, 1.0]}
     assert len(example["starts"]) == 1 + 5 and example["controlled"]["violation"] is None
     for name in report["figures"]:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

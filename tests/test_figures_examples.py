@@ -289,9 +289,15 @@ def test_phase_plane_draws_domain_regions_and_runs(job: Job):
         assert "closed loop from x0" in legend
     else:
         assert all(origin == "random" for origin, _, _ in job.drawn)
-    if x0 is not None and not inside:
-        np.testing.assert_array_equal(np.r_[lines["x0_outside"].get_xdata(), lines["x0_outside"].get_ydata()],
-                                      x0[:2])
+    if x0 is not None and not inside:  # marked where it lies on the slice, else said to lie off it: never both
+        x0_cell, on_grid = grid.cell_of(np.asarray(x0, dtype=float)[None, :])
+        off = n > 2 and not (on_grid[0] and np.array_equal(x0_cell[0][2:], np.asarray(base)[2:]))
+        assert ("(not in the domain) lies off this slice: not drawn" in title) == off, title
+        assert ("x0_outside" in lines) == (not off)
+        assert not any("off this slice" in text for text in legend)
+        if not off:
+            np.testing.assert_array_equal(np.r_[lines["x0_outside"].get_xdata(), lines["x0_outside"].get_ydata()],
+                                          x0[:2])
     if x0 is None:
         assert "from x0" not in title
 

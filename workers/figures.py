@@ -2,9 +2,10 @@
 from a finished job directory (``compabs figures DIR``) without recomputing the abstraction.
 
 The drawn runs start where the job's closed loop started (every initial state of the spec in the domain, and
-the first :data:`FIGURE_RUNS` random domain states) and choose the *first* admissible input at each step, so
-a figure is the same every time it is drawn; any admissible input meets the specification (Theorem 4.2), so
-the figure shows a run the guarantee covers. The time plot draws the run from the spec's first initial state
+the first :data:`FIGURE_RUNS` random domain states) and keep their input while it stays admissible, else take
+the first admissible one (``steady``), so a figure is the same every time it is drawn and its inputs do not
+chatter between extremes where several are admissible (inside a target); any admissible input meets the
+specification (Theorem 4.2), so the figure shows a run the guarantee covers. The time plot draws the run from the spec's first initial state
 when it is in the domain, else the longest of the random runs drawn. The starts are kept in
 ``closed_loop_example.json`` with the run drawn, and a redraw runs the concrete system again from them.
 """
@@ -35,8 +36,9 @@ from workers.jobdir import ArtifactError
 
 #: Random-start runs drawn on the phase plane, besides those from the spec's initial states.
 FIGURE_RUNS = 5
-#: How the drawn runs choose among the admissible inputs (:meth:`Controller.choose`): deterministic.
-CHOICE = "first"
+#: How the drawn runs choose among the admissible inputs (:data:`pipelines.verification.closed_loop.CHOOSE`):
+#: deterministic, and without chattering.
+CHOICE = "steady"
 #: The figures, by name (``DIR/<name>.png``), in the report's order.
 FIGURES = ("trajectory", "phase_plane")
 

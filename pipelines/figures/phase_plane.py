@@ -6,7 +6,8 @@ the cells), so a run that touches an obstacle's cell is seen to touch it. With m
 domain is the slice through one cell (that of the initial state) in the others, said in the title: a
 projection would need an existential over every other coordinate, which the controller answers only cell by
 cell. The slice passes through the cell of the initial state when it is in the domain, else through the start
-of the first run drawn (a domain state), so that the slice meets the domain.
+of the first run drawn (a domain state), so that the slice meets the domain. An initial state outside the domain
+is marked where it lies on the slice; one off the slice is not drawn, and the title says so.
 
 The domain is read off the domain BDD in one pass where the caller gives ``plane`` (:func:`.domain.plane_mask`),
 else asked cell by cell. A plane with more than :data:`MAX_IMAGE_SIDE` cells along a side is drawn in blocks of
@@ -222,13 +223,16 @@ def phase_plane(
 
     handles += _draw_runs(ax, runs, i, j)
     if setting.x0 is not None and not setting.x0_in_domain:
-        # On a slice elsewhere, x0 is drawn where it projects: maybe over domain cells of the slice.
+        # x0 is drawn only where it lies: on a slice elsewhere its projection would sit over the domain cells of
+        # another slice, so the caption says where it is instead.
         x0_cell, on_grid = grid.cell_of(np.asarray(setting.x0, dtype=float)[None, :])
         others = [k for k in range(grid.dim) if k not in (i, j)]
         away = sliced and not (on_grid[0] and np.array_equal(x0_cell[0][others], np.asarray(base)[others]))
-        handles += ax.plot([setting.x0[i]], [setting.x0[j]], "x", color="crimson", markersize=10, mew=2.5,
-                           label="x0 (not in the domain)" + ("\nprojected: off this slice" if away else ""),
-                           gid="x0_outside", zorder=6)
+        if away:
+            lines.append(f"x0 = {vector(setting.x0)} (not in the domain) lies off this slice: not drawn")
+        else:
+            handles += ax.plot([setting.x0[i]], [setting.x0[j]], "x", color="crimson", markersize=10, mew=2.5,
+                               label="x0 (not in the domain)", gid="x0_outside", zorder=6)
     n_init = sum(1 for origin, _, _ in runs if origin == "initial")
     from_x0 = f"{n_init} from x0, " if setting.x0 is not None else ""
     projected = ", projected on this plane" if sliced else ""

@@ -67,6 +67,7 @@ REGION_NAMES = ("target", "safe", "avoid")
 
 #: How the figures' closed-loop runs choose among the admissible inputs (:meth:`Controller.choose`).
 CHOICES = {"first": "the first admissible input at each step (deterministic)",
+           "steady": "the previous input while it stays admissible, else the first admissible one (deterministic)",
            "random": "an admissible input drawn at random at each step"}
 
 
@@ -204,7 +205,7 @@ def figure_setting(network: Network, initial_states: Sequence[dict], choice: str
     initial_states : sequence of dict
         Per initial state of the spec, ``x0`` and ``in_domain`` (:attr:`ClosedLoop.initial_states`).
     choice : str
-        How the drawn runs choose their inputs (``first`` or ``random``).
+        How the drawn runs choose their inputs (a key of :data:`CHOICES`).
     """
     spec = network.spec
     n = network.state_dim

@@ -82,6 +82,45 @@ class Run:
         }
 
 
+#: How a run chooses among the admissible inputs: drawn at random (the paper's figures), the first one, or the
+#: previous input while it stays admissible, else the first (no chattering between extreme inputs inside a target).
+CHOOSE = ("random", "first", "steady")
+
+
+def admits(controller: Any, x: np.ndarray, u: np.ndarray) -> bool:
+    """Whether the concrete input ``u`` (grid points, shape (m_total,)) is admissible at the state ``x`` under a
+    controller: its cell's input set (one BDD conjunction per subsystem), or its listed inputs."""
+    idx = controller.cell(np.asarray(x, dtype=float))
+    if idx is None:
+        return False
+    codes, col = [], 0
+    for g in controller.input_grids:
+        k = np.rint((np.asarray(u[col:col + g.dim], dtype=float) - np.asarray(g.origin)) / g.eta_array)
+        k = k.astype(np.int64) - np.asarray(g.k_lo, dtype=np.int64)
+        if not g.on_grid(k[None])[0]:
+            return False
+        codes.append(int(g.ravel(k[None])[0]))
+        col += g.dim
+    model = getattr(controller, "model", None)
+    if model is not None and hasattr(controller, "input_set"):  # a BDD controller: no listing of its inputs
+        f = controller.input_set(idx)
+        for digit, code in zip(model.u_digits(), codes):
+            f = f & model.interval(digit, code, code)
+        return f != model.bdd.false
+    return bool(np.any(np.all(controller.input_indices(idx) == np.asarray(codes), axis=1)))
+
+
+def _steady(policy: Any, X: np.ndarray, previous: list[np.ndarray | None], rng: np.random.Generator
+            ) -> list[np.ndarray | None]:
+    """``choose="steady"``: the previous input at each row of ``X`` where it is still admissible, else the first."""
+    chosen = [u if u is not None and admits(policy, x, u) else None for x, u in zip(X, previous)]
+    redo = [k for k, u in enumerate(chosen) if u is None]
+    if redo:
+        for k, u in zip(redo, policy.choose_many(X[redo], rng, "first")):
+            chosen[k] = u
+    return chosen
+
+
 def _cells_in(grid: UniformGrid, region: AbstractRegion | None, x: np.ndarray) -> np.ndarray:
     """Whether each state's cell, shape (R, n_total) -> (R,), is on the grid and in ``region``."""
     if region is None:
@@ -104,7 +143,9 @@ def simulate(
 ) -> Run:
     """Run the concrete system from ``x0`` for ``steps`` steps under ``policy`` (``None``: all inputs 0).
 
-    ``choose`` picks among the admissible inputs: ``random`` (as in the paper's figures) or ``first``.
+    ``choose`` picks among the admissible inputs (:data:`CHOOSE`): ``random`` (as in the paper's figures),
+    ``first``, or ``steady``: the previous input while it is admissible, else the first (deterministic; the
+    figures' choice, which does not chatter between extreme inputs where several are admissible).
     ``target`` is the safe set for a ``safe`` specification; ``safe`` the optional safe set of the other kinds
     (:func:`~pipelines.spec.regions.closed_loop_regions` gives all three).
     A violation is recorded, and the run stopped, when the state leaves the concrete state box, leaves the
@@ -184,13 +225,19 @@ def simulate_many(
         # Only the choices draw from rng, in row order, as simulate() does run by run.
         if policy is None:
             chosen: list[np.ndarray | None] = [np.zeros(m) for _ in choosing]
+        elif hasattr(policy, "choose_many") and choose == "steady":
+            chosen = _steady(policy, X[choosing], [us[live[j]][-1] if us[live[j]] else None for j in choosing],
+                             rng) if choosing else []
         elif hasattr(policy, "choose_many"):  # a Controller draws inputs without listing them all
             chosen = policy.choose_many(X[choosing], rng, choose) if choosing else []
         else:
             chosen = []
             for j in choosing:
                 options = policy(X[j])
-                chosen.append(None if options.shape[0] == 0 else
+                before = us[live[j]][-1] if us[live[j]] else None
+                kept = (before is not None and choose == "steady"
+                        and bool(np.any(np.all(np.isclose(options, before), axis=1))))
+                chosen.append(None if options.shape[0] == 0 else before if kept else
                               options[rng.integers(options.shape[0])] if choose == "random" else options[0])
         stepping, U = [], []
         for j, u in zip(choosing, chosen):
