@@ -28,7 +28,7 @@ from collections import Counter
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
-from urllib.parse import parse_qsl
+from urllib.parse import parse_qsl, unquote_plus
 
 import anyio
 from fastapi import FastAPI, Request
@@ -60,6 +60,44 @@ pages ask for the token (or use the dashboard's) and send it as the header.
 
 
 _DIGITS = re.compile(rb"[0-9]{1,64}")
+#: What an access log shows instead of a ``?token=`` value.
+REDACTED = "[redacted]"
+
+
+def redact_token(target: str) -> str:
+    """``target`` (a path with its query string) with the value of every ``token`` query parameter replaced by
+    :data:`REDACTED`, however the name is written (``tok%65n``, ``TOKEN``: Starlette decodes names before the token
+    check); the rest is left as sent."""
+    path, sep, query = target.partition("?")
+    if not sep:
+        return target
+    pieces = []
+    for piece in query.split("&"):
+        name, eq, _ = piece.partition("=")
+        if eq and unquote_plus(name).strip().lower() == "token":
+            piece = f"{name}={REDACTED}"
+        pieces.append(piece)
+    return f"{path}?{'&'.join(pieces)}"
+
+
+class RedactTokens(logging.Filter):
+    """Redacts ``?token=`` values from uvicorn's access-log lines (``%s - "%s %s HTTP/%s" %d``: the third argument
+    is the path with its query string), and from any other string argument that carries a query string."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple) and record.args:
+            record.args = tuple(redact_token(a) if isinstance(a, str) and "?" in a else a for a in record.args)
+        if isinstance(record.msg, str) and "token=" in record.msg.lower():
+            record.msg = redact_token(record.msg) if "?" in record.msg else record.msg
+        return True
+
+
+def redact_access_logs() -> None:
+    """Install :class:`RedactTokens` on uvicorn's access and error loggers (once per logger)."""
+    for name in ("uvicorn.access", "uvicorn.error", "uvicorn"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, RedactTokens) for f in logger.filters):
+            logger.addFilter(RedactTokens())
 
 
 class BodyTooLarge(Exception):
@@ -236,9 +274,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         Default: :meth:`Settings.from_env` (``COMPABS_*`` variables).
     """
     settings = settings or Settings.from_env()
+    redact_access_logs()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        redact_access_logs()  # again: a logging configuration applied since create_app may have replaced loggers
+        from workers.cluster import remove_stale_credentials
+
+        await anyio.to_thread.run_sync(remove_stale_credentials)  # a killed API's cluster key, say
         try:
             settings.jobs_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:

@@ -172,15 +172,18 @@ def cmd_validate(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     """The ``run`` subcommand: the job, then its summary (or ``--json`` its report) on stdout, its warnings on
     stderr, and the exit status (module docstring)."""
+    from pipelines.spec.validate import cap_synthesis_processes
     from workers.job import run_job
 
     t0 = time.perf_counter()
     spec = _load(args)  # run_job validates it (pipelines.spec.validate) before creating --out or a cluster
+    scheduler = args.scheduler or os.environ.get("COMPABS_SCHEDULER")
+    spec = cap_synthesis_processes(spec, on_cluster=bool(scheduler))  # helpers on this machine: one per core at most
     bars = _Bars(not args.quiet)
     try:
         with _quiet_workers():
             report = run_job(
-                spec, Path(args.out), scheduler=args.scheduler or os.environ.get("COMPABS_SCHEDULER"),
+                spec, Path(args.out), scheduler=scheduler,
                 workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
                 audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite, caps=local_caps(),
             )

@@ -1,8 +1,8 @@
 """Submitting, running, cancelling and resuming jobs.
 
-Submission validates everything that can be checked without running: the body parses, the spec validates,
-every expression compiles against the whitelist (``build_network``), the regions are non-empty and the caps
-hold. Only then is the job stored as ``queued``, so bad input never reaches a worker.
+Submission validates everything that can be checked without running, as ``compabs validate`` does: the body
+parses, the spec validates, every expression compiles against the whitelist (``build_network``), the initial
+states have the system's dimension, the regions are non-empty and the caps hold. Only then is the job stored as ``queued``, so bad input never reaches a worker.
 
 Running: a :class:`JobManager` starts up to ``max_running`` jobs, oldest first, each in its own process tree
 (:mod:`service.supervisor`, :mod:`service.job_process`) watched by a thread of the API that only waits: the job
@@ -99,9 +99,11 @@ def parse_body(body: bytes, content_type: str | None) -> dict[str, Any]:
 
 
 def validate_spec(spec: JobSpec, settings: Settings) -> None:
-    """Check the caps (the cost model, :mod:`pipelines.spec.costs`, with this server's settings), compile every
-    expression and resolve the regions, as the job will. Nothing is evaluated but each expression's one-point
-    probe, so a spec whose knobs ask for hours or gigabytes is refused before it is queued.
+    """Run every check ``compabs validate`` runs (:func:`pipelines.spec.validate.validate_spec`: the network with
+    every expression compiled, the cells, the initial states' dimension, the regions, the cost model's caps), with
+    this server's caps and allowlist, and this server's time-limit cap. Nothing is evaluated but each expression's
+    one-point probe, so a spec whose knobs ask for hours or gigabytes, or that would fail at its first stage, is
+    refused before it is queued.
 
     Raises
     ------
@@ -110,21 +112,18 @@ def validate_spec(spec: JobSpec, settings: Settings) -> None:
     CompabsError
         A SpecError / ExpressionError naming the field or the offending token.
     """
-    from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS
-    from pipelines.network import build_network
-    from pipelines.spec.costs import CostError, check_costs, check_spec
-    from pipelines.spec.regions import spec_regions
+    from pipelines.spec.costs import CostError, check_costs
+    from pipelines.spec.validate import validate_spec as validate
     from workers.executors import TASK_POINTS
 
     caps = settings.caps()
     try:
-        check_spec(spec, caps)  # before building: replicate: 1e9 costs nothing
-        network = build_network(spec, tuple(settings.allowed_modules))
-        # tasks as the executor will size them: a cluster task holds TASK_POINTS evaluations
-        check_costs(spec, network, caps, task_points=DEFAULT_CHUNK_POINTS if settings.in_process else TASK_POINTS)
+        # As the job's own process will (workers.job.abstract_job), then with tasks as the cluster sizes them.
+        checked = validate(spec, allowed_modules=tuple(settings.allowed_modules), caps=caps)
+        if not settings.in_process:
+            check_costs(spec, checked.network, caps, task_points=TASK_POINTS)
     except CostError as exc:
         raise CapExceeded(exc.cap_name, exc.cap, exc.message) from None
-    spec_regions(spec, network)
     limit = spec.options.time_limit
     if limit is not None and limit > settings.max_time_limit:
         raise CapExceeded("max_time_limit", int(settings.max_time_limit),

@@ -25,31 +25,32 @@ Process workers are started with ``spawn``, so the calling program's ``__main__`
 
 from __future__ import annotations
 
-import datetime
 import logging
 import os
 import shutil
-import tempfile
 import time
 import weakref
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from workers.errors import ClusterError
+from workers.tls import (  # noqa: F401  (the credentials' names, as this module has always offered them)
+    CREDENTIAL_FILES,
+    TLS_ENV,
+    TLS_TMP_PREFIX,
+    Credentials,
+    _temporary_credentials,
+    remove_stale_credentials,
+    write_credentials,
+)
 
 logger = logging.getLogger(__name__)
 
 #: Environment variable naming an external scheduler (``tls://HOST:PORT``).
 SCHEDULER_ENV = "COMPABS_SCHEDULER"
-#: Environment variables naming the cluster's TLS credentials (PEM files, as :func:`write_credentials` writes):
-#: the CA certificate, and the certificate and private key every scheduler, worker and client presents.
-TLS_ENV = {"ca": "COMPABS_TLS_CA", "cert": "COMPABS_TLS_CERT", "key": "COMPABS_TLS_KEY"}
 #: Set to 1 to accept a plain ``tcp://`` scheduler (no encryption, no authentication: unsafe, docs/security.md).
 INSECURE_ENV = "COMPABS_INSECURE_SCHEDULER"
-#: The files :func:`write_credentials` writes into its directory.
-CREDENTIAL_FILES = {"ca": "ca.pem", "cert": "cert.pem", "key": "key.pem"}
 #: Protocols of a Dask address that are TLS with client certificates.
 SECURE_PROTOCOLS = ("tls", "wss")
 #: Seconds to wait for an external scheduler to answer and to have at least one worker.
@@ -96,171 +97,6 @@ def worker_config() -> dict[str, Any]:
 #: The settings the embedded cluster starts under: its scheduler and nannies (in this process) read them at
 #: start, and each nanny hands its config to its worker process.
 EMBEDDED_CONFIG = worker_config()
-
-
-# ------------------------------------------------------------------------------------------------ TLS credentials
-@dataclass(frozen=True)
-class Credentials:
-    """The TLS credentials of a cluster: PEM files of the CA certificate, and of the certificate and private key
-    that the scheduler, the workers and the clients all present (each side requires the other's, signed by the
-    CA). Whoever holds ``key`` can run code on the cluster: it is a password."""
-
-    ca: Path
-    cert: Path
-    key: Path
-
-    @classmethod
-    def in_directory(cls, directory: str | os.PathLike[str]) -> Credentials:
-        """The files :func:`write_credentials` wrote into ``directory``."""
-        d = Path(directory)
-        return cls(**{role: d / name for role, name in CREDENTIAL_FILES.items()})
-
-    @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None) -> Credentials | None:
-        """The credentials ``COMPABS_TLS_CA``, ``COMPABS_TLS_CERT`` and ``COMPABS_TLS_KEY`` name, or ``None`` when
-        none of them is set.
-
-        Raises
-        ------
-        ClusterError
-            Some but not all are set, or a file they name is not readable.
-        """
-        environ = os.environ if environ is None else environ
-        values = {role: environ.get(var) or "" for role, var in TLS_ENV.items()}
-        if not any(values.values()):
-            return None
-        missing = [TLS_ENV[role] for role, v in values.items() if not v]
-        if missing:
-            raise ClusterError(f"{', '.join(missing)} not set: the cluster's TLS credentials need all of "
-                               f"{', '.join(TLS_ENV.values())} (the files `compabs credentials DIR` writes)")
-        creds = cls(**{role: Path(v) for role, v in values.items()})
-        creds.check()
-        return creds
-
-    def check(self) -> None:
-        """Raise :class:`ClusterError` unless every file is readable."""
-        for role, path in self.files().items():
-            try:
-                with open(path, "rb"):
-                    pass
-            except OSError as exc:
-                raise ClusterError(f"cannot read the cluster's TLS {role} file {path} ({TLS_ENV[role]}): "
-                                   f"{exc.strerror}") from None
-
-    def files(self) -> dict[str, Path]:
-        return {"ca": self.ca, "cert": self.cert, "key": self.key}
-
-    def env(self) -> dict[str, str]:
-        """The environment variables that hand these credentials to another process (``connect()`` there reads
-        them): ``subprocess.Popen(..., env={**os.environ, **conn.credentials.env()})``."""
-        return {TLS_ENV[role]: str(path) for role, path in self.files().items()}
-
-    def security(self) -> Any:
-        """Dask's ``Security`` for every role (scheduler, worker, client), TLS required."""
-        from distributed.security import Security
-
-        ca, cert, key = str(self.ca), str(self.cert), str(self.key)
-        return Security(require_encryption=True, tls_ca_file=ca, tls_client_cert=cert, tls_client_key=key,
-                        tls_scheduler_cert=cert, tls_scheduler_key=key, tls_worker_cert=cert, tls_worker_key=key)
-
-    def dask_config(self) -> dict[str, Any]:
-        """The same as Dask configuration (dotted keys): what a ``Security()`` made without arguments reads."""
-        ca, cert, key = str(self.ca), str(self.cert), str(self.key)
-        out: dict[str, Any] = {"distributed.comm.require-encryption": True, "distributed.comm.tls.ca-file": ca}
-        for role in ("client", "scheduler", "worker"):
-            out[f"distributed.comm.tls.{role}.cert"] = cert
-            out[f"distributed.comm.tls.{role}.key"] = key
-        return out
-
-
-def write_credentials(directory: str | os.PathLike[str], *, overwrite: bool = False,
-                      valid_days: int = 3650) -> Credentials:
-    """Generate a cluster's TLS credentials into ``directory`` (created 0700): ``ca.pem``, ``cert.pem``,
-    ``key.pem`` (0600).
-
-    A fresh CA (ECDSA P-256) signs one certificate for every member of the cluster, for both TLS server and
-    client use; the CA's private key is never written, so no other certificate can be issued: a new cluster gets
-    new credentials, and anyone with ``key.pem`` is a member. Needs ``cryptography``.
-
-    Raises
-    ------
-    ClusterError
-        The directory already holds credentials (unless ``overwrite``) or cannot be written.
-    """
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
-    creds = Credentials.in_directory(directory)
-    d = Path(directory)
-    try:
-        d.mkdir(mode=0o700, parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ClusterError(f"cannot create the credentials directory {d}: {exc.strerror}") from None
-    existing = [str(p) for p in creds.files().values() if p.exists()]
-    if existing and not overwrite:
-        raise ClusterError(f"{d} already holds cluster credentials ({', '.join(existing)}): keep them, or "
-                           "replace them (then restart every scheduler, worker and API that uses them)")
-
-    now = datetime.datetime.now(datetime.timezone.utc)
-    start, end = now - datetime.timedelta(days=1), now + datetime.timedelta(days=valid_days)
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"compabs cluster CA {os.urandom(6).hex()}")])
-    ca_cert = (
-        x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
-        .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .add_extension(x509.KeyUsage(digital_signature=False, content_commitment=False, key_encipherment=False,
-                                     data_encipherment=False, key_agreement=False, key_cert_sign=True,
-                                     crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
-        .sign(ca_key, hashes.SHA256())
-    )
-    key = ec.generate_private_key(ec.SECP256R1())
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "compabs-cluster")])
-    cert = (
-        x509.CertificateBuilder().subject_name(name).issuer_name(ca_name).public_key(key.public_key())
-        .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
-        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False, key_encipherment=False,
-                                     data_encipherment=False, key_agreement=True, key_cert_sign=False,
-                                     crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
-        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
-                       critical=False)
-        .add_extension(x509.SubjectAlternativeName([x509.DNSName("compabs-cluster")]), critical=False)
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-        .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
-        .sign(ca_key, hashes.SHA256())
-    )
-    pem = serialization.Encoding.PEM
-    contents = {
-        "ca": (ca_cert.public_bytes(pem), 0o644),
-        "cert": (cert.public_bytes(pem), 0o644),
-        "key": (key.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()), 0o600),
-    }
-    try:
-        for role, (data, mode) in contents.items():
-            target = creds.files()[role]
-            partial = target.with_name(target.name + ".partial")
-            partial.unlink(missing_ok=True)
-            fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)  # the key is never world-readable
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-            os.replace(partial, target)
-    except OSError as exc:
-        raise ClusterError(f"cannot write the cluster credentials into {d}: {exc.strerror}") from None
-    return creds
-
-
-def _temporary_credentials() -> tuple[Credentials, Path]:
-    """Fresh credentials in a new private directory (``mkdtemp``: 0700, this user's only)."""
-    directory = Path(tempfile.mkdtemp(prefix="compabs-tls-"))
-    try:
-        return write_credentials(directory), directory
-    except BaseException:
-        shutil.rmtree(directory, ignore_errors=True)
-        raise
 
 
 def _insecure_allowed(environ: Mapping[str, str]) -> bool:

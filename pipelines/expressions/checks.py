@@ -5,6 +5,11 @@ the expression (shortened by :func:`shown`) and names the position (:func:`posit
 characters, over-long text, brackets nested too deeply (checked before the parser, which would otherwise
 recurse), syntax errors, trees over :data:`MAX_NODES` nodes or :data:`MAX_DEPTH` levels, and variable or
 constant names that are not identifiers or clash with a function or built-in constant.
+
+Parsing is serialised by one lock (:data:`PARSE_LOCK`, :func:`parse_python`): CPython 3.11's ``ast.parse`` is not
+safe in two threads at once (gh-106905: ``SystemError: AST constructor recursion depth mismatch``, seen as a 500
+among 20 concurrent ``POST /jobs``), and :func:`warnings.catch_warnings` swaps process-wide state. Every parse of
+user text in the package goes through :func:`parse_python`.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import keyword
 import math
 import numbers
 import re
+import threading
 import warnings
 from collections.abc import Mapping
 
@@ -29,6 +35,8 @@ __all__ = [
     "position",
     "check_text",
     "parse",
+    "parse_python",
+    "PARSE_LOCK",
     "check_size",
     "check_declarations",
 ]
@@ -40,6 +48,9 @@ MAX_NODES = 2000
 MAX_DEPTH = 60
 #: Largest absolute value of a numeric literal.
 MAX_LITERAL = 1e15
+
+#: Held by every ``ast.parse`` of the package (:func:`parse_python`): one parse at a time in a process.
+PARSE_LOCK = threading.Lock()
 
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")  # same rule as spec parameter names
 _ALLOWED_CONTROL = frozenset("\t\n\r")
@@ -113,21 +124,26 @@ def _check_bracket_depth(text: str) -> None:
             depth = max(depth - 1, 0)
 
 
+def parse_python(text: str, mode: str = "eval") -> ast.AST:
+    """``ast.parse(text, mode=mode)`` under :data:`PARSE_LOCK`, with ``SyntaxWarning`` and ``DeprecationWarning``
+    raised as errors (``1if c else 2``, ``'\\d'`` only warn in Python; a user's text is never printed to stderr).
+    Raises what ``ast.parse`` raises."""
+    with PARSE_LOCK, warnings.catch_warnings():
+        warnings.simplefilter("error", SyntaxWarning)
+        warnings.simplefilter("error", DeprecationWarning)
+        return ast.parse(text, mode=mode)
+
+
 def parse(text: str) -> ast.Expression:
     """``ast.parse(text, mode="eval")`` with every parser failure turned into an :class:`ExpressionError`.
 
-    Parser warnings (``SyntaxWarning``/``DeprecationWarning``, e.g. ``1if c else 2``) are turned into errors.
-    This uses :func:`warnings.catch_warnings`, which swaps the process-wide warning filters for the duration
-    of the parse (not thread-safe in Python < 3.14; harmless except for warnings raised concurrently).
+    Parser warnings (``SyntaxWarning``/``DeprecationWarning``, e.g. ``1if c else 2``) are turned into errors. One
+    parse at a time (:func:`parse_python`).
     """
     stripped = text.lstrip()
     prefix = len(text) - len(stripped)
     try:
-        with warnings.catch_warnings():
-            # "1if c else 2" or "'\\d'" only warn in Python; reject them instead of printing user text to stderr.
-            warnings.simplefilter("error", SyntaxWarning)
-            warnings.simplefilter("error", DeprecationWarning)
-            tree = ast.parse(stripped, mode="eval")
+        tree = parse_python(stripped)
     except SyntaxError as exc:
         raise ExpressionError(_syntax_message(text, prefix, exc)) from None
     except (RecursionError, MemoryError):

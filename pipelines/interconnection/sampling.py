@@ -34,6 +34,7 @@ import numpy as np
 
 from pipelines.blackbox import BlackBox
 from pipelines.errors import SpecError
+from pipelines.expressions.checks import parse_python
 from pipelines.network import Network
 from pipelines.spec.model import is_module_function
 
@@ -134,8 +135,11 @@ class Sampler:
             return None
         try:
             text = source.lstrip()
-            body = ast.parse(text, mode="eval").body
-        except (SyntaxError, ValueError, RecursionError, MemoryError):  # pragma: no cover - the map compiled
+            tree = parse_python(text)  # one parse at a time (gh-106905)
+            assert isinstance(tree, ast.Expression)
+            body = tree.body
+        except (SyntaxError, SyntaxWarning, DeprecationWarning, ValueError, RecursionError,
+                MemoryError):  # pragma: no cover - the map compiled
             return None
         if not isinstance(body, (ast.List, ast.Tuple)) or len(body.elts) != self.w_lb.size:
             return None  # not one elementwise entry per output

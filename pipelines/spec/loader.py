@@ -10,6 +10,9 @@
   dozen digits.
 * **Non-finite numbers** (``.inf``, ``.nan``, ``1e999``) are read as floats here and refused by the spec model
   (``allow_inf_nan=False``), which names the field; JSON's ``NaN``/``Infinity`` are refused here.
+* **Duplicate keys** in one mapping (YAML) or object (JSON) are refused, naming the key and where: both readers
+  would otherwise keep the last silently. A YAML merge key (``<<: *tap``) is not a duplicate: the mapping's own keys
+  override the merged ones, as YAML says.
 
 Every refusal is a :class:`~pipelines.errors.SpecError` naming where: the line and column (YAML) or the path of
 the value (JSON).
@@ -50,6 +53,22 @@ class SpecLoader(yaml.SafeLoader):
     def construct_document(self, node: yaml.Node) -> Any:
         expanded_size(node, self.max_nodes)  # before any value is built
         return super().construct_document(node)
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, yaml.Node] = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node)
+                try:
+                    first = seen.setdefault(key, key_node)
+                except TypeError:  # not hashable: the constructor below says so
+                    continue
+                if first is not key_node:
+                    raise SpecError(f"{_where(key_node)}: the key {str(key)[:60]!r} is given twice in one mapping "
+                                    f"(first at {_where(first)}); give each key once")
+        return super().construct_mapping(node, deep=deep)
 
     def construct_bounded_int(self, node: yaml.Node) -> int:
         text = str(node.value)
@@ -140,12 +159,19 @@ class _Constant:
         self.name = name
 
 
-def _find_marker(data: Any) -> tuple[str, _BigInt | _Constant] | None:
+class _Duplicate:
+    """A JSON object with a key given twice, kept until its path is known."""
+
+    def __init__(self, key: str) -> None:
+        self.key = key
+
+
+def _find_marker(data: Any) -> tuple[str, _BigInt | _Constant | _Duplicate] | None:
     """The path and marker of the first refused literal in document order."""
     stack: list[tuple[str, Any]] = [("", data)]
     while stack:
         path, value = stack.pop()
-        if isinstance(value, (_BigInt, _Constant)):
+        if isinstance(value, (_BigInt, _Constant, _Duplicate)):
             return path or "(the document)", value
         items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
         stack.extend((f"{path}.{k}" if path else str(k), v) for k, v in reversed(list(items)))
@@ -158,7 +184,8 @@ def load_json(text: str) -> Any:
     Raises
     ------
     SpecError
-        Naming the path of an integer that is too long (``subsystems.0.samples``), or the constant.
+        Naming the path of an integer that is too long (``subsystems.0.samples``), the constant, or the object with
+        a key given twice.
     json.JSONDecodeError
         For text that does not parse.
     """
@@ -177,11 +204,22 @@ def load_json(text: str) -> Any:
         refused += 1
         return _Constant(name)
 
-    data = json.loads(text, parse_constant=parse_constant, parse_int=parse_int)
+    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any] | _Duplicate:
+        nonlocal refused
+        out = dict(items)
+        if len(out) < len(items):
+            refused += 1
+            keys = [k for k, _ in items]
+            return _Duplicate(next(k for i, k in enumerate(keys) if k in keys[:i]))
+        return out
+
+    data = json.loads(text, parse_constant=parse_constant, parse_int=parse_int, object_pairs_hook=pairs)
     found = _find_marker(data) if refused else None
     if found is not None:
         path, marker = found
         if isinstance(marker, _Constant):
             raise SpecError(f"{path}: {marker.name} is not a number a spec can use (give a finite number)")
+        if isinstance(marker, _Duplicate):
+            raise SpecError(f"{path}: the key {marker.key[:60]!r} is given twice in one object; give each key once")
         raise _int_refusal(path, marker.digits)
     return data

@@ -32,6 +32,7 @@ from pydantic import (
 
 from pipelines.errors import SpecError
 from pipelines.spec.loader import load_yaml
+from pipelines.spec.messages import format_validation_error
 
 Vector = float | list[float]
 #: Longest ``reads`` expression, in characters.
@@ -40,7 +41,9 @@ MODULE_FUNCTION = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # strict: a boolean is not a number (`substeps: true` was 1), a string is not a number (`samples: "100"`), a
+    # float is not an integer; an integer is still a float. Only tuples (`centers`) also take a JSON/YAML list.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
 
 class GridSpec(_Model):
@@ -68,11 +71,23 @@ class GridSpec(_Model):
         return sizes.pop() if sizes else 1
 
 
-class LipschitzSpec(_Model):
-    """Lipschitz constants of a map in the infinity norm (Assumptions 1-2), given or estimated."""
+#: A matrix of Lipschitz constants: one row per state component, one column per coordinate of the argument.
+LipschitzMatrixSpec = Annotated[list[list[float]], Field(min_length=1, max_length=64)]
 
-    x: float | Literal["estimate"] = Field(description="L_x, constant in the state, or 'estimate' (Algorithm 4)")
-    w: float | Literal["estimate"] = Field(default=0.0, description="L_w, constant in the internal input")
+
+class LipschitzSpec(_Model):
+    """Lipschitz constants of a map (Assumptions 1-2), given or estimated: a number in the infinity norm (it also
+    bounds every entry), or a matrix ``L[i][j]`` bounding how fast component ``i`` of the successor moves along
+    coordinate ``j`` of the argument, the others fixed (docs/method.md §3)."""
+
+    x: float | LipschitzMatrixSpec | Literal["estimate"] = Field(
+        description="L_x: a number (infinity norm, every entry), a matrix (row per state component, column per "
+        "state coordinate), or 'estimate' (Algorithm 4, in the norm and per entry)"
+    )
+    w: float | LipschitzMatrixSpec | Literal["estimate"] = Field(
+        default=0.0,
+        description="L_w: a number, a matrix (row per state component, column per internal input read), or 'estimate'",
+    )
     on_violation: Literal["fail", "raise"] = Field(
         default="fail",
         description="when the sampled data contradict a given constant: fail the job, or raise the constant "
@@ -88,6 +103,14 @@ class LipschitzSpec(_Model):
     def _nonneg(cls, v):
         if isinstance(v, float) and not (v >= 0 and v < float("inf")):
             raise ValueError("a Lipschitz constant must be finite and >= 0")
+        if isinstance(v, list):
+            if len({len(row) for row in v}) != 1 or not v[0] or len(v[0]) > 64:
+                raise ValueError(f"a matrix of Lipschitz constants has rows of one length, 1 to 64 entries each; "
+                                 f"got rows of lengths {[len(row) for row in v]}")
+            bad = [(i, j) for i, row in enumerate(v) for j, e in enumerate(row) if not (0 <= e < float("inf"))]
+            if bad:
+                i, j = bad[0]
+                raise ValueError(f"entry [{i}][{j}] = {v[i][j]}: a Lipschitz constant must be finite and >= 0")
         return v
 
 
@@ -97,11 +120,13 @@ def _check_read_literals(text: str) -> str:
     parameters by :func:`pipelines.network.build_network`)."""
     import ast
 
+    from pipelines.expressions.checks import parse_python
+
     if not text.strip() or len(text.strip()) > MAX_READ_LENGTH:
         return text  # the field's own check says what a reads entry may be
     try:
-        tree = ast.parse(text.strip(), mode="eval")
-    except SyntaxError:
+        tree = parse_python(text.strip())  # one parse at a time (gh-106905)
+    except (SyntaxError, SyntaxWarning, DeprecationWarning, ValueError, RecursionError, MemoryError):
         raise ValueError(f"reads entry {text!r} is not an expression") from None
     for node in ast.walk(tree):
         if isinstance(node, ast.Constant) and not (type(node.value) is int and abs(node.value) < 10**9):
@@ -239,7 +264,9 @@ class BoxRegion(_Model):
 class ConsensusRegion(_Model):
     """``OR_{phi in centers} AND_i |x_i - phi| <= radius`` (the paper's consensus region, Sec. 5.2)."""
 
-    centers: tuple[float, float, float] = Field(description="(first, last, step) of the common values phi")
+    centers: tuple[float, float, float] = Field(
+        strict=False, description="(first, last, step) of the common values phi",
+    )
     radius: float = Field(gt=0)
 
 
@@ -322,8 +349,9 @@ class OptionsSpec(_Model):
     synthesis_processes: int | Literal["auto"] = Field(
         default="auto",
         description="processes for the synthesis fixed points, this one included (the state space is split among "
-        "them; results are identical): 'auto' = the CPUs this process may use, at most 4; 1 = one process. Not "
-        "part of the spec's hash",
+        "them; results are identical): 'auto' = the CPUs this process may use, at most 4; 1 = one process; helper "
+        "processes on this machine are at most one per core (a larger number is lowered to it). Not part of the "
+        "spec's hash",
     )
     synthesis_on: Literal["auto", "cluster", "processes"] = Field(
         default="auto",
@@ -428,30 +456,6 @@ def json_schema() -> dict[str, Any]:
     return JobSpec.model_json_schema()
 
 
-#: The names pydantic gives the members of a union in an error's location (``lb.float``, ``lb.list[float]``,
-#: ``internal.function-after[_lengths(), GridSpec]``): not fields, left out of the field's name.
-_UNION_TAG = re.compile(r"^(float|int|str|bool|none|[a-z-]+\[.*\]|[A-Z][A-Za-z]*(Spec|Region))$")
-
-
-def _field_name(loc: tuple[int | str, ...], kind: str = "") -> str:
-    """The field an error is about, without union tags. The last element of an ``extra_forbidden`` location is the
-    user's own key (which may well be called ``none`` or ``float``), never a tag."""
-    keep = len(loc) - 1 if kind == "extra_forbidden" else len(loc)
-    parts = [str(p) for i, p in enumerate(loc)
-             if i >= keep or not (isinstance(p, str) and _UNION_TAG.match(p) and (i == 0 or loc[i - 1] != "parameters"))]
-    return ".".join(parts) or "(spec)"
-
-
-def _format_validation_error(err: ValidationError) -> str:
-    # One line per field; a union's members' complaints about the same field are joined with "or".
-    messages: dict[str, list[str]] = {}
-    for e in err.errors():
-        said = messages.setdefault(_field_name(e["loc"], e["type"]), [])
-        if e["msg"] not in said:
-            said.append(e["msg"])
-    return "invalid spec:\n  " + "\n  ".join(f"{loc}: {' or '.join(msgs)}" for loc, msgs in messages.items())
-
-
 def parse_spec(data: dict[str, Any] | str, overrides: dict[str, float] | None = None) -> JobSpec:
     """Validate a spec given as a dict, or as YAML/JSON text.
 
@@ -481,7 +485,7 @@ def parse_spec(data: dict[str, Any] | str, overrides: dict[str, float] | None = 
     try:
         return JobSpec.model_validate(data)
     except ValidationError as err:
-        raise SpecError(_format_validation_error(err)) from None
+        raise SpecError(format_validation_error(err)) from None
 
 
 #: Largest spec file :func:`load_spec` reads, in bytes (the service's default ``max_body_bytes``).

@@ -57,6 +57,31 @@ def with_options(spec: JobSpec, **updates: Any) -> JobSpec:
     return parse_spec(data)
 
 
+def usable_cpus() -> int:
+    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where that is unknown)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def cap_synthesis_processes(spec: JobSpec, *, on_cluster: bool, cpus: int | None = None) -> JobSpec:
+    """``spec`` with ``options.synthesis_processes`` at most the cores present (``cpus``, default
+    :func:`usable_cpus`) where the synthesis parts would run as helper processes on this machine
+    (``synthesis_on: processes``, or ``auto`` without a cluster). More processes than cores only share them, at a
+    copy of the problem each (``synthesis_processes: 64`` on 2 cores started 56 helpers, 3.5 GB); on a cluster the
+    number is the parts' count, left as given. Results do not depend on it (not part of the spec's hash)."""
+    options = spec.options
+    n = options.synthesis_processes
+    local = options.synthesis_on == "processes" or (options.synthesis_on == "auto" and not on_cluster)
+    cpus = usable_cpus() if cpus is None else max(1, cpus)
+    if n == "auto" or not local or n <= cpus:
+        return spec
+    return with_options(spec, synthesis_processes=cpus)
+
+
 def check_cells(spec: JobSpec, network: Network) -> str:
     """Every subsystem's ``(x, u, w)`` triples within ``options.max_cells``."""
     cap = spec.options.max_cells
@@ -142,5 +167,5 @@ def validate_spec(spec: JobSpec, *, allowed_modules: Sequence[str] | None = (), 
     return Validation(spec, network, regions, tuple(lines))
 
 
-__all__ = ["Validation", "check_caps", "check_cells", "check_initial_states", "check_overrides",
+__all__ = ["Validation", "cap_synthesis_processes", "check_caps", "check_cells", "check_initial_states", "check_overrides",
            "validate_spec", "with_options"]
