@@ -1,15 +1,19 @@
-"""BDDs as files: DDDMP (written by CUDD through ``dd``) plus a JSON header (ARCHITECTURE "Storage").
+"""BDDs as DDDMP (written by CUDD through ``dd``): the one place that writes and reads them.
 
-The header names the variable order, the bit widths, the subsystems' layouts and the grids, so a file is read
-back without the job store: :func:`model_from_header` declares the same variables at the same levels, and
-:func:`load_all` reads the roots into it. CUDD's DDDMP writer takes one root per file, so root ``k > 0`` of a
-dump goes to ``<path>.<k>.dddmp`` and the header lists the files in order.
+Two uses. **Files with a header** (ARCHITECTURE "Storage"): the header names the variable order, the bit widths,
+the subsystems' layouts and the grids, so a file is read back without the job store: :func:`model_from_header`
+declares the same variables at the same levels, and :func:`load_all` reads the roots into it. CUDD's DDDMP writer
+takes one root per file, so root ``k > 0`` of a dump goes to ``<path>.<k>.dddmp`` and the header lists the files
+in order. **One root between processes** (:func:`to_bytes`, :func:`from_bytes`): the partitioned ``∃u.CPre``
+sends its problem, its sets and the parts' answers as bytes to a process whose model was declared from the same
+header (:mod:`pipelines.synthesis.parts`), so the levels match.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -39,6 +43,43 @@ def header(model: SymbolicModel) -> dict[str, Any]:
     }
 
 
+def write_root(model: SymbolicModel, path: str | os.PathLike, f: Function, what: str = "") -> None:
+    """Write the one root ``f`` of ``model`` to the DDDMP file ``path``; CUDD out of memory is a BDDMemoryError
+    naming ``what`` (default: the path)."""
+    with model.guard(what or f"writing {path}"):
+        model.bdd.dump(str(path), [f])
+
+
+def read_root(model: SymbolicModel, path: str | os.PathLike, what: str = "") -> Function:
+    """The one root of the DDDMP file ``path``, read into ``model`` (whose variables the writer's header declared)."""
+    with model.guard(what or f"reading {path}"):
+        (root,) = model.bdd.load(str(path))
+    return root
+
+
+def to_bytes(model: SymbolicModel, f: Function, what: str = "writing a BDD for another process") -> bytes:
+    """``f`` as DDDMP bytes (``dd`` writes DDDMP to files only: through a temporary file)."""
+    fd, path = tempfile.mkstemp(suffix=".dddmp", prefix="compabs-bdd-")
+    os.close(fd)
+    try:
+        write_root(model, path, f, what)
+        with open(path, "rb") as fh:
+            return fh.read()
+    finally:
+        os.unlink(path)
+
+
+def from_bytes(model: SymbolicModel, blob: bytes, what: str = "reading a BDD from another process") -> Function:
+    """The function of DDDMP bytes (:func:`to_bytes`) in ``model``."""
+    fd, path = tempfile.mkstemp(suffix=".dddmp", prefix="compabs-bdd-")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(blob)
+        return read_root(model, path, what)
+    finally:
+        os.unlink(path)
+
+
 def _paths(path: str | os.PathLike) -> tuple[Path, Path]:
     p = Path(path)
     if p.suffix.lower() == ".dddmp":
@@ -57,9 +98,8 @@ def dump(
     bdd_path, head_path = _paths(path)
     roots = [f] if isinstance(f, Function) else list(f)
     files = [bdd_path] + [bdd_path.with_name(f"{bdd_path.stem}.{k}.dddmp") for k in range(1, len(roots))]
-    with model.guard(f"dumping {bdd_path}"):
-        for root, file in zip(roots, files):
-            model.bdd.dump(str(file), [root])
+    for root, file in zip(roots, files):
+        write_root(model, file, root)
     head = header(model)
     head["meta"] = meta or {}
     head["roots"] = [file.name for file in files]
@@ -88,11 +128,7 @@ def load_all(path: str | os.PathLike, max_memory: int | None = None) -> tuple[Sy
     head = json.loads(head_path.read_text())
     model = model_from_header(head, max_memory)
     names = head.get("roots", [bdd_path.name])
-    roots = []
-    with model.guard(f"loading {bdd_path}"):
-        for name in names:
-            (root,) = model.bdd.load(str(bdd_path.with_name(name)))
-            roots.append(root)
+    roots = [read_root(model, bdd_path.with_name(name)) for name in names]
     return model, roots, head.get("meta", {})
 
 
