@@ -1,9 +1,9 @@
-"""Synthesis on the job's Dask cluster (workers/dask_cpre.py): a real two-worker cluster, exact results, the same
-domains as in one process and in helper processes, and a clear fallback when the cluster fails."""
+"""Synthesis on the job's Dask cluster (workers/dask_cpre.py, workers/dask_parts.py): the problem kept on the
+workers and sent again when lost, the split cut's answers kept where they were computed, the choice of the cut, a
+clear fallback when the cluster fails, and the consensus case's domain on a real two-worker cluster. The parts'
+answers, on every cut, are tested with the helper processes' in tests/test_partitioned_cpre.py."""
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
@@ -11,111 +11,31 @@ import yaml
 
 from pipelines.errors import SpecError
 from pipelines.spec.model import parse_spec
+from pipelines.symbolic.files import from_bytes, to_bytes
 from pipelines.symbolic.relations import state_set
 from pipelines.synthesis.cpre import PartitionFailed
-from pipelines.synthesis.fixed_points import cobuchi, reach, reach_safe, safe
-from pipelines.synthesis.quotient import quotient
+from pipelines.synthesis.fixed_points import reach_safe
+from pipelines.synthesis.partitioned import SPLIT_FROM, cut_digits
+from pipelines.synthesis.parts import Problem, pack
 from pipelines.synthesis.synthesize import synthesize
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 from workers.control import partitioning
-from workers.dask_cpre import SPLIT_FROM, DaskPartFailed, DaskPredecessors, cut_digits, on_cluster, parts_for
+from workers.dask_cpre import DaskPartFailed, DaskPredecessors, on_cluster, parts_for
+from workers.dask_parts import (
+    _HELD,
+    _KEPT,
+    HELD_PROBLEMS,
+    ProblemMissing,
+    compute_part,
+    forget,
+    held,
+    join_part,
+    receive,
+)
 from workers.job import run_abstraction, run_job
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 
 from .conftest import EXAMPLES
-
-
-@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
-def test_parts_on_the_cluster_equal_the_explicit_predecessors(client, shared):
-    """More parts than workers, at every cut the balancing could choose: ``∃u.CPre(Z)`` exactly, whole, ``within``
-    a set and on ``outside``."""
-    rng = np.random.default_rng(5100 + shared)
-    net = random_net(rng, shared)
-    ex = Explicit(net)
-    game = build(net, "shared_top" if shared else "interleaved")
-    m = game.model
-    pool = DaskPredecessors(game, 5, client=client)
-    try:
-        assert pool.parts == min(5, pool.cells) and pool.cells == math.prod(m.sizes[d] for d in pool.digits)
-        for k in range(4):
-            if k and pool.cells > pool.parts:
-                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
-            Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
-            bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
-            want = ex.cpre(Z).any(axis=1)
-            np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
-            np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
-            got = states_vector(m, pool(bZ, outside=bO), ex)
-            np.testing.assert_array_equal(got & Out, want & Out)
-        assert pool.calls == 12 and len(pool.seconds) == pool.parts
-    finally:
-        pool.close()
-
-
-@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
-def test_fixed_points_give_the_same_domains_in_every_mode(client, shared):
-    """One process, helper processes and the cluster (two and five parts): the same safe, reach and co-Büchi
-    domains, on one model, so the BDDs themselves are compared; and the same for the quotient of level 1
-    (pipelines/synthesis/quotient.py), whose parts carry its own relations."""
-    rng = np.random.default_rng(91 + shared)
-    net = random_net(rng, shared)
-    ex = Explicit(net)
-    game = build(net, "shared_top" if shared else "interleaved")
-    S, T, phi = (state_set(game.model, np.array(ex.states)[v]) for v in
-                 (random_set(rng, ex, 0.8), random_set(rng, ex, 0.2), random_set(rng, ex, 0.6)))
-    modes = {"one process": (1, None), "processes": (2, PartitionedPredecessors),
-             "cluster, 2 parts": (2, on_cluster(client)), "cluster, 5 parts": (5, on_cluster(client))}
-    domains = {}
-    for name, (parts, factory) in modes.items():
-        game.processes, game.parallel_after, game.partitioned = parts, 0.0, factory
-        q = quotient(game, 1)
-        try:
-            domains[name] = [safe(game, S, layered=True).domain, reach(game, T, layered=True).domain,
-                             cobuchi(game, phi).domain, safe(q, S, layered=True).domain,
-                             reach(q, T, layered=True).domain, cobuchi(q, phi).domain]
-            if factory is not None:
-                for g in (game, q):
-                    assert g.parallel["calls"] > 0, name
-                    assert g.parallel["on"] == ("processes" if factory is PartitionedPredecessors else "cluster")
-        finally:
-            q.close()
-            game.close()
-            game._last_pool = None
-    first = domains.pop("one process")
-    assert states_vector(game.model, first[0], ex).any()  # a game worth comparing
-    assert states_vector(game.model, first[4], ex).any() and first[4] != first[1]  # and a quotient that differs
-    for name, got in domains.items():
-        assert got == first, name
-
-
-@pytest.mark.parametrize("cut", ["window", "split", "w", "x"])
-def test_every_cut_of_the_shared_cpre_is_exact(client, cut):
-    """The shared CPre cut along ``ŵ`` (windows: each part final on its states; split: bad inputs of exact ranges,
-    each window's states joined from the ranges it reaches on a worker; or bad inputs joined before ``∃u`` here)
-    and along the states: the explicit predecessors, whole, ``within`` a set and on ``outside``, at random cuts."""
-    rng = np.random.default_rng(7300 + ["window", "w", "x", "split"].index(cut))
-    net = random_net(rng, True)
-    ex = Explicit(net)
-    game = build(net, "shared_top")
-    m = game.model
-    pool = DaskPredecessors(game, 3, client=client, cut=cut)
-    try:
-        assert pool.cut == cut and (pool.digits[0].startswith("w") == (cut != "x"))
-        for k in range(3):
-            if k and pool.cells > pool.parts:
-                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
-            Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
-            bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
-            want = ex.cpre(Z).any(axis=1)
-            np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
-            np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
-            got = states_vector(m, pool(bZ, outside=bO), ex)
-            np.testing.assert_array_equal(got & Out, want & Out)
-            # the reach loop's outside, ¬Z, is complemented on the workers, not sent (dask_parts.NOT_Z)
-            got = states_vector(m, pool(bZ, outside=~bZ), ex)
-            np.testing.assert_array_equal(got & ~Z, want & ~Z)
-    finally:
-        pool.close()
 
 
 def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed():
@@ -123,10 +43,7 @@ def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed()
     (``dask_parts._KEPT``), the second phase of its range takes it from there (and drops it) and reads the other
     ranges' answers from their bytes; the joined answers are the explicit predecessors whether the answers were
     kept or every one was read from bytes."""
-    from pipelines.symbolic.model import Function
     from pipelines.synthesis.partition import admitting_below
-    from workers import dask_parts
-    from workers.dask_parts import _KEPT, _dump, _load, core_part, join_part
 
     rng = np.random.default_rng(7400)
     net = random_net(rng, True)
@@ -134,48 +51,41 @@ def test_the_split_cuts_second_phase_reads_its_own_range_where_it_was_computed()
     game = build(net, "shared_top")
     m = game.model
     pool = DaskPredecessors(game, 3, client=None, cut="split")
-    key, problem = "test-split-kept", pool.problem()
+    key, owner = "test-split-kept", "test-split-owner"
+    receive(key, pack(Problem.of(game), owner))
     try:
-        bounds, starts = pool.bounds(), pool._starts()
-        ranges = list(zip(starts[:-1], starts[1:]))
+        specs, reads = pool.specs(), pool.reads(pool.bounds())
+        assert [s.kind for s in specs] == ["bad"] * 3
         for _ in range(3):
             Z = random_set(rng, ex, 0.6)
-            blob = _dump(m, state_set(m, np.array(ex.states)[Z]))
+            blob = to_bytes(m, state_set(m, np.array(ex.states)[Z]))
             want = ex.cpre(Z).any(axis=1)
             for kept in (True, False):
                 _KEPT.clear()
-                cores = [core_part(key, problem, blob, None, list(pool.digits), list(a), None if b is None else list(b))
-                         for a, b in ranges]
+                cores = [compute_part(key, spec, blob, None, keep=True) for spec in specs]
                 assert all(c.kept in _KEPT for c in cores) and len(_KEPT) == len(cores)
                 if not kept:
                     _KEPT.clear()  # every range read from its bytes, as on another worker
-                joins = []
-                for k, (a, b) in enumerate(ranges):
-                    reached = pool._reached(k, bounds)
-                    joins.append(join_part(key, problem, list(pool.digits), list(a), None if b is None else list(b),
-                                           None, *(cores[j] for j in reached)))
+                got = m.bdd.false
+                for k, spec in enumerate(specs):
+                    got |= from_bytes(m, join_part(key, spec, None, *(cores[j] for j in reads[k])).blob)
                     assert cores[k].kept not in _KEPT  # its own range's answer is dropped once read
-                got: Function = m.bdd.false
-                for j in joins:
-                    got |= _load(m, j.blob)
                 np.testing.assert_array_equal(states_vector(m, got, ex), want)
         # the states of a range come from sets the worker keeps with the problem, one per code, as computed afresh
-        held = dask_parts._HELD[key]
-        assert held.M is not None and held.memo and {k[0] for k in held.memo} == {"below"}
-        for (_, digit, c), f in held.memo.items():
-            assert f == admitting_below(held.model, held.M, digit, c)
+        problem = held(key)
+        assert problem.M is not None and problem.memo and {k[0] for k in problem.memo} == {"below"}
+        for (_, digit, c), f in problem.memo.items():
+            assert f == admitting_below(problem.model, problem.M, digit, c)
     finally:
         pool.close()
         _KEPT.clear()
-        dask_parts.forget(problem["model"])
+        forget(owner)
 
 
 def test_a_worker_that_lost_its_problem_is_sent_it_again(client):
     """The problem reaches the workers once (``dask_parts.receive``), not as a dependency of every part; a worker
     without it (restarted, or joined since) fails its part with ``ProblemMissing``, and the call sends the problem
     to every worker again and runs on the cluster, exactly."""
-    from workers.dask_parts import forget
-
     rng = np.random.default_rng(7500)
     net = random_net(rng, True)
     ex = Explicit(net)
@@ -185,13 +95,13 @@ def test_a_worker_that_lost_its_problem_is_sent_it_again(client):
     try:
         for k in range(2):
             if k:  # one worker forgets every problem of this CPre, as if it had restarted
-                first = pool._problem_key
-                lost = client.run(forget, pool._model_key, workers=[sorted(client.nthreads())[0]])
+                first = pool.problem_key
+                lost = client.run(forget, pool.model_key, workers=[sorted(client.nthreads())[0]])
                 assert list(lost.values()) == [1]
             Z = random_set(rng, ex, 0.6)
             got = states_vector(m, pool(state_set(m, np.array(ex.states)[Z])), ex)
             np.testing.assert_array_equal(got, ex.cpre(Z).any(axis=1))
-        assert pool.calls == 2 and pool._problem_key != first  # on the cluster both times, the problem sent again
+        assert pool.calls == 2 and pool.problem_key != first  # on the cluster both times, the problem sent again
     finally:
         pool.close()
 
@@ -200,28 +110,23 @@ def test_a_problem_pushed_out_of_a_workers_memory_is_loaded_again_from_what_was_
     """Three CPres' problems on one worker (jobs sharing a cluster): the worker keeps two loaded
     (``HELD_PROBLEMS``), and the first, pushed out, is loaded again from the bytes it was sent, with the same
     relations; one never sent is ``ProblemMissing``."""
-    from workers.dask_parts import _HELD, HELD_PROBLEMS, ProblemMissing, _dump, _load, _problem, forget, receive
-
     rng = np.random.default_rng(7600)
     games = [build(random_net(rng, True), "shared_top") for _ in range(3)]
-    pools = [DaskPredecessors(g, 2, client=None) for g in games]
     keys = [f"test-sent-{k}" for k in range(3)]
     try:
-        for key, pool in zip(keys, pools):
-            receive(key, pool.problem())
-            _problem(key, None)
+        for key, game in zip(keys, games):
+            receive(key, pack(Problem.of(game), key))
+            held(key)
         assert HELD_PROBLEMS == 2 and keys[0] not in _HELD and all(k in _HELD for k in keys[1:])
-        model, chain, *_ = _problem(keys[0], None)
-        game = games[0]
-        assert len(chain) == len(game.chain)
-        for (rel, _), (want, _) in zip(chain, game.chain):  # the same relations, in the worker's own manager
-            assert _load(game.model, _dump(model, rel)) == want
+        problem, game = held(keys[0]), games[0]
+        assert len(problem.chain) == len(game.chain)
+        for (rel, _), (want, _) in zip(problem.chain, game.chain):  # the same relations, in the worker's own manager
+            assert from_bytes(game.model, to_bytes(problem.model, rel)) == want
         with pytest.raises(ProblemMissing, match="not sent"):
-            _problem("test-sent-never", None)
+            held("test-sent-never")
     finally:
-        for pool in pools:
-            pool.close()
-            forget(pool._model_key)
+        for key in keys:
+            forget(key)
 
 
 def test_the_w_cut_needs_a_shared_internal_variable():
@@ -275,7 +180,7 @@ def test_a_closed_cluster_is_a_clear_failure_and_the_game_goes_on_here(cut):
     # BDD manager before them (dd: "nodes referenced upon shutdown").
     del info
     # through the game: the failure is reported and the later calls run here
-    game._pool, game.processes = pool, 2
+    game.processes, game.parallel_after, game.partitioned = 2, 0.0, lambda cpre, parts: pool
     assert game.predecessors(Z) == want
     assert "Dask" in game.parallel["stopped"] and game.processes == 1
     assert game.predecessors(Z) == want

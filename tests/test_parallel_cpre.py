@@ -1,9 +1,11 @@
-"""The partitioned ``∃u.CPre`` (workers/processes/partitioned_cpre.py): real helper processes, exact results."""
+"""The plan of the partitioned ``∃u.CPre`` (pipelines/synthesis/partition.py: cuts, balancing, exact parts), the
+policy of :meth:`ControllablePredecessor.predecessors` around it, and its helper processes
+(workers/processes/partitioned_cpre.py): started from the caller's package, stopped, and a clear failure when one
+dies. Their answers, through either transport, are tested in tests/test_partitioned_cpre.py."""
 
 from __future__ import annotations
 
 import itertools
-import math
 import os
 import weakref
 
@@ -11,8 +13,7 @@ import numpy as np
 import pytest
 
 from pipelines.symbolic.relations import state_set
-from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, resolve_processes, window_predecessors
-from pipelines.synthesis.fixed_points import cobuchi, reach, safe
+from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed, resolve_processes
 from pipelines.synthesis.partition import (
     damped_cuts,
     equal_work_cuts,
@@ -21,6 +22,7 @@ from pipelines.synthesis.partition import (
     update_density,
     w_window,
 )
+from pipelines.synthesis.parts import window_predecessors
 from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
 from workers.processes.partitioned_cpre import HelperError, PartitionedPredecessors
 
@@ -149,70 +151,27 @@ def test_damped_cuts_move_half_way_and_stay_ordered():
         assert all(min(o, t) <= c <= max(o, t) for o, t, c in zip(old, target, new))
 
 
-@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
-@pytest.mark.parametrize("seed", range(3))
-def test_partitioned_predecessors_equal_the_explicit_ones(seed, shared):
-    """Every part count and cut position gives ``∃u.CPre(Z)`` exactly: whole, ``within`` a set, and on
-    ``outside`` (where that argument promises exactness)."""
-    rng = np.random.default_rng(3000 + 10 * seed + shared)
-    net = random_net(rng, shared)
-    ex = Explicit(net)
-    game = build(net, ["interleaved", "shared_top"][seed % 2])
-    m = game.model
-    pool = PartitionedPredecessors(game, 3)
-    try:
-        assert pool.cells == math.prod(m.sizes[d] for d in pool.digits) and len(pool.digits) == 2
-        for k in range(6):
-            if k and pool.cells > 2:  # every cut position the balancing could choose
-                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
-            Z, S, Out = random_set(rng, ex, 0.6), random_set(rng, ex, 0.7), random_set(rng, ex, 0.5)
-            bZ, bS, bO = (state_set(m, np.array(ex.states)[v]) for v in (Z, S, Out))
-            want = ex.cpre(Z).any(axis=1)
-            np.testing.assert_array_equal(states_vector(m, pool(bZ), ex), want)
-            np.testing.assert_array_equal(states_vector(m, pool(bZ, within=game.within(bS)), ex), want & S)
-            got = states_vector(m, pool(bZ, outside=bO), ex)
-            np.testing.assert_array_equal(got & Out, want & Out)
-            got = states_vector(m, pool(bZ, outside=~bZ), ex)  # the reach loop's: complemented by the helpers
-            np.testing.assert_array_equal(got & ~Z, want & ~Z)
-        assert pool.calls == 24 and len(pool.seconds) == len(pool.cuts) + 1
-    finally:
-        pool.close()
+class Made(list):
+    """A ``partitioned`` factory that keeps what it made (a test's view of the parts a game started)."""
+
+    def __init__(self, make):
+        super().__init__()
+        self.make = make
+
+    def __call__(self, cpre, processes):
+        self.append(self.make(cpre, processes))
+        return self[-1]
 
 
-@pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
-def test_fixed_points_with_helpers_equal_the_one_process_ones(shared):
-    rng = np.random.default_rng(77 + shared)
-    net = random_net(rng, shared)
-    ex = Explicit(net)
-    one = build(net, "shared_top" if shared else "interleaved")
-    two = build(net, "shared_top" if shared else "interleaved")
-    two.processes, two.parallel_after, two.partitioned = 2, 0.0, PartitionedPredecessors  # helpers from call 1 on
-    S, T, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.6))
-    try:
-        for g in (one, two):
-            g.results = []
-            bS, bT, bphi = (state_set(g.model, np.array(ex.states)[v]) for v in (S, T, phi))
-            g.results.append(safe(g, bS, layered=True).domain)
-            g.results.append(reach(g, bT, layered=True).domain)
-            g.results.append(cobuchi(g, bphi).domain)
-        for a, b in zip(one.results, two.results):
-            np.testing.assert_array_equal(states_vector(one.model, a, ex), states_vector(two.model, b, ex))
-        assert two.parallel["calls"] > 0 and one.parallel == {}
-    finally:
-        two.close()
-    assert two.parallel["calls"] > 0  # still reported after close
-
-
-def test_close_stops_the_helpers_and_removes_the_files():
+def test_close_stops_the_helpers():
     game = build(random_net(np.random.default_rng(5), True), "shared_top")
     pool = PartitionedPredecessors(game, 2)
     pool(game.model.x_domain)
-    procs, tmp = pool.helpers, pool._tmp
-    assert all(p.poll() is None for p in procs) and os.path.isdir(tmp)
+    procs = pool.helpers
+    assert all(p.poll() is None for p in procs)
     pool.close()
     pool.close()  # idempotent
     assert all(p.poll() is not None for p in procs)
-    assert not os.path.exists(tmp)
 
 
 def test_helpers_import_the_callers_package_from_any_working_directory(tmp_path, monkeypatch):
@@ -236,14 +195,14 @@ def test_helpers_import_the_callers_package_from_any_working_directory(tmp_path,
 
 def test_a_helper_that_dies_is_a_clear_error():
     game = build(random_net(np.random.default_rng(6), False), "interleaved")
-    pool = PartitionedPredecessors(game, 2)
+    pool = PartitionedPredecessors(game, 3)
     try:
         pool(game.model.x_domain)
         pool.helpers[0].kill()
         pool.helpers[0].wait()
         with pytest.raises(HelperError, match=r"synthesis helper 1 (died|is gone).*synthesis_processes"):
             pool(game.model.x_domain)
-        assert not os.path.exists(pool._tmp)  # the error stopped the pool
+        assert all(p.poll() is not None for p in pool.helpers)  # the error stopped the other helper too
     finally:
         pool.close()
 
@@ -254,15 +213,16 @@ def test_after_a_helper_dies_the_game_answers_in_one_process():
     net = random_net(rng, True)
     ex = Explicit(net)
     game = build(net, "shared_top")
-    game.processes, game.parallel_after, game.partitioned = 2, 0.0, PartitionedPredecessors
+    made = Made(PartitionedPredecessors)
+    game.processes, game.parallel_after, game.partitioned = 2, 0.0, made
     m = game.model
     bZ = state_set(m, np.array(ex.states)[random_set(rng, ex, 0.6)])
-    want = game.predecessors(bZ)  # one process; starts the helpers
-    assert isinstance(game._pool, PartitionedPredecessors)
-    game._pool.helpers[0].kill()
-    game._pool.helpers[0].wait()
-    assert game.predecessors(bZ) == want and game._pool is None and game.processes == 1
-    assert game.predecessors(bZ) == want
+    want = game.predecessors(bZ)  # in parts from the first call on
+    assert len(made) == 1 and game.parallel["calls"] == 1 and game.parallel["on"] == "processes"
+    made[0].helpers[0].kill()
+    made[0].helpers[0].wait()
+    assert game.predecessors(bZ) == want and game.processes == 1
+    assert game.predecessors(bZ) == want and len(made) == 1
     assert "synthesis helper 1" in game.parallel["stopped"] and "one process" in game.parallel["stopped"]
     game.close()
 
@@ -272,19 +232,17 @@ def test_without_a_factory_every_call_runs_here():
     game.processes, game.parallel_after = 2, 0.0
     want = game.predecessors(game.model.x_domain)
     assert game.predecessors(game.model.x_domain) == want
-    assert game._pool is None and game.parallel == {}
+    assert game.parallel == {}
 
 
 class _FailingParts:
     """A ``partitioned`` factory's product that answers once, then fails as a dead helper would."""
 
-    digits, cuts, cut_cells, seconds = ("x0",), [1], [(1,)], [0.0, 0.0]
+    takes_symmetry = False
 
     def __init__(self, cpre, processes):
-        # weak, as PartitionedPredecessors: a cycle through CUDD objects would leave their order to the collector
+        # weak, as PartitionedCPre: a cycle through CUDD objects would leave their order to the collector
         self.cpre, self.processes, self.calls, self.closed = weakref.ref(cpre), processes, 0, False
-
-    takes_symmetry = False
 
     def __call__(self, Z, outside, within, symmetry=None):
         self.calls += 1
@@ -297,6 +255,9 @@ class _FailingParts:
     def close(self):
         self.closed = True
 
+    def report(self):
+        return {"on": "here", "calls": self.calls}
+
 
 def test_a_failed_part_is_recomputed_here_and_reported():
     """The policy of :meth:`ControllablePredecessor.predecessors` with an injected factory: started after the
@@ -304,21 +265,23 @@ def test_a_failed_part_is_recomputed_here_and_reported():
     dropped on :class:`PartitionFailed` (same answer), never started again."""
     assert issubclass(HelperError, PartitionFailed)
     game = build(random_net(np.random.default_rng(8), True), "shared_top")
-    game.processes, game.parallel_after, game.partitioned = 3, 1e-9, _FailingParts
+    made = Made(_FailingParts)
+    game.processes, game.parallel_after, game.partitioned = 3, 1e-9, made
     Z = game.model.x_domain
     want = game.predecessors(Z)
-    parts = game._pool
-    assert isinstance(parts, _FailingParts) and parts.processes == 3 and parts.calls == 0
+    assert len(made) == 1 and made[0].processes == 3 and made[0].calls == 0
+    parts = made[0]
     assert game.predecessors(Z) == want and parts.calls == 1
-    assert game.predecessors(Z) == want and parts.closed and game._pool is None and game.processes == 1
-    assert game.predecessors(Z) == want and game._pool is None
+    assert game.predecessors(Z) == want and parts.closed and game.processes == 1
+    assert game.predecessors(Z) == want and len(made) == 1 and parts.calls == 2
     assert game.parallel["calls"] == 2 and game.parallel["stopped"].startswith("part 1 died")
     first = build(random_net(np.random.default_rng(8), True), "shared_top")
-    first.processes, first.parallel_after, first.partitioned = 3, 0.0, _FailingParts
+    made = Made(_FailingParts)
+    first.processes, first.parallel_after, first.partitioned = 3, 0.0, made
     whole = first.model.x_domain
     want = first.predecessors(whole, part=whole)  # a call on a given part runs here and starts nothing
-    assert first._pool is None
-    assert first.predecessors(whole) == want and isinstance(first._pool, _FailingParts) and first._pool.calls == 1
+    assert not made
+    assert first.predecessors(whole) == want and len(made) == 1 and made[0].calls == 1
 
 
 def test_processes_must_be_positive():

@@ -187,7 +187,7 @@ def test_parts_close_their_representatives(consensus3, client, cut):
         assert pool.takes_symmetry
         for k in range(3):
             if k:
-                pool._cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
+                pool.cuts = sorted(rng.choice(np.arange(1, pool.cells), size=len(pool.cuts), replace=False).tolist())
             Z = sym.close(_random_set(game, rng, 0.5))
             S = sym.close(_random_set(game, rng, 0.5))
             game.use_symmetry, game._symmetry = False, False

@@ -25,13 +25,13 @@ Two exact implementations, chosen automatically (:class:`ControllablePredecessor
 
 The fixed points (:mod:`.fixed_points`) that need the controller only at convergence use
 :meth:`ControllablePredecessor.predecessors` (``∃u.CPre`` in one ``and_exists``, never materialising ``CPre``).
-That call may run in parts at once (:mod:`.partition`) through a ``partitioned`` factory the caller injects
-(helper processes live in ``workers``, not here); :class:`PartitionFailed` is the failure after which the
-object goes on in one process.
+That call may run in parts at once (:mod:`.partitioned`) through a ``partitioned`` factory the caller injects
+(the transports, helper processes and Dask workers, live in ``workers``, not here); :class:`PartitionFailed` is
+the failure after which the object goes on in one process.
 
 The ingredients of ``CPre`` (the chain, the admissible pairs, the shared ``M̂``) are also what the free functions
-:func:`bad_inputs`, :func:`predecessors_of` and :func:`~.at_state.cpre_at_state` take: helper processes run them on their
-own copies, and a layered controller read back from its files evaluates them at one state.
+:func:`bad_inputs`, :func:`predecessors_of` and :func:`~.at_state.cpre_at_state` take: the parts run them on their
+own copies (:mod:`.parts`), and a layered controller read back from its files evaluates them at one state.
 """
 
 from __future__ import annotations
@@ -77,40 +77,25 @@ class PartitionFailed(CompabsError):
 
 
 class Partitioned(Protocol):
-    """``∃u.CPre(Z)`` computed in parts at once (what a ``partitioned`` factory returns; :mod:`.partition`).
+    """``∃u.CPre(Z)`` computed in parts at once (what a ``partitioned`` factory returns;
+    :class:`~.partitioned.PartitionedCPre`).
 
     Calls like :meth:`ControllablePredecessor.predecessors` without ``part``; raises :class:`PartitionFailed`
-    when a part fails (and is closed then); :meth:`close` stops it (idempotent). One whose attribute
-    ``takes_symmetry`` is true also takes ``symmetry=`` (a :class:`~.symmetry.Symmetry` the sets of the call are
-    invariant under): each part then works on the representatives of its states and closes its own answer.
+    when a part fails (no answer of that call is read later); :meth:`close` stops it (idempotent); :meth:`report` says how the parts
+    ran. One whose attribute ``takes_symmetry`` is true also takes ``symmetry=`` (a :class:`~.symmetry.Symmetry`
+    the sets of the call are invariant under): each part then works on the representatives of its states and
+    closes its own answer.
     """
 
     takes_symmetry: bool
-
-    @property
-    def digits(self) -> Sequence[str]:
-        """The current-state digits the parts are cut along."""
-
-    @property
-    def cuts(self) -> list[int]:
-        """First cell of every part but the first (row-major over :attr:`digits`)."""
-
-    @property
-    def cut_cells(self) -> list[tuple[int, ...]]:
-        """:attr:`cuts` as cells (one code per digit)."""
-
-    @property
-    def seconds(self) -> list[float]:
-        """Seconds each part took in the last call (the calling process first)."""
-
-    @property
-    def calls(self) -> int:
-        """Calls answered so far."""
 
     def __call__(self, Z: Function, outside: Function | None, within: Within | None,
                  symmetry: Symmetry | None = None) -> Function: ...
 
     def close(self) -> None: ...
+
+    def report(self) -> dict[str, Any]:
+        """Where the parts ran, calls, the cuts, seconds per part (``ControllablePredecessor.parallel``)."""
 
 
 PartitionedFactory = Callable[["ControllablePredecessor", int], Partitioned]
@@ -141,7 +126,7 @@ def bad_inputs(
     per-subsystem CPre (``w`` already quantified in the chain), else the shared ``∃w`` step follows, the
     bottleneck of docs/method.md §6. ``part`` is conjoined into the chain's first operand and into ``M̂``; it reads no
     next-state bit, so it commutes with ``∃x'``. A set of current states commutes with ``∃w`` too, and the result
-    is exact on it; a set of ``ŵ`` cells (the cluster's ranges, :mod:`workers.dask_parts`) gives the pairs bad for
+    is exact on it; a set of ``ŵ`` cells (the ``w`` and split cuts' ranges, :mod:`.parts`) gives the pairs bad for
     some admissible ``ŵ`` among them. ``M`` may come already conjoined with what the caller keeps (a Dask
     worker's ``M̂`` on the representatives).
     """
@@ -182,33 +167,6 @@ def predecessors_of(
     return and_exists(admissible, ~bad, list(u_bits))
 
 
-def window_predecessors(
-    model: SymbolicModel, chain: Chain, admissible: Function, M: Function, w_bits: Sequence[str],
-    u_bits: Sequence[str], Z: Function, states: Function, window: Function, outside: Function | None = None,
-) -> Function:
-    """``states ∧ ∃u.CPre(Z)`` for the shared CPre, with ``ŵ`` restricted to ``window`` before the chain runs.
-
-    ``states`` and ``window`` come from :func:`~.partition.w_window`: every internal input a state of ``states``
-    admits lies in ``window`` (``states ∧ M̂ → window``). Then for ``x̂`` in ``states``
-
-        ∃ŵ. M̂ ∧ B(x̂, û, ŵ)  =  ∃ŵ. M̂ ∧ states ∧ [window ∧ B](x̂, û, ŵ),   B = ∃x'.(∧_i T_i ∧ ¬Z'),
-
-    and ``window`` reads only ``w`` bits, so it commutes with ``∃x'``: conjoined into the chain's first operand it
-    cuts the chain down to the ``ŵ`` cells of the window (the chain's cost is spread over ``ŵ``, which sits on top
-    of the shared order). ``states`` is conjoined only where the result is read (the ``∃w`` step and the
-    admissible pairs): in the chain's first operand it blew up the intermediate products (``M̂``-shaped sets of
-    states cut across every subsystem's block). The result is exact on ``states`` and empty outside it, so the
-    windows of :func:`~.partition.w_window` (a partition of the states) give parts whose union is ``∃u.CPre(Z)``
-    with nothing to join but a disjunction of sets of states; a cut along ``ŵ`` alone leaves the pairs ``(x̂, û)``
-    of every part to be joined before one ``∃u`` step.
-    """
-    # bad_inputs conjoins its part into the chain's first operand and into M̂ ∧ outside; ``window`` there changes
-    # nothing, since M̂ ∧ states → window (the w cut passes its w ranges the same way).
-    care = states if outside is None else states & outside
-    bad = bad_inputs(model, chain, M, w_bits, Z, care, window)
-    return and_exists(admissible & states, ~bad, list(u_bits))
-
-
 # ====================================================================================== the object
 class ControllablePredecessor:
     """``CPre`` of the composed abstraction with partitioned relations (module docstring; docs/method.md §6).
@@ -237,7 +195,8 @@ class ControllablePredecessor:
         eighth for consensus N = 7 on 16 workers).
     partitioned : callable, optional
         ``partitioned(cpre, processes)`` -> :class:`Partitioned`: how to run :meth:`predecessors` in parts
-        (``workers.processes.partitioned_cpre.PartitionedPredecessors`` runs them in helper processes).
+        (:class:`~.partitioned.PartitionedCPre`; ``workers.processes.partitioned_cpre.PartitionedPredecessors``
+        runs them in helper processes, ``workers.dask_cpre.on_cluster`` on the job's Dask workers).
         Without it every call runs in this process, whatever ``processes`` says.
     auto_parts : int, optional
         What ``processes='auto'`` means for the shared CPre when the parts do not run on this machine's CPUs
@@ -548,26 +507,13 @@ class ControllablePredecessor:
 
     @property
     def parallel(self) -> dict[str, Any]:
-        """How the partitioned ``∃u.CPre`` ran (empty if it never started): calls, the digits it cuts along, the
-        cuts (each the first cell ``[code of digits[0], code of digits[1]]`` of a part), seconds per part,
-        and ``stopped`` (why) if a part failed and the CPre went on in one process."""
+        """How the partitioned ``∃u.CPre`` ran (empty if it never started): :meth:`Partitioned.report` (where, calls,
+        the digits it cuts along, the cuts, seconds per part, ...), and ``stopped`` (why) if a part failed and the
+        CPre went on in one process."""
         p = self._pool if self._pool is not None else self._last_pool
         if p is None:
             return {}
-        out: dict[str, Any] = {"on": getattr(p, "on", "processes"), "processes": len(p.cuts) + 1,
-                               "calls": p.calls, "digits": list(p.digits),
-                               "cuts": [list(c) for c in p.cut_cells],
-                               "last_seconds": [round(s, 3) for s in p.seconds]}
-        timing = getattr(p, "timing", None)
-        if timing:  # the cluster's breakdown (workers.dask_cpre)
-            out["seconds"] = {k: round(v, 2) for k, v in timing.items()}
-            out["per_call"] = list(getattr(p, "history", []))
-        window_cells = getattr(p, "window_cells", None)
-        if window_cells:  # the cluster's window cut: ŵ cells the last call's parts ran the chain on
-            out["window_cells"] = {"parts": window_cells, "cells": int(getattr(p, "cells", 0))}
-        cut = getattr(p, "cut", None)
-        if cut:  # the cluster's: what the parts split (workers.dask_cpre.cut_digits)
-            out["cut"] = cut
+        out = p.report()
         if self._pool_error is not None:
             out["stopped"] = f"{self._pool_error}; the later calls ran in one process"
         return out

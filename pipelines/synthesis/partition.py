@@ -1,9 +1,8 @@
 """Partitioning the current states for ``∃u.CPre(Z)`` computed in parts (docs/method.md §6), the arithmetic only.
 
 The fixed points spend nearly all of synthesis in ``∃u.CPre`` and CUDD is single-threaded, so the partitioned
-form (:meth:`~.cpre.ControllablePredecessor.predecessors`, with a ``partitioned`` factory such as
-:class:`workers.processes.partitioned_cpre.PartitionedPredecessors`) computes it on several parts of the state
-space at once. This module says where to cut; running the parts is the caller's business.
+form (:class:`~.partitioned.PartitionedCPre`) computes it on several parts of the state space at once. This module
+says where to cut; what a part computes is :mod:`.parts`, running the parts a transport's business.
 
 Exactness: for a set ``H`` of current states, ``H ∧ ∃u.CPre(Z)`` is computed exactly by conjoining ``H`` into
 the chain's first operand, the shared ``∃w`` step and the admissible pairs (the ``part`` of
@@ -179,7 +178,7 @@ def w_window(
     window : Function
         ``∃x̂. M̂ ∧ states``, over ``w`` bits: every ``ŵ`` a state of ``states`` admits. It reaches past ``end``
         by the spread of ``M̂(x̂)`` (one or two cells for consensus), which is what the parts of
-        :func:`~.cpre.window_predecessors` compute twice.
+        :func:`~.parts.window_predecessors` compute twice.
     """
     states = lowest_code_states(model, M, digit, start, end, below)
     return states, model.bdd.exist(model.x_bits, M & states)

@@ -1,6 +1,6 @@
 """Child processes that run a module of this package (``python -m pipelines.<module>``).
 
-The audit beside synthesis (:mod:`.audit_beside`) and the partitioned CPre's helpers (:mod:`.parallel_cpre`)
+The audit beside synthesis (:mod:`.audit_beside`) and the partitioned CPre's helpers (:mod:`.partitioned_cpre`)
 run as such children. They must import the very package their parent runs, which need not be installed (a
 checkout): its directory goes first on ``PYTHONPATH``, and the child starts in it, because ``python -m`` puts
 its working directory on ``sys.path`` before ``PYTHONPATH`` (a parent sitting in a directory with another
