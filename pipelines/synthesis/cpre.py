@@ -40,7 +40,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, TypedDict
 
 from pipelines.errors import CompabsError
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
@@ -51,6 +51,8 @@ from pipelines.synthesis.schedule import Chain, schedule
 from pipelines.synthesis.symmetry import InvariantSets, Symmetry, find_symmetry
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from typing_extensions import Unpack
+
     from pipelines.abstraction.relation import SubsystemRelation
     from pipelines.interconnection import InterconnectionAbstraction
     from pipelines.network import Network
@@ -100,6 +102,19 @@ class Partitioned(Protocol):
 
 PartitionedFactory = Callable[["ControllablePredecessor", int], Partitioned]
 """``factory(cpre, processes)``: a :class:`Partitioned` ``∃u.CPre`` of ``cpre`` in ``processes`` parts (>= 2)."""
+
+
+class Options(TypedDict, total=False):
+    """The keywords of :class:`ControllablePredecessor` beside its relations, as
+    :meth:`ControllablePredecessor.from_network` passes them on (the constructor documents each)."""
+
+    method: str
+    chain_order: str
+    processes: int | str
+    parallel_after: float
+    partitioned: PartitionedFactory | None
+    auto_parts: int | None
+    symmetry: bool
 
 
 def resolve_processes(processes: int | str) -> int:
@@ -295,29 +310,24 @@ class ControllablePredecessor:
         interconnection: InterconnectionAbstraction,
         *,
         order: str | None = None,
-        method: str = "auto",
         max_memory: int | None = None,
         share: str = "rename",
-        chain_order: str = "greedy",
-        processes: int | str = 1,
-        parallel_after: float = 1.0,
-        partitioned: PartitionedFactory | None = None,
-        auto_parts: int | None = None,
-        symmetry: bool = True,
+        **options: Unpack[Options],
     ) -> ControllablePredecessor:
         """Encode an abstraction (its network, subsystem relations and interconnection) and prepare its CPre.
 
         ``order`` defaults to :func:`~.symbolic.order.default_order` (``interleaved`` where each internal
         variable has one reader, ``shared_top`` otherwise: the orders docs/method.md §6 found best for the tanks and
-        consensus).
+        consensus); ``max_memory`` is CUDD's (:class:`~.symbolic.model.SymbolicModel`), ``share`` how identical
+        subsystems share their relations (:func:`~.symbolic.relations.subsystem_relations`); ``options`` are the
+        constructor's (:class:`Options`).
         """
         if order is None:
             order = default_order(network.subsystems)
         model = SymbolicModel.from_network(network, interconnection, order=order, max_memory=max_memory)
         T, NB = subsystem_relations(model, relations, share=share)
         parts = interconnection_parts(model, interconnection.nodes)
-        return cls(model, T, NB, parts, method, chain_order, processes=processes, parallel_after=parallel_after,
-                   partitioned=partitioned, auto_parts=auto_parts, symmetry=symmetry)
+        return cls(model, T, NB, parts, **options)
 
     def _prepare_per_subsystem(self) -> None:
         m, bdd = self.model, self.bdd
