@@ -7,18 +7,24 @@ the classical Runge-Kutta method of order 4, as SCOTS does. :class:`SampledFlow`
 ``Subsystem.dynamics`` (the per-cell stage, the Lipschitz estimation, the audit, the closed loop) uses the
 same integrator without knowing it. The guarantees hold for this integrated map, as SCOTS's do.
 
-Integration is in bulk: the loops run over sub-steps and Runge-Kutta stages only, each stage one evaluation
-of the right-hand side on the whole (broadcast) batch.
+Integration is in bulk. A right-hand side in the scalar subset of the expression language runs with its
+integrator as one compiled program over all samples (:mod:`pipelines.expressions.program`: the same operations in
+the same order, no intermediate array per operation and sub-step); any other right-hand side (a vector
+expression, a ``module:function``) runs :func:`rk4` here, each Runge-Kutta stage one evaluation on the whole
+(broadcast) batch.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from pipelines.blackbox import BlackBox
+from pipelines.blackbox import BlackBox, as_rows
 from pipelines.errors import SpecError
+from pipelines.expressions import program
+from pipelines.expressions.program import compile_program
 
 __all__ = ["SampledFlow", "rk4"]
 
@@ -93,6 +99,8 @@ class SampledFlow(BlackBox):
         super().__init__(name, source, inputs, out_dim, constants, allowed_modules)
         if self.out_dim != inputs["x"]:
             raise SpecError(f"{name}: dx/dt has {self.out_dim} components, the state has {inputs['x']}")
+        self._program = None if self._is_module else compile_program(
+            self._source, {k: d for k, d in inputs.items() if d > 0}, self._constants, self.out_dim)
 
     @property
     def sampling_time(self) -> float:
@@ -109,6 +117,20 @@ class SampledFlow(BlackBox):
         the result's check names the initial point and its cell.
         """
         shape = self._batch_shape(arrays)
+        out = self._integrate(arrays, shape, describe)
+        self._check_finite(out, shape, arrays, describe, what="integrated over the sampling time to")
+        return out
+
+    def _integrate(self, arrays: Sequence[np.ndarray], shape: tuple[int, ...],
+                   describe: Callable[[int], str] | None = None) -> np.ndarray:
+        """``x(tau)`` on a batch of broadcast ``shape``, finiteness not checked: the compiled program where the
+        right-hand side has one, else :func:`rk4` over the numpy evaluators."""
+        if self._program is not None:  # the right-hand side and the integrator in one compiled pass
+            B = math.prod(shape)
+            rows = [np.ascontiguousarray(a, dtype=float) for a in as_rows(arrays, shape)]
+            x0, u, w = (*rows, *(np.zeros((B, 0)),) * (3 - len(rows)))[:3]
+            with np.errstate(all="ignore"):
+                return program.rk4(self._program, x0, u, w, self._tau, self._substeps).reshape(shape + (x0.shape[1],))
         x, held = arrays[0], arrays[1:]
         # x changes over the sub-steps: materialise it to the batch shape once. u and w are held: broadcast views
         # (an expression evaluates on them as they are), materialised once for a module:function, which gets rows.
@@ -117,6 +139,4 @@ class SampledFlow(BlackBox):
         if self._is_module:
             held = tuple(np.ascontiguousarray(a) for a in held)
         with np.errstate(all="ignore"):
-            out = rk4(lambda y: self._evaluate((y, *held), shape, describe), x0, self._tau, self._substeps)
-        self._check_finite(out, shape, arrays, describe, what="integrated over the sampling time to")
-        return out
+            return rk4(lambda y: self._evaluate((y, *held), shape, describe), x0, self._tau, self._substeps)

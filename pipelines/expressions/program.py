@@ -1,0 +1,506 @@
+"""Scalar expressions as programs of a compiled stack machine: the right-hand side of an ODE and its Runge-Kutta
+integration in one pass over the samples, without an intermediate array per operation and sub-step.
+
+:func:`compile_program` turns the text of a safe expression that :func:`~.compiler.compile_expression` has
+accepted into a :class:`Program`: per output component a postfix sequence of opcodes over numbered constants and
+the components ``x[i]``, ``u[j]``, ``w[k]``. Only a scalar subset of the language has opcodes (numbers and named
+constants, indexed variables, ``+ - * / **``, unary ``-``, comparisons as conditions of ``a if c else b`` and
+``where``, the one- and two-argument elementwise functions below, ``clip``, ``min``/``max`` of several
+arguments); for anything else (vector values, slices, reductions) it returns ``None`` and the caller keeps the
+numpy evaluators. The machine (:func:`rk4`) is one numba function compiled once for every program: it executes
+opcodes this module emitted, never text, so nothing from a spec is compiled or executed beyond the whitelist.
+
+The operations are those of the numpy evaluators, in the order of the parse tree, with numpy's error model (a
+division by zero is ``inf``, not an exception), so arithmetic gives the same bits; and :func:`rk4` takes the
+steps of :func:`pipelines.integrators.rk4` in its order. Samples are processed in blocks of :data:`BLOCK` rows
+whose intermediate values stay in cache, and each opcode's loop over a block is one vectorisable loop.
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from pipelines.expressions.checks import parse
+from pipelines.expressions.functions import BINOPS, BUILTIN_CONSTANTS, FUNCTIONS
+
+__all__ = ["Program", "compile_program", "rk4"]
+
+#: Rows of a block: the stack of a deep expression (32 levels) stays within 64 KiB.
+BLOCK = 256
+
+# Opcodes (the second column of a program row is the operand: a constant's or a component's index).
+CONST, X, U, W = 0, 1, 2, 3
+ADD, SUB, MUL, DIV, POW, NEG = 10, 11, 12, 13, 14, 15
+LT, LE, GT, GE, EQ, NE = 20, 21, 22, 23, 24, 25
+SELECT = 30
+MINIMUM, MAXIMUM, ATAN2, HYPOT = 40, 41, 42, 43
+#: A binary operator or comparison whose right operand is the constant named by the operand: ``op + WITH_CONSTANT``
+#: (``c - a`` and ``c / a`` as :data:`RSUB_C`, :data:`RDIV_C`); a pass per sample fewer than pushing the constant.
+WITH_CONSTANT = 100
+RSUB_C, RDIV_C = 116, 117
+#: ``c OP a`` as ``a OP' c``: exact for these (IEEE addition and multiplication commute; comparisons mirror).
+_SWAPPED = {ADD: ADD, MUL: MUL, SUB: RSUB_C - WITH_CONSTANT, DIV: RDIV_C - WITH_CONSTANT,
+            LT: GT, LE: GE, GT: LT, GE: LE, EQ: EQ, NE: NE}
+UNARY = {"exp": 50, "log": 51, "sqrt": 52, "sin": 53, "cos": 54, "tan": 55, "tanh": 56, "abs": 57,
+         "arctan": 58, "atan": 58, "sinh": 59, "cosh": 60, "square": 61, "expm1": 62, "log1p": 63, "log10": 64,
+         "log2": 65, "exp2": 66, "arcsin": 67, "asin": 67, "arccos": 68, "acos": 68, "floor": 69, "ceil": 70,
+         "sign": 71}
+BINARY = {"minimum": MINIMUM, "maximum": MAXIMUM, "arctan2": ATAN2, "atan2": ATAN2, "hypot": HYPOT, "pow": POW}
+_BINOPS = {ast.Add: ADD, ast.Sub: SUB, ast.Mult: MUL, ast.Div: DIV, ast.Pow: POW}
+_COMPARE = {ast.Lt: LT, ast.LtE: LE, ast.Gt: GT, ast.GtE: GE, ast.Eq: EQ, ast.NotEq: NE}
+_VARIABLES = {"x": X, "u": U, "w": W}
+
+
+@dataclass(frozen=True)
+class Program:
+    """Per output component a postfix program (module docstring).
+
+    Attributes
+    ----------
+    ops : ndarray of int64, shape (K, 2)
+        ``(opcode, operand)`` rows, the components' programs one after the other.
+    starts : ndarray of int64, shape (n_out + 1,)
+        Component ``c``'s rows are ``ops[starts[c]:starts[c + 1]]``.
+    constants : ndarray of float64
+    depth : int
+        The deepest stack any component needs.
+    """
+
+    ops: np.ndarray
+    starts: np.ndarray
+    constants: np.ndarray
+    depth: int
+
+    @property
+    def out_dim(self) -> int:
+        return int(self.starts.size - 1)
+
+
+class _Unsupported(Exception):
+    """A construct without an opcode: the numpy evaluators run the expression instead."""
+
+
+class _Emitter:
+    def __init__(self, variables: dict[str, int], constants: dict[str, float]) -> None:
+        self.variables = variables
+        self.names = {**BUILTIN_CONSTANTS, **constants}
+        self.ops: list[tuple[int, int]] = []
+        self.constants: list[float] = []
+        self.depth = 0
+        self.sp = 0
+
+    def push(self, op: int, arg: int = 0, pops: int = 0) -> None:
+        self.ops.append((op, arg))
+        self.sp += 1 - pops
+        self.depth = max(self.depth, self.sp)
+
+    def constant(self, value: float) -> None:
+        self.constants.append(float(value))
+        self.push(CONST, len(self.constants) - 1)
+
+    def fold(self, node: ast.AST) -> np.float64 | None:
+        """The value of a sub-expression without variables, computed as the numpy evaluators compute it (numpy
+        float64 operations, numpy's error model), or ``None``: so a constant sub-expression is one constant
+        opcode, not a computation per sample, and gives the same bits."""
+        if isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
+            return np.float64(node.value)
+        if isinstance(node, ast.Name) and node.id in self.names:
+            return np.float64(self.names[node.id])
+        parts: list[ast.expr]
+        if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+            parts, impl = [node.operand], (np.negative if isinstance(node.op, ast.USub) else np.positive)
+        elif isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            parts, impl = [node.left, node.right], BINOPS[type(node.op)][1]
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and not node.keywords
+              and (node.func.id in UNARY and len(node.args) == 1 or node.func.id in BINARY and len(node.args) == 2)):
+            parts, impl = list(node.args), FUNCTIONS[node.func.id].impl
+        else:
+            return None
+        values = [self.fold(p) for p in parts]
+        if any(v is None for v in values):
+            return None
+        with np.errstate(all="ignore"):
+            return np.float64(impl(*values))
+
+    def emit(self, node: ast.AST) -> None:
+        """Postfix code of a scalar sub-expression, or :class:`_Unsupported`."""
+        value = self.fold(node)
+        if value is not None:
+            self.constant(float(value))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
+            self.constant(float(node.value))
+        elif isinstance(node, ast.Name) and node.id in self.names:
+            self.constant(self.names[node.id])
+        elif isinstance(node, ast.Name) and node.id in _VARIABLES and self.variables.get(node.id) == 1:
+            self.push(_VARIABLES[node.id], 0)  # a variable of one component is its component
+        elif (isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name) and node.value.id in _VARIABLES
+              and node.value.id in self.variables and isinstance(node.slice, ast.Constant)
+              and type(node.slice.value) is int and 0 <= node.slice.value < self.variables[node.value.id]):
+            self.push(_VARIABLES[node.value.id], node.slice.value)
+        elif isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
+            self.emit(node.left)
+            self.emit(node.right)
+            self.push(_BINOPS[type(node.op)], pops=2)
+        elif isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+            self.emit(node.operand)
+            if isinstance(node.op, ast.USub):
+                self.push(NEG, pops=1)
+        elif isinstance(node, ast.IfExp):
+            self.condition(node.test)
+            self.emit(node.body)
+            self.emit(node.orelse)
+            self.push(SELECT, pops=3)
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and not node.keywords:
+            self.call(node.func.id, node.args)
+        else:
+            raise _Unsupported(type(node).__name__)
+
+    def condition(self, node: ast.AST) -> None:
+        """A condition: one comparison (a boolean, as numpy's), or a value that is true where it is not 0."""
+        if isinstance(node, ast.Compare) and len(node.ops) == 1 and type(node.ops[0]) in _COMPARE:
+            self.emit(node.left)
+            self.emit(node.comparators[0])
+            self.push(_COMPARE[type(node.ops[0])], pops=2)
+        else:
+            self.emit(node)
+
+    def call(self, name: str, args: list[ast.expr]) -> None:
+        if name in UNARY and len(args) == 1:
+            self.emit(args[0])
+            self.push(UNARY[name], pops=1)
+        elif name in BINARY and len(args) == 2:
+            self.emit(args[0])
+            self.emit(args[1])
+            self.push(BINARY[name], pops=2)
+        elif name in ("minimum", "maximum", "min", "max") and len(args) >= 2:  # a fold, left to right
+            op = MINIMUM if name in ("minimum", "min") else MAXIMUM
+            self.emit(args[0])
+            for a in args[1:]:
+                self.emit(a)
+                self.push(op, pops=2)
+        elif name == "clip" and len(args) == 3:  # minimum(maximum(a, lo), hi), as the numpy clip
+            self.emit(args[0])
+            self.emit(args[1])
+            self.push(MAXIMUM, pops=2)
+            self.emit(args[2])
+            self.push(MINIMUM, pops=2)
+        elif name == "where" and len(args) == 3:
+            self.condition(args[0])
+            self.emit(args[1])
+            self.emit(args[2])
+            self.push(SELECT, pops=3)
+        else:
+            raise _Unsupported(name)
+
+
+def compile_program(text: str, variables: dict[str, int], constants: dict[str, float] | None = None,
+                    out_dim: int | None = None) -> Program | None:
+    """The :class:`Program` of an expression that :func:`~.compiler.compile_expression` accepted (its checks are
+    not repeated here), or ``None`` where a construct has no opcode.
+
+    ``out_dim``: the components expected (a list of that many scalars, or one scalar for 1).
+    """
+    body = parse(text).body
+    components = body.elts if isinstance(body, ast.List) else [body]
+    if out_dim is not None and len(components) != out_dim:
+        return None
+    em = _Emitter(variables, dict(constants or {}))
+    ops: list[tuple[int, int]] = []
+    starts = [0]
+    try:
+        for c in components:
+            em.sp, em.ops = 0, []
+            em.emit(c)
+            ops += _with_constants(em.ops)
+            starts.append(len(ops))
+    except _Unsupported:
+        return None
+    return Program(np.asarray(ops, dtype=np.int64).reshape(-1, 2), np.asarray(starts, dtype=np.int64),
+                   np.asarray(em.constants, dtype=np.float64), max(1, em.depth))
+
+
+def _with_constants(ops: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """``CONST k; OP`` as ``OP_C k``, and ``CONST k; LOAD; OP`` as ``LOAD; OP'_C k`` (:data:`WITH_CONSTANT`)."""
+    out: list[tuple[int, int]] = []
+    for op, arg in ops:
+        if op in _SWAPPED and out and out[-1][0] == CONST:
+            out[-1] = (op + WITH_CONSTANT, out[-1][1])
+        elif (op in _SWAPPED and len(out) >= 2 and out[-2][0] == CONST and out[-1][0] in (X, U, W)):
+            k = out[-2][1]
+            out[-2:] = [out[-1], (_SWAPPED[op] + WITH_CONSTANT, k)]
+        else:
+            out.append((op, arg))
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _maximum(a: float, b: float) -> float:
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _minimum(a: float, b: float) -> float:
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _sign(a: float) -> float:
+    if a > 0:
+        return 1.0
+    if a < 0:
+        return -1.0
+    return a  # 0 and NaN
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _unary(op: int, v: float) -> float:  # noqa: PLR0911 - one branch per opcode
+    if op == 50:
+        return math.exp(v)
+    if op == 51:
+        return math.log(v) if v > 0 else (-math.inf if v == 0 else math.nan)
+    if op == 52:
+        return math.sqrt(v) if v >= 0 else math.nan
+    if op == 53:
+        return math.sin(v)
+    if op == 54:
+        return math.cos(v)
+    if op == 55:
+        return math.tan(v)
+    if op == 56:
+        return math.tanh(v)
+    if op == 57:
+        return abs(v)
+    if op == 58:
+        return math.atan(v)
+    if op == 59:
+        return math.sinh(v)
+    if op == 60:
+        return math.cosh(v)
+    if op == 61:
+        return v * v
+    if op == 62:
+        return math.expm1(v)
+    if op == 63:
+        return math.log1p(v) if v >= -1 else math.nan
+    if op == 64:
+        return math.log10(v) if v > 0 else (-math.inf if v == 0 else math.nan)
+    if op == 65:
+        return math.log2(v) if v > 0 else (-math.inf if v == 0 else math.nan)
+    if op == 66:
+        return 2.0 ** v
+    if op == 67:
+        return math.asin(v) if -1 <= v <= 1 else math.nan
+    if op == 68:
+        return math.acos(v) if -1 <= v <= 1 else math.nan
+    if op == 69:
+        return np.floor(v)
+    if op == 70:
+        return np.ceil(v)
+    return _sign(v)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _binary(op: int, a: float, b: float) -> float:
+    if op == MINIMUM:
+        return _minimum(a, b)
+    if op == MAXIMUM:
+        return _maximum(a, b)
+    if op == ATAN2:
+        return math.atan2(a, b)
+    return math.hypot(a, b)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _component(ops, first, last, consts, xs, us, ws, m, stack):  # noqa: PLR0912 - one branch per opcode
+    """Run rows ``first:last`` of ``ops`` on the first ``m`` columns of ``xs``, ``us``, ``ws`` (component-major:
+    one contiguous row per component); the value is ``stack[0, :m]``."""
+    sp = 0
+    for r in range(first, last):
+        op, arg = ops[r, 0], ops[r, 1]
+        if op == CONST:
+            v = consts[arg]
+            for i in range(m):
+                stack[sp, i] = v
+            sp += 1
+        elif op == X:
+            for i in range(m):
+                stack[sp, i] = xs[arg, i]
+            sp += 1
+        elif op == U:
+            for i in range(m):
+                stack[sp, i] = us[arg, i]
+            sp += 1
+        elif op == W:
+            for i in range(m):
+                stack[sp, i] = ws[arg, i]
+            sp += 1
+        elif op == NEG:
+            for i in range(m):
+                stack[sp - 1, i] = -stack[sp - 1, i]
+        elif op == SELECT:
+            sp -= 2
+            for i in range(m):
+                if stack[sp - 1, i] != 0:  # NaN is true, as numpy's truth
+                    stack[sp - 1, i] = stack[sp, i]
+                else:
+                    stack[sp - 1, i] = stack[sp + 1, i]
+        elif op < SELECT:  # a binary operator or comparison
+            sp -= 1
+            a, b = stack[sp - 1], stack[sp]
+            if op == ADD:
+                for i in range(m):
+                    a[i] = a[i] + b[i]
+            elif op == SUB:
+                for i in range(m):
+                    a[i] = a[i] - b[i]
+            elif op == MUL:
+                for i in range(m):
+                    a[i] = a[i] * b[i]
+            elif op == DIV:
+                for i in range(m):
+                    a[i] = a[i] / b[i]
+            elif op == POW:
+                for i in range(m):
+                    a[i] = a[i] ** b[i]
+            elif op == LT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] < b[i] else 0.0
+            elif op == LE:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] <= b[i] else 0.0
+            elif op == GT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] > b[i] else 0.0
+            elif op == GE:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] >= b[i] else 0.0
+            elif op == EQ:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] == b[i] else 0.0
+            else:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] != b[i] else 0.0
+        elif op >= WITH_CONSTANT:
+            a, c = stack[sp - 1], consts[arg]
+            if op == ADD + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = a[i] + c
+            elif op == SUB + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = a[i] - c
+            elif op == MUL + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = a[i] * c
+            elif op == DIV + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = a[i] / c
+            elif op == POW + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = a[i] ** c
+            elif op == RSUB_C:
+                for i in range(m):
+                    a[i] = c - a[i]
+            elif op == RDIV_C:
+                for i in range(m):
+                    a[i] = c / a[i]
+            elif op == LT + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] < c else 0.0
+            elif op == LE + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] <= c else 0.0
+            elif op == GT + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] > c else 0.0
+            elif op == GE + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] >= c else 0.0
+            elif op == EQ + WITH_CONSTANT:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] == c else 0.0
+            else:
+                for i in range(m):
+                    a[i] = 1.0 if a[i] != c else 0.0
+        elif op < 50:
+            sp -= 1
+            for i in range(m):
+                stack[sp - 1, i] = _binary(op, stack[sp - 1, i], stack[sp, i])
+        else:
+            for i in range(m):
+                stack[sp - 1, i] = _unary(op, stack[sp - 1, i])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _rhs(ops, starts, consts, xs, us, ws, m, stack, out):
+    for c in range(starts.size - 1):
+        _component(ops, starts[c], starts[c + 1], consts, xs, us, ws, m, stack)
+        for i in range(m):
+            out[c, i] = stack[0, i]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _rk4(ops, starts, consts, depth, x0, U, W, h, substeps):
+    B, n = x0.shape
+    out = np.empty((B, n))
+    stack = np.empty((depth, BLOCK))
+    # Component-major blocks: every loop below and in _component runs over contiguous rows.
+    us = np.empty((U.shape[1], BLOCK))
+    ws = np.empty((W.shape[1], BLOCK))
+    x = np.empty((n, BLOCK))
+    y = np.empty((n, BLOCK))
+    k1 = np.empty((n, BLOCK))
+    k2 = np.empty((n, BLOCK))
+    k3 = np.empty((n, BLOCK))
+    k4 = np.empty((n, BLOCK))
+    half, sixth = h / 2, h / 6
+    for lo in range(0, B, BLOCK):
+        m = min(BLOCK, B - lo)
+        for i in range(m):
+            for d in range(n):
+                x[d, i] = x0[lo + i, d]
+            for d in range(us.shape[0]):
+                us[d, i] = U[lo + i, d]
+            for d in range(ws.shape[0]):
+                ws[d, i] = W[lo + i, d]
+        for _ in range(substeps):  # the steps of pipelines.integrators.rk4, in its order
+            _rhs(ops, starts, consts, x, us, ws, m, stack, k1)
+            for d in range(n):
+                for i in range(m):
+                    y[d, i] = x[d, i] + half * k1[d, i]
+            _rhs(ops, starts, consts, y, us, ws, m, stack, k2)
+            for d in range(n):
+                for i in range(m):
+                    y[d, i] = x[d, i] + half * k2[d, i]
+            _rhs(ops, starts, consts, y, us, ws, m, stack, k3)
+            for d in range(n):
+                for i in range(m):
+                    y[d, i] = x[d, i] + h * k3[d, i]
+            _rhs(ops, starts, consts, y, us, ws, m, stack, k4)
+            for d in range(n):
+                for i in range(m):
+                    x[d, i] = x[d, i] + sixth * (k1[d, i] + 2 * (k2[d, i] + k3[d, i]) + k4[d, i])
+        for i in range(m):
+            for d in range(n):
+                out[lo + i, d] = x[d, i]
+    return out
+
+
+def rk4(program: Program, x0: np.ndarray, u: np.ndarray, w: np.ndarray, tau: float, substeps: int) -> np.ndarray:
+    """``substeps`` Runge-Kutta 4 steps of ``dx/dt = program(x, u, w)`` over ``tau``, for rows of ``x0`` (B, n),
+    ``u`` (B, m) and ``w`` (B, p) (contiguous float64): what :func:`pipelines.integrators.rk4` computes with the
+    numpy evaluators, in one compiled pass."""
+    return _rk4(program.ops, program.starts, program.constants, program.depth, x0, u, w, tau / substeps,
+                int(substeps))
