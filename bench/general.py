@@ -141,7 +141,8 @@ def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_chi
                           env=worker_environ())
         frows = [e["row"] for e in floor["events"] if e["type"] == "row"]
         rec["floor"] = {"status": floor["status"], "error": floor["error"],
-                        "ratio": max((r["ratio_cpu"] for r in frows), default=None), "rows": frows}
+                        "ratio": max((r["ratio_cpu"] for r in frows), default=None), "rows": frows,
+                        "ns_per_rhs": max((r.get("ns_per_rhs_evaluation") or 0.0 for r in frows), default=None)}
         if name in BACKEND_EXAMPLES:
             both = run_child("backends", {"spec": str(spec)}, args.point_timeout, args.mem_limit_gb * 1024,
                              env=worker_environ())
@@ -186,7 +187,7 @@ def targets(c: dict, put: harness.Put) -> None:
 def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
     """The general case's table: ours beside SCOTS's per example."""
     out = [f"  {'example':<9}{'states':>11}{'transitions':>13}{'domain':>11}{'end-to-end s':>14}{'per-cell s':>12}"
-           f"{'/floor':>8}{'audit':>10}{'viol.':>6}{'runs':>6}{'viol.':>6}   SCOTS (states, transitions, domain, s)"]
+           f"{'/floor':>8}{'ns/rhs':>8}{'audit':>10}{'viol.':>6}{'runs':>6}{'viol.':>6}   SCOTS (states, transitions, domain, s)"]
     for r in c["runs"]:
         d = r["details"]
         audit, loop = d.get("audit") or {}, d.get("closed_loop") or {}
@@ -196,6 +197,7 @@ def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
         out.append(f"  {r['case'].split()[-1]:<9}{fmt(r['abstract_states']):>11}{fmt(r['transitions']):>13}"
                    f"{fmt(r['domain_states']):>11}{fmt(r['total_wall']):>14}"
                    f"{fmt(r['stages'].get('subsystems', {}).get('wall')):>12}{fmt(r['floor']['ratio']):>8}"
+                   f"{fmt(r['floor'].get('ns_per_rhs')):>8}"
                    f"{fmt(audit.get('transitions_checked')):>10}{fmt(audit.get('violations')):>6}"
                    f"{fmt(loop.get('runs')):>6}{fmt(loop.get('violations')):>6}   {scots}")
     out.append(f"  {'synthesis':<9}{'explicit: build s':>19}{'fixed pt s':>12}{'BDD: build s':>14}{'relations s':>13}"

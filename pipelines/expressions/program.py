@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import ast
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -112,6 +114,7 @@ class _Emitter:
         if isinstance(node, ast.Name) and node.id in self.names:
             return np.float64(self.names[node.id])
         parts: list[ast.expr]
+        impl: Callable[..., Any]
         if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
             parts, impl = [node.operand], (np.negative if isinstance(node.op, ast.USub) else np.positive)
         elif isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
@@ -125,7 +128,7 @@ class _Emitter:
         if any(v is None for v in values):
             return None
         with np.errstate(all="ignore"):
-            return np.float64(impl(*values))
+            return np.float64(impl(*values))  # type: ignore[arg-type]
 
     def emit(self, node: ast.AST) -> None:
         """Postfix code of a scalar sub-expression, or :class:`_Unsupported`."""
