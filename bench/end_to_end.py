@@ -126,6 +126,7 @@ def child_local_games(p: dict, emit: Emit) -> None:
     """Synthesis of one abstraction in this process, the safety fixed point started from the local games' bound and
     from the safe set (``pipelines/synthesis/local_games.py``): what the bound buys, and that the domains agree."""
     from pipelines.spec.model import load_spec
+    from pipelines.synthesis.options import SynthesisOptions
     from pipelines.synthesis.synthesize import synthesize
     from workers.job import run_abstraction
 
@@ -136,7 +137,7 @@ def child_local_games(p: dict, emit: Emit) -> None:
     for local in (True, False):
         t0 = time.perf_counter()
         cpre, results, report = synthesize(r.network, r.relations, r.interconnection, spec.specification,
-                                           reach_and_stay_methods=methods, processes=1, local_games=local)
+                                           SynthesisOptions(reach_and_stay_methods=methods, local_games=local))
         seconds = time.perf_counter() - t0
         runs["local_games" if local else "from_safe_set"] = {
             "seconds": seconds,

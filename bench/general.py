@@ -74,6 +74,7 @@ def child_backends(p: dict, emit: Emit) -> None:
     from pipelines.spec.model import load_spec
     from pipelines.symbolic.counting import enumerate_cells
     from pipelines.synthesis import explicit
+    from pipelines.synthesis.options import SynthesisOptions
     from pipelines.synthesis.synthesize import synthesize
     from workers.job import run_abstraction
 
@@ -95,7 +96,7 @@ def child_backends(p: dict, emit: Emit) -> None:
     emit({"type": "stage", "stage": "bdd"})
     t0 = time.perf_counter()
     cpre, bdd_results, report = synthesize(network, ab.relations, ab.interconnection, spec.specification,
-                                           reach_and_stay_methods=methods, processes=1)
+                                           SynthesisOptions(reach_and_stay_methods=methods))
     total = time.perf_counter() - t0
     try:
         m = cpre.model

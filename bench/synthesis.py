@@ -97,6 +97,7 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
     import yaml
 
     from pipelines.spec.model import parse_spec
+    from pipelines.synthesis.options import SynthesisOptions
     from pipelines.synthesis.synthesize import synthesize
     from workers.cluster import connect
     from workers.dask_cpre import on_cluster, parts_for
@@ -119,12 +120,14 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
     # this module before it starts again as `python -m bench.synthesis`, where the package is importable)
     from bench.harness import tree_cpu
 
-    def run(mode: str, **kw: Any) -> dict[str, Any]:
+    def run(mode: str, partitioned: Any = None, **kw: Any) -> dict[str, Any]:
+        """One synthesis; ``kw`` are :class:`SynthesisOptions` fields."""
         c0, m0 = tree_cpu(), machine_times()
         t = time.perf_counter()
         kw.setdefault("parallel_after", parallel_after)
-        game, results, report = synthesize(a.network, a.relations, a.interconnection, spec.specification,
-                                           reach_and_stay_methods=("reach_safe",), **kw)
+        options = SynthesisOptions(reach_and_stay_methods=("reach_safe",), **kw)
+        game, results, report = synthesize(a.network, a.relations, a.interconnection, spec.specification, options,
+                                           partitioned=partitioned)
         wall = time.perf_counter() - t
         cpu, machine = tree_cpu() - c0, {k: v - m0[k] for k, v in machine_times().items()}
         parallel = dict(report.get("parallel") or {})

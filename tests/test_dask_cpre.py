@@ -15,6 +15,7 @@ from pipelines.symbolic.files import from_bytes, to_bytes
 from pipelines.symbolic.relations import state_set
 from pipelines.synthesis.cpre import PartitionFailed
 from pipelines.synthesis.fixed_points import reach_safe
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.partitioned import SPLIT_FROM, cut_digits
 from pipelines.synthesis.parts import Problem, pack
 from pipelines.synthesis.synthesize import synthesize
@@ -201,14 +202,14 @@ def test_consensus_on_the_cluster_gives_the_one_process_domain(client):
     spec = parse_spec(_consensus(4))
     a = run_abstraction(spec, audit=False)
     one, results, _ = synthesize(a.network, a.relations, a.interconnection, spec.specification,
-                                 reach_and_stay_methods=("reach_safe",), processes=1)
+                                 SynthesisOptions(reach_and_stay_methods=("reach_safe",)))
     want = results["reach_safe"].domain_states
     assert want == 191_493  # tests/test_pinned_numbers.py
     for per_worker in (1, 3):
         game, got, report = synthesize(a.network, a.relations, a.interconnection, spec.specification,
-                                       reach_and_stay_methods=("reach_safe",), processes="auto",
-                                       partitioned=on_cluster(client), auto_parts=parts_for(client, per_worker),
-                                       parallel_after=0.0)
+                                       SynthesisOptions(reach_and_stay_methods=("reach_safe",), processes="auto",
+                                                        auto_parts=parts_for(client, per_worker), parallel_after=0.0),
+                                       partitioned=on_cluster(client))
         try:
             assert got["reach_safe"].domain_states == want
             assert report["parallel"]["on"] == "cluster" and report["parallel"]["processes"] == 2 * per_worker

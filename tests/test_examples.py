@@ -42,14 +42,21 @@ def test_scalability_runs(n):
     assert result.report["audit"]["violations"] == 0
 
 
-def test_small_example_end_to_end_on_the_local_cluster(tmp_path):
-    """The default path: embedded two-worker cluster, Zarr store, synthesis, closed loop, figures."""
-    assert main(["run", str(EXAMPLES / "small.yaml"), "--out", str(tmp_path), "--quiet"]) == 0
+@pytest.mark.parametrize("where", ["--cluster", "default"])
+def test_small_example_end_to_end(tmp_path, where):
+    """On the embedded two-worker cluster (``--cluster``) and by default (a small job: in this process), each with
+    the Zarr store, synthesis, closed loop, figures."""
+    args = ["run", str(EXAMPLES / "small.yaml"), "--out", str(tmp_path), "--quiet"]
+    assert main(args + ([where] if where != "default" else [])) == 0
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["abstract_states"] == 33**2
     assert report["audit"]["violations"] == 0
     assert (tmp_path / "relations.zarr").is_dir()
-    assert report["runner"]["workers"] == 2 and report["runner"]["chunks_computed"] >= 1
+    assert report["runner"]["chunks_computed"] >= 1
+    if where == "--cluster":
+        assert report["runner"]["workers"] == 2 and not report["runner"].get("in_process")
+    else:
+        assert report["runner"]["in_process"]
     assert report["domain_states"] > report["region_states"] > 0
     assert set(report["domain_states_by_fixed_point"]) == {"cobuchi", "reach_safe"}
     assert report["closed_loop"]["runs"] >= 100 and report["closed_loop"]["violations"] == 0

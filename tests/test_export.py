@@ -19,6 +19,7 @@ from pipelines.export.emit import domain_cells, export_controller, write_csv, wr
 from pipelines.export.table import ExportedController, ExportError, load_export, quantize
 from pipelines.grid import UniformGrid
 from pipelines.spec.model import load_spec
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize
 from service import export_cmd
 from workers.job import run_abstraction
@@ -33,7 +34,7 @@ def make_job(spec_path: Path, out: Path) -> Path:
     res = run_abstraction(spec, audit=False)
     net = res.network
     cpre, results, _ = synthesize(net, res.relations, res.interconnection, spec.specification,
-                                  reach_and_stay_methods=tuple(spec.options.fixed_points))
+                                  SynthesisOptions(reach_and_stay_methods=tuple(spec.options.fixed_points)))
     meta = {"kind": spec.specification.kind, "state_grid": net.composed_state_grid().describe(),
             "input_grids": [s.input_grid.describe() for s in net.subsystems], "spec": spec.model_dump(mode="json")}
     out.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from pipelines.spec.model import load_spec
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize
 from workers.job import abstract_job, run_abstraction
 
@@ -74,5 +75,5 @@ def test_the_numbers_of_every_example_are_pinned(case, request, tmp_path):
     assert {n.output: digest(n.lo, n.hi) for n in r.interconnection.nodes} == pin["nodes"]
     if "domains" in pin:
         _, results, _ = synthesize(r.network, r.relations, r.interconnection, spec.specification,
-                                   reach_and_stay_methods=tuple(spec.options.fixed_points))
+                                   SynthesisOptions(reach_and_stay_methods=tuple(spec.options.fixed_points)))
         assert {k: res.domain_states for k, res in results.items()} == pin["domains"]

@@ -26,6 +26,7 @@ from pipelines.symbolic.order import SubsystemLayout, tree_owners
 from pipelines.symbolic.relations import interconnection_parts, state_set, subsystem_relations
 from pipelines.synthesis.cpre import CHAIN_ORDERS, ControllablePredecessor, predecessors_of
 from pipelines.synthesis.fixed_points import reach, reach_and_stay, reach_avoid, safe
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize
 from workers.job import run_abstraction
 
@@ -449,7 +450,7 @@ def test_small_example_end_to_end_against_the_explicit_solver():
             "input_grids": [s.input_grid.describe() for s in subs]}
     for order, form in (("shared_top", "auto"), ("interleaved", "explicit")):
         game, results, report = synthesize(res.network, res.relations, res.interconnection, res.spec.specification,
-                                           order=order, controller_form=form)
+                                           SynthesisOptions(order=order, controller_form=form))
         assert game.method == "shared" and report["order"] == order
         for name, r in results.items():
             dom = states_vector(game.model, r.domain, ex)

@@ -137,6 +137,7 @@ def test_large_iterates_are_reported_by_their_nodes(monkeypatch):
 CRASH_CASE = """
 import sys, yaml
 from pipelines.spec.model import parse_spec
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize
 from workers.job import run_abstraction
 from workers.processes.partitioned_cpre import PartitionedPredecessors
@@ -149,8 +150,8 @@ def main():
     a = run_abstraction(spec, audit=False)
     events = []
     _, results, _ = synthesize(a.network, a.relations, a.interconnection, spec.specification,
-                               reach_and_stay_methods=("reach_safe",), processes=2, partitioned=PartitionedPredecessors,
-                               parallel_after=0.0, progress=lambda k, m: events.append(m))
+                               SynthesisOptions(reach_and_stay_methods=("reach_safe",), processes=2, parallel_after=0.0),
+                               partitioned=PartitionedPredecessors, progress=lambda k, m: events.append(m))
     print("domain", results["reach_safe"].domain_states, "events", len(events))
 
 if __name__ == "__main__":

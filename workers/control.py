@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.synthesis import explicit
 from pipelines.synthesis.explicit import ExplicitGame, ExplicitResult, choose_backend
 from pipelines.synthesis.fixed_points import IterationProgress, SynthesisResult
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize
 from pipelines.verification.closed_loop import run_closed_loop
 from pipelines.verification.empty_domain import explain_empty_domain
@@ -97,11 +99,12 @@ def run_synthesis(
             store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
         initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
         first, last = network.composed_state_grid().cells_touching(initial, initial)
+        parts = partitioning(opts, client)
+        options = replace(SynthesisOptions.from_spec(opts, list(zip(first.tolist(), last.tolist()))),
+                          auto_parts=parts["auto_parts"])
         cpre, bdd_results, syn_report = synthesize(
-            network, abstraction.relations, abstraction.interconnection, spec.specification,
-            reach_and_stay_methods=tuple(opts.fixed_points), progress=iteration, checkpoints=store,
-            initial_cells=list(zip(first.tolist(), last.tolist())), quotient_level=opts.synthesis_quotient,
-            refine_rounds=opts.synthesis_refine, **partitioning(opts, client),
+            network, abstraction.relations, abstraction.interconnection, spec.specification, options,
+            partitioned=parts["partitioned"], progress=iteration, checkpoints=store,
         )
         results = bdd_results
 
@@ -198,8 +201,9 @@ def _explicit_synthesis(
 
 
 def partitioning(options: Any, client: Any = None) -> dict[str, Any]:
-    """How the fixed points' ``∃u.CPre`` is split (:func:`~pipelines.synthesis.synthesize.synthesize`'s
-    ``processes``, ``partitioned``, ``auto_parts``, ``parallel_after``), from the job's options and its client.
+    """Where the fixed points' ``∃u.CPre`` parts run: :func:`~pipelines.synthesis.synthesize.synthesize`'s
+    ``partitioned`` and :class:`~pipelines.synthesis.options.SynthesisOptions`'s ``auto_parts``, from the job's
+    options and its client.
 
     ``synthesis_on``: ``cluster`` needs a client (a job run in process has none: a :class:`SpecError` says so);
     ``auto`` uses the client when there is one. On the cluster ``synthesis_processes: 'auto'`` is one part per
@@ -209,13 +213,9 @@ def partitioning(options: Any, client: Any = None) -> dict[str, Any]:
     if where == "cluster" and client is None:
         raise SpecError("options.synthesis_on is 'cluster' but this job has no Dask cluster (it runs in process): "
                         "run it on a cluster or set synthesis_on to 'auto' or 'processes'")
-    out: dict[str, Any] = {"processes": options.synthesis_processes,
-                           "parallel_after": options.synthesis_parallel_after}
     if client is not None and where in ("auto", "cluster"):
-        out.update(partitioned=on_cluster(client), auto_parts=parts_for(client))
-    else:
-        out["partitioned"] = PartitionedPredecessors
-    return out
+        return {"partitioned": on_cluster(client), "auto_parts": parts_for(client)}
+    return {"partitioned": PartitionedPredecessors, "auto_parts": None}
 
 
 #: What to try when no controller exists on the abstraction (the finer the abstraction, the larger the domain).

@@ -29,6 +29,7 @@ from pipelines.synthesis.fixed_points import (
     reach_avoid,
     safe,
 )
+from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.quotient import Refinement, quotient
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
@@ -37,32 +38,16 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.network import Network
     from pipelines.spec.model import SpecificationSpec
 
-CONTROLLER_FORMS = ("auto", "explicit", "layered")
-
-
 def synthesize(
     network: Network,
     relations: Mapping[str, SubsystemRelation],
     interconnection: InterconnectionAbstraction,
     specification: SpecificationSpec,
+    options: SynthesisOptions | None = None,
     *,
-    order: str | None = None,
-    method: str = "auto",
-    max_memory: int | None = None,
-    reach_and_stay_methods: Sequence[str] = ("cobuchi", "reach_safe"),
-    chain_order: str = "greedy",
-    controller_form: str = "auto",
-    processes: int | str = 1,
     partitioned: PartitionedFactory | None = None,
-    auto_parts: int | None = None,
-    parallel_after: float = 1.0,
     progress: IterationProgress | None = None,
-    symmetry: bool = True,
-    local_games: bool = True,
     checkpoints: Checkpoints | None = None,
-    initial_cells: Sequence[tuple[Sequence[int], Sequence[int]]] = (),
-    quotient_level: int = 0,
-    refine_rounds: int = 0,
 ) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
@@ -72,46 +57,18 @@ def synthesize(
         The abstraction: the network, the subsystem relations by key, the interconnection abstraction.
     specification : SpecificationSpec
         The job spec's ``specification`` section (kind and regions).
-    order, method, max_memory, chain_order
-        See :meth:`ControllablePredecessor.from_network`.
-    reach_and_stay_methods : sequence of str
-        Fixed points for a reach-and-stay specification (:func:`~.fixed_points.reach_and_stay`).
-    controller_form : {'auto', 'explicit', 'layered'}
-        ``explicit`` (a BDD over states and inputs), ``layered`` (:class:`SynthesisResult` ``layers``) or
-        ``auto``, which is ``layered`` for the shared-``w`` CPre: there the explicit controller is the largest BDD
-        of the job (consensus N = 8: 2.4 GB as DDDMP, most of the synthesis time).
-    processes : int or 'auto'
-        Parts of the fixed points' ``∃u.CPre`` run at once (:class:`ControllablePredecessor`); they take effect
-        only with ``partitioned``, and stop before this returns.
+    options : SynthesisOptions, optional
+        What is computed and how (:class:`~.options.SynthesisOptions`, e.g. ``SynthesisOptions.from_spec``;
+        ``None``: the defaults).
     partitioned : callable, optional
         ``partitioned(cpre, processes)``: the partitioned ``∃u.CPre`` (e.g.
         ``workers.processes.partitioned_cpre.PartitionedPredecessors``, or ``workers.dask_cpre.on_cluster(client)``
-        for the job's Dask workers); ``None``: one process.
-    auto_parts, parallel_after
-        What ``processes='auto'`` means when the parts run elsewhere, and how long one step must take in one
-        process before the parts start (:class:`~.cpre.ControllablePredecessor`).
+        for the job's Dask workers); ``None``: one process. Its parts stop before this returns.
     progress : callable, optional
         ``progress(iteration, message)``, once per iteration of every fixed point, inner ones included
         (:data:`~.fixed_points.IterationProgress`); the BDDs are built before the first call.
-    symmetry : bool
-        Use interchangeable subsystems (:mod:`~.symmetry`; the same results, faster where there are some).
-    local_games : bool
-        Start safety fixed points from the bound of :mod:`~.local_games` (the same results, faster where
-        subsystems read few others).
     checkpoints : Checkpoints, optional
         Where the safety fixed points store their iterates and resume from (:mod:`~.checkpoints`).
-    initial_cells : sequence of (first, last) index vectors
-        Per initial state of the spec, the box of cells that contain it (a point on a boundary is in several).
-        :mod:`~.domain_bound` is computed before the fixed points, and
-        ``report["domain_bound"]["initial_states_outside"]`` (and a progress line) names those
-        it proves outside the domain, long before a large fixed point ends.
-    quotient_level : int
-        Solve the fixed points on the quotient that merges ``2^k`` neighbouring cells per state coordinate
-        (:mod:`~.quotient`): sound controllers whose domains may be smaller than the maximal ones, for cases whose
-        exact fixed points are too large. ``0``: the exact game. The domain bound is the fine game's either way.
-    refine_rounds : int
-        With a quotient: rounds of growing its safety invariant on the fine game (:class:`~.quotient.Refinement`;
-        ``safe`` and Reach(Safe)); ``0``: none.
 
     Returns
     -------
@@ -121,22 +78,23 @@ def synthesize(
     results : dict of str to SynthesisResult
         One entry (``safe``, ``reach``, ``reach_avoid``) or one per reach-and-stay method.
     report : dict
-        JSON-ready: build times and node counts, per-result summaries.
+        JSON-ready: build times and node counts, per-result summaries; ``domain_bound`` names the initial states
+        (``options.initial_cells``) :mod:`~.domain_bound` proves outside the domain (also a progress line, long
+        before a large fixed point ends).
     """
-    if controller_form not in CONTROLLER_FORMS:
-        raise ValueError(f"controller_form must be auto, explicit or layered, got {controller_form!r}")
-    if refine_rounds and not quotient_level:
-        raise ValueError("refine_rounds grows a quotient's invariant: it needs quotient_level > 0")
+    o = options if options is not None else SynthesisOptions()
+    local_games, refine_rounds = o.local_games, o.refine_rounds
     t0 = time.perf_counter()
-    cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=order, method=method,
-                                                max_memory=max_memory, chain_order=chain_order, processes=processes,
-                                                partitioned=partitioned, auto_parts=auto_parts,
-                                                parallel_after=parallel_after, symmetry=symmetry)
+    cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=o.order,
+                                                method=o.method, max_memory=o.max_memory, chain_order=o.chain_order,
+                                                processes=o.processes, partitioned=partitioned,
+                                                auto_parts=o.auto_parts, parallel_after=o.parallel_after,
+                                                symmetry=o.symmetry)
     build = time.perf_counter() - t0
     m = cpre.model
     t0 = time.perf_counter()
     try:
-        game = quotient(cpre, quotient_level)
+        game = quotient(cpre, o.quotient_level)
     except BaseException:
         cpre.close()
         raise
@@ -154,13 +112,13 @@ def synthesize(
                                                     outer=(name == "avoid")))
         return built[name]
 
-    layered = controller_form == "layered" or (controller_form == "auto" and cpre.method == "shared")
+    layered = o.controller_form == "layered" or (o.controller_form == "auto" and cpre.method == "shared")
     kind = specification.kind
     bound_report: dict[str, Any] | None = None
     try:
         S = states("safe") if kind != "safe" and specification.safe is not None else None
         bound_report = _domain_bound(cpre, kind, states("safe" if kind == "safe" else "target"), S,
-                                     states("avoid") if kind == "reach_avoid" else None, initial_cells, progress)
+                                     states("avoid") if kind == "reach_avoid" else None, o.initial_cells, progress)
         if kind == "safe":
             results = {"safe": safe(game, states("safe"), layered=layered, progress=progress,
                                     local_games=local_games, checkpoints=checkpoints, refine=refine)}
@@ -170,7 +128,7 @@ def synthesize(
             results = {"reach_avoid": reach_avoid(game, states("target"), states("avoid"), layered=layered, safe=S,
                                                   progress=progress)}
         else:
-            results = reach_and_stay(game, states("target"), reach_and_stay_methods, layered=layered, safe=S,
+            results = reach_and_stay(game, states("target"), o.reach_and_stay_methods, layered=layered, safe=S,
                                      progress=progress, local_games=local_games, checkpoints=checkpoints,
                                      refine=refine)
     finally:
