@@ -37,6 +37,7 @@ from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
 from service.settings import local_caps
 from service.table import Row, format_table
+from service.termination import Terminated, terminate_as_interrupt
 from workers import jobdir
 from workers.huge_pages import restart_with_huge_pages
 from workers.jobdir import json_default as _json_default
@@ -500,7 +501,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is None and args.command in HUGE_PAGE_COMMANDS:  # the command line itself, not a caller's main([...])
         restart_with_huge_pages()
     try:
-        return args.func(args)
+        # SIGTERM, SIGHUP: unwound like Ctrl-C, the cluster and the children stopped (serve handles its own).
+        with terminate_as_interrupt() if args.command != "serve" else contextlib.nullcontext():
+            return args.func(args)
+    except Terminated as exc:
+        return _fail(str(exc), exc.status)
     except CompabsError as exc:
         return _fail(str(exc))
     except OSError as exc:  # a file of the job or its store that cannot be read or written

@@ -44,6 +44,7 @@ from workers.tls import (  # noqa: F401  (the credentials' names, as this module
     remove_stale_credentials,
     write_credentials,
 )
+from workers.worker_signals import embedded_worker_config
 
 logger = logging.getLogger(__name__)
 
@@ -353,7 +354,8 @@ def _start_embedded(workers: int) -> tuple[Any, Credentials, weakref.finalize | 
         # The client, the LocalCluster, its scheduler and its nannies each make their Security() from this
         # config while they start (Client(n_workers=...) does not hand a security argument on to the cluster); the
         # nannies pass theirs to their worker processes.
-        with dask.config.set({**EMBEDDED_CONFIG, **credentials.dask_config()}):
+        # Its workers leave SIGTERM/SIGHUP/SIGINT to this process, which unwinds and closes them (worker_signals).
+        with dask.config.set({**EMBEDDED_CONFIG, **embedded_worker_config(), **credentials.dask_config()}):
             client = Client(
                 n_workers=workers,
                 threads_per_worker=1,

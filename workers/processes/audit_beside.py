@@ -76,6 +76,8 @@ class BackgroundAudit:
                     os.close(fd)
             shutil.rmtree(self._dir, ignore_errors=True)
             raise
+        # Reaped as soon as it exits, not when result() is called after synthesis: no zombie meanwhile.
+        threading.Thread(target=self._proc.wait, name="audit-reaper", daemon=True).start()
         if progress is not None:
             os.close(write_fd)  # the child's copy is the only writer left: its exit ends the relay (EOF)
             pipe = os.fdopen(read_fd, "r", encoding="utf-8", errors="replace")
