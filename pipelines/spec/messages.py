@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 #: The names pydantic gives the members of a union in an error's location (``lb.float``, ``lb.list[float]``,
 #: ``internal.function-after[_lengths(), GridSpec]``): not fields, left out of the field's name.
-_UNION_TAG = re.compile(r"^(float|int|str|bool|none|[a-z-]+\[.*\]|[A-Z][A-Za-z]*(Spec|Region))$")
+_UNION_TAG = re.compile(r"^(float|int|str|bool|none|constrained-str|[a-z-]+\[.*\]|[A-Z][A-Za-z]*(Spec|Region))$")
 
 
 def _field_name(loc: tuple[int | str, ...], kind: str = "") -> str:

@@ -150,9 +150,8 @@ class SubsystemSpec(_Model):
     """
 
     name: str = Field(min_length=1, max_length=64)
-    replicate: int | str = Field(
-        default=1, description="number of copies: an integer, or an expression over the parameters (\"N\", \"N - 1\")",
-    )
+    replicate: int | Annotated[str, Field(min_length=1, max_length=MAX_READ_LENGTH)] = Field(
+        default=1, description="number of copies: an integer, or an expression over the parameters (\"N - 1\")")
     state: GridSpec
     input: GridSpec
     reads: list[int | ReadExpression] = Field(
@@ -175,13 +174,6 @@ class SubsystemSpec(_Model):
     scp_objective: Literal["paper", "radius"] = Field(
         default="paper", description="'paper' minimises 1'theta (Eq. 4.5); 'radius' the radius actually used"
     )
-
-    @field_validator("replicate")
-    @classmethod
-    def _replicate(cls, v):
-        if isinstance(v, str) and not 0 < len(v.strip()) <= MAX_READ_LENGTH:
-            raise ValueError(f"replicate is an integer or an expression of 1 to {MAX_READ_LENGTH} characters, got {v!r}")
-        return v
 
     @field_validator("reads")
     @classmethod
