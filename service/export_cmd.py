@@ -91,14 +91,22 @@ def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobd
     """What ``compabs control`` reports at a state: its cell, the admissible inputs, the determinized one."""
     from pipelines.array_controller import ArrayController
     from pipelines.controller import Controller, LayeredController, load_controller
-    from pipelines.export.determinize import determinized_at, resolve_rule
+    from pipelines.export.determinize import RULES, determinized_at, resolve_rule
+    from pipelines.export.table import ExportError
 
     ctrl = load_controller(directory, name)
-    if isinstance(ctrl, ArrayController):
-        return _array_control_at(ctrl, parse_state(x_text, ctrl.state_grid.dim), rule)
-    assert isinstance(ctrl, Controller)
+    assert isinstance(ctrl, Controller | ArrayController)
     x = parse_state(x_text, ctrl.state_grid.dim)
-    rule = resolve_rule(ctrl, rule)
+    if isinstance(ctrl, ArrayController):
+        # An array controller's inputs are its determinization's candidates; a progress controller's all lead
+        # into the layer before the cell's, so both rules choose its smallest admissible input.
+        if rule not in RULES:
+            raise ExportError(f"unknown rule {rule!r}; expected one of {', '.join(RULES)}")
+        if rule == "auto":
+            layered = ctrl.layers is not None and ctrl.meta.get("kind") != "safe"
+            rule = "earliest_layer" if layered else "smallest_index"
+    else:
+        rule = resolve_rule(ctrl, rule)
     idx = ctrl.cell(x)
     out: dict[str, Any] = {"x": x.tolist(), "cell": None, "cell_centre": None, "in_domain": False, "inputs": [],
                            "determinized": None, "rule": rule, "fixed_point": ctrl.meta.get("fixed_point")}
@@ -107,49 +115,21 @@ def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobd
         return out
     out["cell"] = [int(v) for v in idx]
     out["cell_centre"] = ctrl.state_grid.points(idx[None, :])[0].tolist()
-    if isinstance(ctrl, LayeredController):
+    if isinstance(ctrl, LayeredController) or (isinstance(ctrl, ArrayController) and ctrl.layers is not None):
         out["layer"] = ctrl.layer_of(idx)
     inputs = ctrl.inputs(x)
     out["inputs"] = inputs.tolist()
     out["in_domain"] = bool(inputs.shape[0])
     if not out["in_domain"]:
         out["reason"] = "outside the controller's domain"
+        return out
+    if isinstance(ctrl, ArrayController):
+        out["determinized"] = inputs[0].tolist()
         return out
     codes = determinized_at(ctrl, idx, rule)
     assert codes is not None
     parts = [g.points(g.unravel(codes[s:s + 1])) for s, g in enumerate(ctrl.input_grids)]
     out["determinized"] = np.concatenate(parts, axis=1)[0].tolist()
-    return out
-
-
-def _array_control_at(ctrl: Any, x: np.ndarray, rule: str) -> dict[str, Any]:
-    """:func:`control_at` for an :class:`~pipelines.array_controller.ArrayController`: its inputs from the arrays;
-    the determinized one is the smallest admissible input index (a progress controller's inputs all lead into the
-    layer before the cell's, so ``earliest_layer`` and ``smallest_index`` choose the same)."""
-    from pipelines.export.determinize import RULES
-    from pipelines.export.table import ExportError
-
-    if rule not in RULES:
-        raise ExportError(f"unknown rule {rule!r}; expected one of {', '.join(RULES)}")
-    used = "earliest_layer" if rule == "auto" and ctrl.layers is not None and ctrl.meta.get("kind") != "safe" \
-        else ("smallest_index" if rule == "auto" else rule)
-    out: dict[str, Any] = {"x": x.tolist(), "cell": None, "cell_centre": None, "in_domain": False, "inputs": [],
-                           "determinized": None, "rule": used, "fixed_point": ctrl.meta.get("fixed_point")}
-    idx = ctrl.cell(x)
-    if idx is None:
-        out["reason"] = "outside the state box"
-        return out
-    out["cell"] = [int(v) for v in idx]
-    out["cell_centre"] = ctrl.state_grid.points(idx[None, :])[0].tolist()
-    if ctrl.layers is not None:
-        out["layer"] = ctrl.layer_of(idx)
-    inputs = ctrl.inputs(x)
-    out["inputs"] = inputs.tolist()
-    out["in_domain"] = bool(inputs.shape[0])
-    if not out["in_domain"]:
-        out["reason"] = "outside the controller's domain"
-        return out
-    out["determinized"] = inputs[0].tolist()
     return out
 
 

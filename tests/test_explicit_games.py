@@ -245,6 +245,16 @@ def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_a
     np.testing.assert_array_equal(ctrl.in_domain(cells), controllers["bdd"].in_domain(cells))
     export = export_controller(ctrl)
     check(ctrl, export, compile_driver(export, tmp_path / "c"), np.random.default_rng(0))
+    # compabs control answers from the arrays: the admissible inputs, the smallest of them, the layer
+    from service.export_cmd import control_at
+
+    inside = g.points(g.unravel(np.flatnonzero(ctrl.domain_mask)[:1]))[0]
+    r = control_at(str(tmp_path / "explicit"), ",".join(map(repr, inside.tolist())))
+    assert r["in_domain"] and r["inputs"] == ctrl.inputs(inside).tolist() and r["determinized"] == r["inputs"][0]
+    assert ("layer" in r) == (kind == "reach_avoid") and r["rule"] == ("earliest_layer" if kind != "safe"
+                                                                       else "smallest_index")
+    r = control_at(str(tmp_path / "explicit"), "5,5")
+    assert not r["in_domain"] and r["reason"] == "outside the state box"
 
 
 def _reduced(name: str):

@@ -39,13 +39,11 @@ def _next(idx: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
 
 
 @njit(cache=True, nogil=True)
-def predecessor_lists(lo: np.ndarray, hi: np.ndarray, blocking: np.ndarray, strides: np.ndarray,
-                      n_cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """The CSR predecessor lists: the pairs whose box holds cell ``c`` are ``preds[indptr[c]:indptr[c + 1]]``,
-    in increasing pair order. ``lo``, ``hi``: (P, n) int; ``blocking``: (P,) bool; ``strides``: (n,) int64;
-    ``P < 2**31`` (pair indices are int32: half the memory of the largest array)."""
+def _boxes(lo: np.ndarray, hi: np.ndarray, blocking: np.ndarray, strides: np.ndarray, slots: np.ndarray,
+           preds: np.ndarray, fill: bool) -> None:
+    """Visit every cell of every non-blocking pair's box: count it (``slots[c + 1] += 1``) or, with ``fill``,
+    write the pair into the next free slot of the cell (``preds[slots[c]] = p``)."""
     P, n = lo.shape
-    indptr = np.zeros(n_cells + 1, dtype=np.int64)
     idx = np.empty(n, dtype=np.int64)
     for p in range(P):
         if blocking[p]:
@@ -53,24 +51,30 @@ def predecessor_lists(lo: np.ndarray, hi: np.ndarray, blocking: np.ndarray, stri
         for d in range(n):
             idx[d] = lo[p, d]
         while True:
-            indptr[_flat(idx, strides) + 1] += 1
+            cell = _flat(idx, strides)
+            if fill:
+                preds[slots[cell]] = p
+                slots[cell] += 1
+            else:
+                slots[cell + 1] += 1
             if not _next(idx, lo[p], hi[p]):
                 break
+
+
+@njit(cache=True, nogil=True)
+def predecessor_lists(lo: np.ndarray, hi: np.ndarray, blocking: np.ndarray, strides: np.ndarray,
+                      n_cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """The CSR predecessor lists: the pairs whose box holds cell ``c`` are ``preds[indptr[c]:indptr[c + 1]]``,
+    in increasing pair order. ``lo``, ``hi``: (P, n) int; ``blocking``: (P,) bool; ``strides``: (n,) int64;
+    ``P < 2**31`` (pair indices are int32: half the memory of the largest array). Two passes over the boxes:
+    one counts, one fills."""
+    indptr = np.zeros(n_cells + 1, dtype=np.int64)
+    preds = np.empty(0, dtype=np.int32)
+    _boxes(lo, hi, blocking, strides, indptr, preds, False)
     for c in range(n_cells):
         indptr[c + 1] += indptr[c]
     preds = np.empty(indptr[n_cells], dtype=np.int32)
-    fill = indptr[:-1].copy()
-    for p in range(P):
-        if blocking[p]:
-            continue
-        for d in range(n):
-            idx[d] = lo[p, d]
-        while True:
-            cell = _flat(idx, strides)
-            preds[fill[cell]] = p
-            fill[cell] += 1
-            if not _next(idx, lo[p], hi[p]):
-                break
+    _boxes(lo, hi, blocking, strides, indptr[:-1].copy(), preds, True)
     return indptr, preds
 
 
