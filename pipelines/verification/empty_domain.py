@@ -173,7 +173,7 @@ def _classify(sub: Subsystem, rel: SubsystemRelation, region: np.ndarray, lost: 
         return "" if inputs is None else f" (u = {_point_text(inputs[u[j]])})"
 
     narrow = " or the 'hull' growth bound" if rel.method != "hull" else ""
-    fix = f": a finer grid (eta), more samples{narrow} narrow the images (L_x = {rel.L_x:g}, {rel.method})"
+    fix = f": a finer grid (eta), more samples{narrow} narrow the images (L_x = {float(rel.L_x):g}, {rel.method})"
     if cause == "wide" and wider:
         width = hi - lo + 1
         over = width - runs[x]  # how much wider than the region there, per dimension
