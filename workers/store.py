@@ -92,15 +92,24 @@ def code_version() -> str:
         return "unknown"
 
 
-def group_name(sub: Subsystem, L_x: float, L_w: float, method: str, objective: str, chunk_cells: int) -> str:
+def _constant_ident(L: Any) -> Any:
+    """A constant's identity: the exact hex form of a number (so 0.98 and 0.98000001 differ), with the entries of a
+    matrix of constants that are not all that number (:class:`~pipelines.abstraction.constants.LipschitzMatrix`)."""
+    ident = float(L).hex()
+    if getattr(L, "is_scalar", True):
+        return ident
+    return [ident, [[float(v).hex() for v in row] for row in L.entries.tolist()]]
+
+
+def group_name(sub: Subsystem, L_x: Any, L_w: Any, method: str, objective: str, chunk_cells: int) -> str:
     """The group of a subsystem's relation computed with these constants and this chunking.
 
     ``sub.key`` already identifies the subsystem's spec, internal grid and parameters; the digest adds what the
     per-cell stage is given on top (float constants by their exact hex form, so 0.98 and 0.98000001 differ).
     """
     ident = {
-        "L_x": float(L_x).hex(),
-        "L_w": float(L_w).hex(),
+        "L_x": _constant_ident(L_x),
+        "L_w": _constant_ident(L_w),
         "method": method,
         "objective": objective,
         "chunk_cells": int(chunk_cells),
@@ -147,7 +156,7 @@ def marker(result: CellsResult, seconds: float) -> dict[str, Any]:
 
 
 def _slope_dict(r: SlopeRecord) -> dict[str, Any]:
-    return {"slope": float(r.slope), "x_cell": int(r.x_cell), "u_index": int(r.u_index), "w_cell": int(r.w_cell)}
+    return r.as_dict()  # with the largest slope per entry of the constants, when recorded
 
 
 def result_from(meta: dict[str, Any], lo: np.ndarray, hi: np.ndarray, blocking: np.ndarray) -> CellsResult:
@@ -159,8 +168,8 @@ def result_from(meta: dict[str, Any], lo: np.ndarray, hi: np.ndarray, blocking: 
         hi,
         blocking,
         {k: (int(s), int(n)) for k, (s, n) in meta["successors"].items()},
-        SlopeRecord(**meta["slope_x"]),
-        SlopeRecord(**meta["slope_w"]),
+        SlopeRecord.from_dict(meta["slope_x"]),
+        SlopeRecord.from_dict(meta["slope_w"]),
     )
 
 

@@ -1,13 +1,15 @@
 """Subsystem abstraction from data (Algorithm 1, Definition 4.2, Theorem 4.4).
 
 For every triple ``(x̂, û, ŵ)`` the black box is sampled on a sub-grid of the joint cell
-``cell(x̂) × cell(ŵ)`` (clipped to the concrete boxes), a growth bound gives a box around the reachable set,
-and the successors are the cells the box meets. A triple whose box leaves the state box ``X`` is
-*blocking*: ``û`` is not admissible at ``x̂`` under ``ŵ`` (docs/method.md §2).
+``cell(x̂) × cell(ŵ)`` (clipped to the concrete boxes), the growth bound the stage is given
+(:class:`~pipelines.abstraction.growth_bound.GrowthBound`) gives a box around the reachable set, and the
+successors are the cells the box meets. A triple whose box leaves the state box ``X`` is *blocking*: ``û`` is not
+admissible at ``x̂`` under ``ŵ`` (docs/method.md §2). The same samples give the slopes that check the bound's
+Lipschitz constants, per entry (docs/method.md §3).
 
 The relation is stored as per-dimension successor index ranges ``[lo, hi]`` and a blocking flag, arrays of
 shape ``(n_x, n_u, n_w[, n])`` indexed by the flat cell indices of the three grids. Work is split in chunks
-of state cells; :func:`abstract_cells` computes one chunk and is what a distributed runner maps.
+of state cells; :func:`abstract_chunk` computes one chunk and is what a distributed runner maps.
 
 Successor statistics (the report's ``mean_successors``) are exact for ``lipschitz``, ``hull`` and the SCP
 objective that builds the relation. An SCP objective that does not build it is counted on every triple of a
@@ -26,28 +28,28 @@ from typing import NamedTuple
 import numpy as np
 
 import pipelines.abstraction.kernels as compiled
+from pipelines.abstraction.constants import LipschitzMatrix
 from pipelines.abstraction.cost import STATISTICS_SAMPLE, statistics_fraction, triple_cost
 from pipelines.abstraction.growth_bound import (
     FP_RTOL,
+    SCP_SKIP_RTOL,
     SCP_TIE_RTOL,
-    hull_margin,
-    lipschitz_radius,
-    pair_maxima_batch_last,
-    scp_parameters_batch_last,
-    scp_rho,
+    GrowthBound,
+    HullBound,
+    LipschitzBound,
+    SampleBlock,
+    ScpBound,
+    growth_bound,
+    standard_bounds,
     subgrid_counts,
     widen,
 )
 from pipelines.abstraction.relation import CellsResult, SlopeRecord
-from pipelines.abstraction.scp import scp_radii
 from pipelines.grid import SNAP_RTOL, UniformGrid
 from pipelines.network import Subsystem
 
-#: Relative margin by which the SCP's lower bound ``max_{k <= S_x/2} E_k + rho`` must exceed the Lipschitz
-#: radius before a triple's LP is skipped (the radius is then the Lipschitz radius to the bit): far above the
-#: rounding of terms of size <= 2 lip (see ``_abstract_block``).
-SCP_SKIP_RTOL = 1e-9
-
+__all__ = ["SCP_SKIP_RTOL", "STATISTICS_SAMPLE", "CellTask", "abstract_cells", "abstract_chunk", "bound_of", "statistics_sample",
+           "triple_samples"]
 
 
 def _unit_offsets(counts: tuple[int, ...]) -> np.ndarray:
@@ -60,10 +62,12 @@ def _unit_offsets(counts: tuple[int, ...]) -> np.ndarray:
 
 
 def _axis_slopes(Vg: np.ndarray, axes: range, counts: tuple[int, ...], h: np.ndarray) -> np.ndarray:
-    """Largest slope ``||ΔV||_inf / h_a`` between neighbouring samples along each of the given sub-grid axes.
+    """Largest slope ``|ΔV_i| / h_a`` of each component ``i`` between neighbouring samples along each of the given
+    sub-grid axes ``a``: an entry of a matrix of Lipschitz constants.
 
-    Along one axis only one coordinate changes, by ``h_a``, so this is an exact difference quotient in the
-    infinity norm. For a scalar argument the largest slope over all sample pairs is attained by neighbours.
+    Along one axis only one coordinate changes, by ``h_a``, so this is an exact difference quotient of component
+    ``i`` along coordinate ``a``; its largest over ``i`` is the one in the infinity norm. For a scalar argument the
+    largest slope over all sample pairs is attained by neighbours.
 
     Parameters
     ----------
@@ -78,23 +82,18 @@ def _axis_slopes(Vg: np.ndarray, axes: range, counts: tuple[int, ...], h: np.nda
 
     Returns
     -------
-    slope : ndarray, shape (B,)
+    slope : ndarray, shape (B, n, len(counts))
     """
-    B = Vg.shape[-2]
-    components = Vg.shape[-1] > 1
-    if not components:
-        Vg = Vg[..., 0]  # (*sub-grid shape, B): no reduction over a single component
-    best = np.zeros(B)
+    B, n = Vg.shape[-2], Vg.shape[-1]
+    best = np.zeros((B, n, len(counts)))
     for a, ax, m in zip(range(len(counts)), axes, counts):
         if m < 2:
             continue
         lead = (slice(None),) * ax
         diff = np.subtract(Vg[lead + (slice(1, None),)], Vg[lead + (slice(None, -1),)])
         np.abs(diff, out=diff)
-        if components:
-            diff = diff.max(axis=-1)  # the infinity norm over the n components
-        d = diff.reshape(-1, B).max(axis=0)  # over every sub-grid axis; the batch axis stays
-        np.maximum(best, _slope(d, h[:, a]), out=best)
+        d = diff.reshape(-1, B, n).max(axis=0)  # over every sub-grid axis; the batch and components stay
+        best[:, :, a] = _slope(d, h[:, a, None])
     return best
 
 
@@ -157,8 +156,8 @@ def _scalar_sample_pass(V1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 
 def _slope(d: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """``d / h``, 0 where ``h = 0`` (a degenerate cell has identical samples: no slope)."""
-    return np.divide(d, h, out=np.zeros_like(d), where=h > 0)
+    """``d / h``, 0 where ``h = 0`` (a degenerate cell has identical samples: no slope); ``h`` broadcasts."""
+    return np.divide(d, h, out=np.zeros_like(d), where=np.broadcast_to(h > 0, d.shape))
 
 
 
@@ -206,6 +205,29 @@ def _chunk_invariants(
     return u_pts, w_lo, w_hi, counts, off_x, ws
 
 
+def triple_samples(sub: Subsystem, x_cell: int, u_index: int, w_cell: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, ...]]:
+    """The samples of one triple as :func:`abstract_chunk` draws them, on their joint sub-grid.
+
+    Returns
+    -------
+    X : ndarray, shape (*counts, n)
+    W : ndarray, shape (*counts, p)
+    u : ndarray, shape (m,)
+    counts : tuple of int
+        Sub-grid points per axis, ``x`` then ``w``.
+    """
+    xg = sub.state_grid
+    u_pts, _, _, counts, off_x, ws = _chunk_invariants(sub.input_grid, sub.internal_grid, sub.spec.samples, sub.n)
+    x_lo, x_hi = xg.clipped_cells(xg.unravel(np.array([x_cell])))  # (1, n)
+    xs = x_lo + off_x * (x_hi - x_lo)  # (S_x, n)
+    w = ws[:, w_cell]  # (S_w, p)
+    Sx, Sw = xs.shape[0], w.shape[0]
+    X = np.broadcast_to(xs[:, None, :], (Sx, Sw, sub.n)).reshape(counts + (sub.n,))
+    W = np.broadcast_to(w[None], (Sx, Sw, sub.p)).reshape(counts + (sub.p,))
+    return X, W, u_pts[u_index], counts
+
+
 @functools.lru_cache(maxsize=64)
 def _grid_arrays(g: UniformGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``origin, eta, k_lo, shape, lb, ub`` of a grid as the arrays :func:`compiled.scalar_block` takes."""
@@ -229,16 +251,8 @@ _NO_W = np.zeros(0)  # the internal-input cells of a subsystem without internal 
 BLOCK_POINTS = 1 << 19
 
 
-def abstract_cells(
-    sub: Subsystem,
-    start: int,
-    stop: int,
-    L_x: float,
-    L_w: float,
-    method: str,
-    objective: str,
-    *,
-    full_statistics: bool | None = None,
+def abstract_chunk(
+    sub: Subsystem, start: int, stop: int, bound: GrowthBound, *, full_statistics: bool | None = None
 ) -> CellsResult:
     """Abstract the state cells ``start .. stop-1`` of a subsystem under every input and internal cell.
 
@@ -247,24 +261,24 @@ def abstract_cells(
     sub : Subsystem
     start, stop : int
         Flat state-cell range of this chunk.
-    L_x, L_w : float
-        Lipschitz constants (infinity norm) used by every growth bound.
-    method : {'lipschitz', 'scp', 'hull'}
-        The growth bound whose successors are returned (all are counted for the report).
-    objective : {'paper', 'radius'}
-        SCP objective for ``method == 'scp'``.
+    bound : GrowthBound
+        The growth bound whose successors are returned, with its Lipschitz constants
+        (:func:`~pipelines.abstraction.growth_bound.growth_bound` makes the one a spec names). The successors of
+        every standard bound under the same constants are counted for the report
+        (:func:`~pipelines.abstraction.growth_bound.standard_bounds`).
     full_statistics : bool or None
-        The successor counts of ``CellsResult.successors`` are exact for ``lipschitz``, ``hull`` and the SCP
-        objective that builds the relation. An SCP objective that does not (both of them unless ``method ==
-        'scp'``) is counted on every triple if ``True``, or on a fixed sample of the triples if ``False``
-        (:func:`statistics_sample` with :func:`~pipelines.abstraction.cost.statistics_fraction`, which is
-        :data:`STATISTICS_SAMPLE` for ``dim(x) = 1``): an estimate, with the sample's count of non-blocking
-        triples. ``None`` (the default): every triple for ``dim(x) = 1`` (the closed-form SCP costs 0-3 % of the
-        stage there), the sample otherwise (an LP per triple and row would cost more than the chosen bound).
+        The successor counts of ``CellsResult.successors`` are exact for ``bound``, ``lipschitz`` and ``hull``.
+        An SCP objective that is not ``bound`` is counted on every triple if ``True``, or on a fixed sample of the
+        triples if ``False`` (:func:`statistics_sample` with :func:`~pipelines.abstraction.cost.statistics_fraction`,
+        which is :data:`STATISTICS_SAMPLE` for ``dim(x) = 1``): an estimate, with the sample's count of
+        non-blocking triples. ``None`` (the default): every triple for ``dim(x) = 1`` (the closed-form SCP costs
+        0-3 % of the stage there), the sample otherwise (an LP per triple and row would cost more than the bound).
 
     Returns
     -------
     CellsResult
+        With the largest slopes per entry of the constants (component of the successor, coordinate of ``x`` or
+        ``w``) in ``slope_x``, ``slope_w``.
 
     Notes
     -----
@@ -273,6 +287,9 @@ def abstract_cells(
     computed per triple, so blocks give the same bits as one pass; the slope records keep the first largest
     slope, as ``argmax`` over the whole chunk would.
     """
+    if bound.L_x.shape != (sub.n, sub.n) or bound.L_w.shape != (sub.n, sub.p):
+        raise ValueError(f"constants of shapes {bound.L_x.shape} and {bound.L_w.shape} for a subsystem with "
+                         f"dim(x) = {sub.n}, dim(w) = {sub.p}")
     xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
     u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, sub.n)
     c, n_u, n_w = stop - start, u_pts.shape[0], w_lo.shape[0]
@@ -282,7 +299,7 @@ def abstract_cells(
     step = max(1, BLOCK_POINTS // samples)
     full = sub.n == 1 if full_statistics is None else full_statistics
     parts = [
-        _abstract_block(sub, start, x_lo, x_hi, t0, min(t0 + step, B), L_x, L_w, method, objective, full)
+        _abstract_block(sub, start, x_lo, x_hi, t0, min(t0 + step, B), bound, full)
         for t0 in range(0, B, step)
     ]
     successors = {
@@ -299,20 +316,53 @@ def abstract_cells(
     return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
 
 
+def bound_of(sub: Subsystem, L_x: float | LipschitzMatrix, L_w: float | LipschitzMatrix, method: str,
+             objective: str) -> GrowthBound:
+    """The growth bound ``method`` (``objective`` for the SCP) of a subsystem under these constants: a number
+    means every entry and the infinity-norm constant."""
+    return growth_bound(method, LipschitzMatrix.of(L_x, sub.n, sub.n), LipschitzMatrix.of(L_w, sub.n, sub.p),
+                        objective)
+
+
+def abstract_cells(
+    sub: Subsystem,
+    start: int,
+    stop: int,
+    L_x: float | LipschitzMatrix,
+    L_w: float | LipschitzMatrix,
+    method: str,
+    objective: str,
+    *,
+    full_statistics: bool | None = None,
+) -> CellsResult:
+    """:func:`abstract_chunk` with the growth bound named as a spec names it (:func:`bound_of`)."""
+    return abstract_chunk(sub, start, stop, bound_of(sub, L_x, L_w, method, objective),
+                          full_statistics=full_statistics)
+
+
 @dataclass(frozen=True)
 class CellTask:
     """One chunk of Algorithm 1: state cells ``[start, stop)`` of a subsystem under every input and internal cell,
     with the constants and growth bound it is computed with. The unit of work an executor runs
     (:mod:`workers.executors`); :meth:`run` is pure, so a task gives the same bits wherever and however often it
-    runs."""
+    runs.
+
+    ``L_x``, ``L_w`` are numbers (every entry and the infinity-norm constant) or
+    :class:`~pipelines.abstraction.constants.LipschitzMatrix`; ``float()`` of either is the infinity-norm constant.
+    :attr:`bound` is the growth bound object the task hands to :func:`abstract_chunk`.
+    """
 
     subsystem: Subsystem
     start: int
     stop: int
-    L_x: float
-    L_w: float
+    L_x: float | LipschitzMatrix
+    L_w: float | LipschitzMatrix
     method: str
     objective: str
+
+    @property
+    def bound(self) -> GrowthBound:
+        return bound_of(self.subsystem, self.L_x, self.L_w, self.method, self.objective)
 
     @property
     def cost(self) -> float:
@@ -322,23 +372,34 @@ class CellTask:
         return triples * triple_cost(sub, self.method, self.objective)
 
     @property
-    def constants(self) -> tuple[float, float, str, str]:
+    def constants(self) -> tuple[float | LipschitzMatrix, float | LipschitzMatrix, str, str]:
         """What, besides the subsystem, decides the bits of every chunk: ``(L_x, L_w, method, objective)``."""
         return (self.L_x, self.L_w, self.method, self.objective)
 
     def run(self) -> CellsResult:
-        return abstract_cells(self.subsystem, self.start, self.stop, self.L_x, self.L_w, self.method, self.objective)
+        return abstract_chunk(self.subsystem, self.start, self.stop, self.bound)
 
 
 class _Block(NamedTuple):
-    """What :func:`_abstract_block` gives for its triples (flat, in order); :func:`abstract_cells` joins them."""
+    """What :func:`_abstract_block` gives for its triples (flat, in order); :func:`abstract_chunk` joins them."""
 
     lo: np.ndarray  # (triples, n) int32; empty range (0, -1) where blocking
     hi: np.ndarray
     blocking: np.ndarray  # (triples,) bool
-    successors: dict[str, tuple[int, int]]  # method -> (sum of successor counts, non-blocking triples)
+    successors: dict[str, tuple[int, int]]  # bound name -> (sum of successor counts, non-blocking triples)
     slope_x: SlopeRecord
     slope_w: SlopeRecord
+
+
+#: The bounds :func:`compiled.scalar_block` computes (by their names in ``compiled.SCALAR_METHODS``).
+_KERNEL_BOUNDS = (LipschitzBound, HullBound, ScpBound)
+
+
+def _cost_names(bound: GrowthBound) -> tuple[str, str]:
+    """``(method, objective)`` of a bound as the cost model names them."""
+    if isinstance(bound, ScpBound):
+        return "scp", bound.objective
+    return bound.name, "paper"
 
 
 def _abstract_block(
@@ -348,13 +409,10 @@ def _abstract_block(
     x_hi: np.ndarray,
     t0: int,
     t1: int,
-    L_x: float,
-    L_w: float,
-    method: str,
-    objective: str,
+    bound: GrowthBound,
     full_statistics: bool,
 ) -> _Block:
-    """The triples ``t0 .. t1-1`` of the chunk starting at state cell ``start`` (see :func:`abstract_cells`).
+    """The triples ``t0 .. t1-1`` of the chunk starting at state cell ``start`` (see :func:`abstract_chunk`).
 
     Parameters
     ----------
@@ -396,11 +454,19 @@ def _abstract_block(
     U = u_pts[ui]  # (B, m)
     W = np.take(ws, wi, axis=1)  # (Sw, B, p), row-major (ws[:, wi] is not): so is V (ufuncs follow inputs)
 
-    chosen = "scp_radius" if (method == "scp" and objective == "radius") else method
-
     def record(s: np.ndarray) -> SlopeRecord:
-        k = int(np.argmax(s))  # the first largest slope, as over the whole chunk
-        return SlopeRecord(float(s[k]), start + int(ci[k]), int(ui[k]), int(wi[k]))
+        """The first largest slope of the block, overall and per entry; ``s`` of shape (B, n, d)."""
+        if s.shape[2] == 0:  # no such argument: slope 0 at the first triple, no entries
+            return SlopeRecord(0.0, start + int(ci[0]), int(ui[0]), int(wi[0]))
+        overall = s.reshape(B, -1).max(axis=1)
+        k = int(np.argmax(overall))  # the first largest slope, as over the whole chunk
+        first = np.argmax(s, axis=0)  # (n, d)
+        entries = tuple(
+            (float(s[b, i, j]), start + int(ci[b]), int(ui[b]), int(wi[b]))
+            for (i, j), b in np.ndenumerate(first)
+        )
+        return SlopeRecord(float(overall[k]), start + int(ci[k]), int(ui[k]), int(wi[k]), entries,
+                           (s.shape[1], s.shape[2]))
 
     def where_triple(b: int) -> str:
         return f"state cell {start + int(ci[b])}, input {int(ui[b])}, internal cell {int(wi[b])}"
@@ -421,116 +487,78 @@ def _abstract_block(
     C = sub.dynamics(XC, u_pts[ui], WC, describe=where_centre)  # (B, n)
 
     scalar = n == 1 and len(cw) <= 1
-    if scalar and full_statistics and _USE_SCALAR_KERNEL:
+    if scalar and full_statistics and _USE_SCALAR_KERNEL and type(bound) in _KERNEL_BOUNDS:
+        # The compiled pass of the standard bounds (kernels.scalar_block), under the constants of a scalar map:
+        # the smaller of entry and norm, which bound the same slope there.
+        L_x = bound.L_x.effective()
+        L_w = bound.L_w.effective() if p else 0.0
         lo, hi, blocking, sums, live, sx, sw = compiled.scalar_block(
             V.reshape(Sx, Sw, B), C[:, 0], xl[:, 0], xh[:, 0], wl[:, 0] if p else _NO_W, wh[:, 0] if p else _NO_W,
-            float(cx[0]), float(cw[0]) if p else 1.0, L_x, L_w, compiled.SCALAR_METHODS.index(chosen),
+            float(cx[0]), float(cw[0]) if p else 1.0, L_x, L_w, compiled.SCALAR_METHODS.index(bound.name),
             *_grid_arrays(xg), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL, SCP_SKIP_RTOL,
         )
         successors: dict[str, tuple[int, int]] = {
             name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)
         }
-        return _Block(lo[:, None], hi[:, None], blocking, successors, record(sx), record(sw))
+        return _Block(lo[:, None], hi[:, None], blocking, successors, record(sx[:, None, None]),
+                      record(sw[:, None, None] if p else np.zeros((B, 1, 0))))
 
-    # The generic path: numpy, the reference of compiled.scalar_block.
+    # The generic path: numpy and the growth bound objects (the reference of compiled.scalar_block).
     HX = 2 * RX / np.asarray(cx, dtype=float) if n else RX
     HW = 2 * RW / np.asarray(cw, dtype=float) if p else RW
 
-    boxes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    lip = lipschitz_radius(RX, RW, L_x, L_w)[:, None]
-    boxes["lipschitz"] = (C - lip, C + lip)
-
-    # Extremes over the samples: of each x sample over the w samples (the SCP's pair maxima need them), then
-    # over x (the hull). Min and max are exact, so any order of reduction gives the same bits.
     V3 = V.reshape(Sx, Sw, B, n)
+    extremes = None
     if scalar:
         vmax_w, vmin_w, dx, dw = _scalar_sample_pass(V3[..., 0])
-        hull_lo, hull_hi = vmin_w.min(axis=0)[:, None], vmax_w.max(axis=0)[:, None]
-    else:
-        hull_lo, hull_hi = V3.min(axis=(0, 1)), V3.max(axis=(0, 1))
-    rho_h = hull_margin(HX, HW, L_x, L_w)
-    boxes["hull"] = (hull_lo - rho_h[:, None], hull_hi + rho_h[:, None])
+        extremes = (vmax_w, vmin_w)
+    block = SampleBlock(V3, C, RX, RW, HX, HW, tuple(cx), extremes)
 
-    rho = scp_rho(HX, HW, L_x, L_w)
-    sampled: dict[str, np.ndarray] = {}  # method -> triples (positions in the block) it is computed on
+    # The bound itself on every triple, then the report's other bounds (the SCP objectives that are not the
+    # bound on the statistics sample unless full_statistics): each box is computed per triple, so the same bits
+    # whichever triples are asked for.
+    bounds = standard_bounds(bound)
+    rows: dict[str, np.ndarray | None] = {b.name: None for b in bounds}
     if not full_statistics:
-        fraction = statistics_fraction(sub, method, objective)
-        for name in ("scp", "scp_radius"):
-            if name != chosen:
-                sampled[name] = statistics_sample(start * n_u * n_w + t0, B, fraction)
-    if n == 1 and not scalar:
-        vmax_w, vmin_w = V3[..., 0].max(axis=1), V3[..., 0].min(axis=1)
-    # The SCP of each objective, on every triple or on the statistics sample (see full_statistics).
-    rows = {name: sampled.get(name) for name in ("scp", "scp_radius")}  # None: every triple
-    if n == 1:
-        # A triple whose SCP radius cannot beat the Lipschitz radius needs no LP. Every feasible theta has
-        # theta1 r_x + theta2 >= theta1 d_k + theta2 >= E_k + rho for d_k = k h_x <= r_x (k <= S_x / 2,
-        # theta1 >= 0), so the minimum below is the Lipschitz radius, to the bit, where max_{k <= S_x/2} E_k + rho
-        # exceeds it by a relative margin far above the rounding of the radius (terms of size <= 2 lip).
-        # First with E_0 and E_{S_x/2} only (two of the pair maxima, computed as pair_maxima_batch_last does):
-        # where that settles every triple (the tanks), the pair maxima are not needed at all.
-        half = Sx // 2
-        threshold = lip[:, 0] * (1 + SCP_SKIP_RTOL)
-        bound = np.max(vmax_w - vmin_w, axis=0)
-        if half:
-            up = (vmax_w[half:] - vmin_w[:-half]).max(axis=0)
-            down = (vmax_w[:-half] - vmin_w[half:]).max(axis=0)
-            bound = np.maximum(bound, np.maximum(up, down))
-        cannot = bound + rho >= threshold
-        if not all(cannot[slice(None) if ix is None else ix].all() for ix in rows.values()):
-            E = pair_maxima_batch_last(vmax_w, vmin_w)  # (Sx, B)
-            cannot = E[: half + 1].max(axis=0) + rho >= threshold
-        for name, ix in rows.items():
-            sel = slice(None) if ix is None else ix
-            rad = lip[sel].copy()
-            todo = ~cannot[sel]
-            if todo.any():
-                t_ix = slice(None) if ix is None and todo.all() else np.arange(B)[sel][todo]
-                w1 = np.ones(B)[t_ix] if name == "scp" else RX[t_ix, 0]
-                t1_, t2_ = scp_parameters_batch_last(E[:, t_ix], HX[t_ix, 0], rho[t_ix], L_x, w1)
-                rad[todo, 0] = np.minimum(t1_ * RX[t_ix, 0] + t2_, lip[t_ix, 0])  # both bounds are sound: so is the min
-            boxes[name] = (C[sel] - rad, C[sel] + rad)
-    else:
-        radii = scp_radii(V3, RX, HX, rho, lip[:, 0], L_x, tuple(cx), rows, SCP_SKIP_RTOL)
-        for name, ix in rows.items():
-            sel = slice(None) if ix is None else ix
-            boxes[name] = (C[sel] - radii[name], C[sel] + radii[name])
+        fraction = statistics_fraction(sub, *_cost_names(bound))
+        for b in bounds[1:]:
+            if isinstance(b, ScpBound):
+                rows[b.name] = statistics_sample(start * n_u * n_w + t0, B, fraction)
+    boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds}
 
     # Successor cells of every box at once (elementwise, so the same bits as one box at a time).
     names = list(boxes)
     sizes = [boxes[k][0].shape[0] for k in names]
-    a, b = widen(np.concatenate([boxes[k][0] for k in names]), np.concatenate([boxes[k][1] for k in names]))
-    block = np.any((a < np.asarray(xg.lb)) | (b > np.asarray(xg.ub)), axis=1)
-    first, last = xg.cells_touching(a, b)
+    a, b_ = widen(np.concatenate([boxes[k][0] for k in names]), np.concatenate([boxes[k][1] for k in names]))
+    block_ = np.any((a < np.asarray(xg.lb)) | (b_ > np.asarray(xg.ub)), axis=1)
+    first, last = xg.cells_touching(a, b_)
     top = np.asarray(xg.shape) - 1
     first = np.clip(first, 0, top)
     last = np.clip(last, 0, top)
     count = np.prod(last - first + 1, axis=1)
-    successors = {}
-    chosen_part: slice | None = None
+    counted: dict[str, tuple[int, int]] = {}
     at = 0
     for name, size in zip(names, sizes):
         part = slice(at, at + size)
         at += size
-        live = ~block[part]
-        successors[name] = (int(count[part][live].sum()), int(live.sum()))
-        if name == chosen:
-            chosen_part = part
-    if chosen_part is None:
-        raise ValueError(f"unknown growth bound {chosen!r}: expected one of {names}")
-    blocking = block[chosen_part]
-    lo = np.where(blocking[:, None], 0, first[chosen_part]).astype(np.int32)
-    hi = np.where(blocking[:, None], -1, last[chosen_part]).astype(np.int32)
+        live_ = ~block_[part]
+        counted[name] = (int(count[part][live_].sum()), int(live_.sum()))
+    chosen = slice(0, sizes[0])  # the bound itself comes first
+    blocking = block_[chosen]
+    lo = np.where(blocking[:, None], 0, first[chosen]).astype(np.int32)
+    hi = np.where(blocking[:, None], -1, last[chosen]).astype(np.int32)
+    order = [m for m in compiled.SCALAR_METHODS if m in counted] + [m for m in counted if m not in
+                                                                   compiled.SCALAR_METHODS]
+    successors = {name: counted[name] for name in order}
 
-    # Slopes for Lipschitz validation (docs/method.md §3): neighbours along x axes (w fixed) and w axes (x fixed).
+    # Slopes for Lipschitz validation (docs/method.md §3), per entry: neighbours along x axes (w fixed) and w axes
+    # (x fixed), each component on its own.
     if scalar:
-        sx = _slope(dx, HX[:, 0])
-        sw = _slope(dw, HW[:, 0]) if p else np.zeros(B)
+        sx = _slope(dx, HX[:, 0])[:, None, None]
+        sw = _slope(dw, HW[:, 0])[:, None, None] if p else np.zeros((B, 1, 0))
     else:
         Vg = V.reshape(tuple(cx) + tuple(cw) + (B, n))
         sx = _axis_slopes(Vg, range(len(cx)), tuple(cx), HX)
-        sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), tuple(cw), HW) if p else np.zeros(B)
+        sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), tuple(cw), HW) if p else np.zeros((B, n, 0))
 
     return _Block(lo, hi, blocking, successors, record(sx), record(sw))
-
-

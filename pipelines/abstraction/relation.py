@@ -10,9 +10,11 @@ computed with, :func:`pipelines.abstraction.cells.abstract_cells` turns it into 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from pipelines.abstraction.constants import LipschitzMatrix
 from pipelines.network import Subsystem
 
 METHODS = ("lipschitz", "scp", "scp_radius", "hull")
@@ -25,15 +27,59 @@ DEFAULT_CHUNK_POINTS = 2_000_000
 
 @dataclass(frozen=True)
 class SlopeRecord:
-    """The largest slope observed in the data, and where (for Lipschitz validation, docs/method.md §3)."""
+    """The largest slopes observed in the data, and where (for Lipschitz validation, docs/method.md §3).
+
+    ``slope`` is the largest over every entry, at the first triple (in the chunk's order) that shows it: the slope
+    in the infinity norm that a constant for all components is checked against. ``entries`` holds, per entry
+    ``(i, j)`` of a matrix of constants (component ``i`` of the successor, coordinate ``j`` of the argument),
+    row-major over ``shape``, its largest slope and the first triple that shows it: ``(slope, x_cell, u_index,
+    w_cell)``. An empty ``entries`` records no entries (a marker written before they were recorded).
+    """
 
     slope: float = 0.0
     x_cell: int = -1
     u_index: int = -1
     w_cell: int = -1
+    entries: tuple[tuple[float, int, int, int], ...] = ()
+    shape: tuple[int, int] = (0, 0)
 
     def merge(self, other: SlopeRecord) -> SlopeRecord:
-        return other if other.slope > self.slope else self
+        """The records of two parts, ``self`` first: each largest slope kept where it is first seen. Entries are
+        kept only if both parts recorded them (otherwise some part's entries are unknown)."""
+        best = other if other.slope > self.slope else self
+        entries: tuple[tuple[float, int, int, int], ...] = ()
+        shape = (0, 0)
+        if self.entries and other.entries and self.shape == other.shape:
+            entries = tuple(b if b[0] > a[0] else a for a, b in zip(self.entries, other.entries))
+            shape = self.shape
+        return SlopeRecord(best.slope, best.x_cell, best.u_index, best.w_cell, entries, shape)
+
+    def entry_slopes(self) -> np.ndarray:
+        """The largest slope of each entry, shape ``self.shape`` (zeros where none was recorded)."""
+        if not self.entries:
+            return np.zeros(self.shape)
+        return np.array([e[0] for e in self.entries], dtype=float).reshape(self.shape)
+
+    def entry(self, i: int, j: int) -> SlopeRecord:
+        """Entry ``(i, j)`` as a record of its own."""
+        slope, x, u, w = self.entries[i * self.shape[1] + j]
+        return SlopeRecord(slope, x, u, w)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: floats survive exactly (``repr`` round-trips float64)."""
+        d: dict[str, Any] = {"slope": float(self.slope), "x_cell": int(self.x_cell), "u_index": int(self.u_index),
+                             "w_cell": int(self.w_cell)}
+        if self.entries:
+            d["entries"] = [[float(s), int(x), int(u), int(w)] for s, x, u, w in self.entries]
+            d["shape"] = [int(v) for v in self.shape]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SlopeRecord:
+        entries = tuple((float(s), int(x), int(u), int(w)) for s, x, u, w in d.get("entries", ()))
+        shape = tuple(int(v) for v in d.get("shape", (0, 0)))
+        return cls(float(d["slope"]), int(d["x_cell"]), int(d["u_index"]), int(d["w_cell"]), entries,
+                   (shape[0], shape[1]))
 
 
 @dataclass(frozen=True)
@@ -65,15 +111,16 @@ class SubsystemRelation:
     lo: np.ndarray
     hi: np.ndarray
     blocking: np.ndarray
-    L_x: float
-    L_w: float
+    L_x: float | LipschitzMatrix  # a relation read back from a store has the floats of its report
+    L_w: float | LipschitzMatrix
 
     def successor_ranges(self, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Ranges and blocking flags of triples given by flat indices, each shape (B,)."""
         return self.lo[x, u, w], self.hi[x, u, w], self.blocking[x, u, w]
 
 
-def assemble(results: list[CellsResult], n_x: int, method: str, L_x: float, L_w: float) -> SubsystemRelation:
+def assemble(results: list[CellsResult], n_x: int, method: str, L_x: float | LipschitzMatrix,
+             L_w: float | LipschitzMatrix) -> SubsystemRelation:
     """Put chunk results together in state-cell order."""
     results = sorted(results, key=lambda r: r.start)
     covered = sum(r.stop - r.start for r in results)

@@ -3,10 +3,13 @@
 Per triple and output row ``j`` the LP is::
 
     min  w . theta1 + theta2
-    s.t. theta1 . |x_l - x_m| + theta2 >= |x'_{l,j} - x'_{m,j}| + rho     for every sample pair (l, m)
-         theta1 >= 0,  sum(theta1) <= L_x,  theta2 >= 0
+    s.t. theta1 . |x_l - x_m| + theta2 >= |x'_{l,j} - x'_{m,j}| + rho_j   for every sample pair (l, m)
+         theta1 >= 0,  a . theta1 <= L_j,  theta2 >= 0
 
-with ``w = 1`` (the paper's objective ``1'theta``) or ``w = r_x`` (the radius objective). The state samples lie
+with ``w = 1`` (the paper's objective ``1'theta``) or ``w = r_x`` (the radius objective). The budget
+``a . theta1 <= L_j`` is what the margin ``rho_j`` pays for (``growth_bound.ScpBound``): ``a = 1``, ``L_j = L_x``
+with one Lipschitz constant in the infinity norm (``sum(theta1) <= L_x``, the paper's bound), or ``a = h`` (the
+sub-grid spacings), ``L_j = sum_i L_ji h_i`` with per-component constants. The state samples lie
 on a regular sub-grid of the cell (``counts`` points per axis, spacing ``h``), so a pair enters only through
 its index displacement ``k = |idx_l - idx_m|`` (component-wise): ``|x_l - x_m| = k h``. The pairs of one
 displacement class give one constraint, ``theta1 . d_k + theta2 >= r_k`` with ``d_k = k h`` and
@@ -106,12 +109,12 @@ def pair_maxima_nd(vmax: np.ndarray, vmin: np.ndarray, pl: np.ndarray, pm: np.nd
 
 
 @_jit
-def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, tab: np.ndarray, basis: np.ndarray,
-               theta1: np.ndarray) -> float:
+def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, coef: np.ndarray, tab: np.ndarray,
+               basis: np.ndarray, theta1: np.ndarray) -> float:
     """One LP of the module docstring, exactly, by the primal simplex on its dual; writes ``theta1`` and returns
     ``theta2``, both repaired to a feasible point.
 
-    The dual, ``max r'lam - L mu  s.t.  sum_k lam_k d_{k,a} - mu <= w_a (a < n),  sum_k lam_k <= 1,
+    The dual, ``max r'lam - L mu  s.t.  sum_k lam_k d_{k,a} - coef_a mu <= w_a (a < n),  sum_k lam_k <= 1,
     lam, mu >= 0``, has a non-negative right-hand side ``(w, 1)``, so its slack basis is feasible: no phase 1.
     Bland's rule (smallest entering index, smallest leaving basic index on ties) rules out cycling. At the
     optimum the reduced costs of the slacks are the primal solution ``(theta1, theta2)``.
@@ -124,6 +127,10 @@ def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, tab: np.nd
         ``r_k``.
     w : ndarray, shape (n,)
         Objective weights of ``theta1``, non-negative.
+    L : float
+        The budget of ``coef . theta1``.
+    coef : ndarray, shape (n,)
+        Positive weights of the budget (ones: ``sum(theta1) <= L``).
     tab : ndarray, shape (n + 2, K + n + 3)
         Workspace (rows: the n + 1 constraints, then the reduced costs; last column the right-hand side).
     basis : ndarray of int64, shape (n + 1,)
@@ -144,7 +151,7 @@ def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, tab: np.nd
         tab[n, k] = 1.0
         tab[rows, k] = -r[k]
     for a in range(n):
-        tab[a, K] = -1.0
+        tab[a, K] = -coef[a]
         tab[a, rhs] = w[a]
     tab[rows, K] = L
     tab[n, rhs] = 1.0
@@ -184,12 +191,12 @@ def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, tab: np.nd
                     for c in range(cols + 1):
                         tab[i, c] -= f * tab[leave, c]
         basis[leave] = enter
-    # Repair: theta1 >= 0 with ||theta1||_1 <= L_x (the proof of rho needs it), then the smallest feasible theta2,
+    # Repair: theta1 >= 0 with coef . theta1 <= L (the proof of rho needs it), then the smallest feasible theta2,
     # so that every pair constraint holds whatever the rounding of the pivots.
     total = 0.0
     for a in range(n):
         theta1[a] = max(tab[rows, K + 1 + a], 0.0)
-        total += theta1[a]
+        total += theta1[a] * coef[a]
     if total > L:
         f = L / total * (1.0 - 1e-15)
         for a in range(n):
@@ -204,8 +211,8 @@ def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, tab: np.nd
 
 
 @_jit
-def scp_parameters_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L_x: float,
-                      W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def scp_parameters_rows(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, budget: np.ndarray,
+                        by_spacing: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The SCP of every triple and output row: ``theta1`` of shape (B, n, n) and ``theta2`` of shape (B, n).
 
     Parameters
@@ -216,8 +223,11 @@ def scp_parameters_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarr
         Displacement of each class in sub-grid steps (:func:`displacement_classes`).
     h : ndarray, shape (B, n)
         Sub-grid spacings.
-    rho : ndarray, shape (B,)
-        The margin of :func:`pipelines.abstraction.growth_bound.scp_rho`.
+    rho, budget : ndarray, shape (B, n)
+        Margin and budget ``L_j`` of each row (module docstring).
+    by_spacing : ndarray of bool, shape (B, n)
+        Whether a row's budget weighs ``theta1`` by the spacings (``h . theta1 <= L_j``) or not (``sum(theta1) <=
+        L_j``).
     W : ndarray, shape (B, n)
         Objective weights of ``theta1`` (ones: the paper's objective; the half-widths: the radius objective).
     """
@@ -228,35 +238,52 @@ def scp_parameters_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarr
     basis = np.empty(n + 1, dtype=np.int64)
     d = np.empty((K, n))
     r = np.empty(K)
+    ones = np.ones(n)
     for b in range(B):
         for q in range(K):
             for a in range(n):
                 d[q, a] = k[q, a] * h[b, a]
         for j in range(n):
             for q in range(K):
-                r[q] = E[q, j, b] + rho[b]
-            theta2[b, j] = _solve_row(d, r, W[b], L_x, tab, basis, theta1[b, j])
+                r[q] = E[q, j, b] + rho[b, j]
+            coef = h[b] if by_spacing[b, j] else ones
+            theta2[b, j] = _solve_row(d, r, W[b], budget[b, j], coef, tab, basis, theta1[b, j])
     return theta1, theta2
 
 
-@_jit
-def scp_radii_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L_x: float, W: np.ndarray,
-                 r_x: np.ndarray, lip: np.ndarray, skip_rtol: float) -> np.ndarray:
-    """The SCP radius ``min(theta1_j . r_x + theta2_j, lip)`` of every triple and output row, shape (B, n).
+def scp_parameters_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L_x: float,
+                      W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`scp_parameters_rows` with one constant in the infinity norm: margin ``rho`` (shape (B,)) and budget
+    ``sum(theta1) <= L_x`` for every row."""
+    B, n = h.shape
+    return scp_parameters_rows(E, k, h, _rows(rho, n), np.full((B, n), float(L_x)), np.zeros((B, n), dtype=np.bool_),
+                               W)
 
-    A row whose LP cannot beat the Lipschitz radius is not solved: every feasible ``theta`` has
+
+def _rows(v: np.ndarray, n: int) -> np.ndarray:
+    """A per-triple value, shape (B,), as the same value in every row, shape (B, n), contiguous."""
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=float)[:, None], (v.shape[0], n)))
+
+
+@_jit
+def scp_radii_rows(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, budget: np.ndarray,
+                   by_spacing: np.ndarray, W: np.ndarray, r_x: np.ndarray, lip: np.ndarray,
+                   skip_rtol: float) -> np.ndarray:
+    """The SCP radius ``min(theta1_j . r_x + theta2_j, lip_j)`` of every triple and output row, shape (B, n).
+
+    A row whose LP cannot beat its Lipschitz radius is not solved: every feasible ``theta`` has
     ``theta1 . r_x + theta2 >= theta1 . d_k + theta2 >= r_k`` for a class with ``d_k <= r_x`` (``2 k_a <= counts_a``,
-    ``theta1 >= 0``), so where ``max`` of those ``r_k`` exceeds ``lip`` by the relative margin ``skip_rtol`` (far
-    above the rounding of ``d_k``) the minimum is ``lip``, to the bit.
+    ``theta1 >= 0``), so where ``max`` of those ``r_k`` exceeds ``lip_j`` by the relative margin ``skip_rtol`` (far
+    above the rounding of ``d_k``) the minimum is ``lip_j``, to the bit.
 
     Parameters
     ----------
-    E, k, h, rho, L_x, W
-        As :func:`scp_parameters_nd`.
+    E, k, h, rho, budget, by_spacing, W
+        As :func:`scp_parameters_rows`.
     r_x : ndarray, shape (B, n)
         Half-widths of the state cells.
-    lip : ndarray, shape (B,)
-        Lipschitz radius (Lemma 4.3).
+    lip : ndarray, shape (B, n)
+        Lipschitz radius of each row (Lemma 4.3, per component).
     """
     K, n, B = E.shape
     counts = np.empty(n)
@@ -275,6 +302,7 @@ def scp_radii_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L
     d = np.empty((K, n))
     r = np.empty(K)
     theta1 = np.empty(n)
+    ones = np.ones(n)
     for b in range(B):
         filled = False
         for j in range(n):
@@ -282,8 +310,8 @@ def scp_radii_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L
             for q in range(K):
                 if near[q]:
                     bound = max(bound, E[q, j, b])
-            if bound + rho[b] >= lip[b] * (1.0 + skip_rtol):
-                rad[b, j] = lip[b]
+            if bound + rho[b, j] >= lip[b, j] * (1.0 + skip_rtol):
+                rad[b, j] = lip[b, j]
                 continue
             if not filled:
                 for q in range(K):
@@ -291,68 +319,33 @@ def scp_radii_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L
                         d[q, a] = k[q, a] * h[b, a]
                 filled = True
             for q in range(K):
-                r[q] = E[q, j, b] + rho[b]
-            t2 = _solve_row(d, r, W[b], L_x, tab, basis, theta1)
+                r[q] = E[q, j, b] + rho[b, j]
+            coef = h[b] if by_spacing[b, j] else ones
+            t2 = _solve_row(d, r, W[b], budget[b, j], coef, tab, basis, theta1)
             s = t2
             for a in range(n):
                 s += theta1[a] * r_x[b, a]
-            rad[b, j] = min(s, lip[b])  # both bounds are sound: so is their minimum
+            rad[b, j] = min(s, lip[b, j])  # both bounds are sound: so is their minimum
     return rad
 
 
-def scp_radii(
-    V: np.ndarray, r_x: np.ndarray, h_x: np.ndarray, rho: np.ndarray, lip: np.ndarray, L_x: float,
-    counts: tuple[int, ...], rows: dict[str, np.ndarray | None], skip_rtol: float,
-) -> dict[str, np.ndarray]:
-    """The SCP radius of each objective on its triples of a block (the n-D branch of ``cells._abstract_block``).
+def scp_radii_nd(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, L_x: float, W: np.ndarray,
+                 r_x: np.ndarray, lip: np.ndarray, skip_rtol: float) -> np.ndarray:
+    """:func:`scp_radii_rows` with one constant in the infinity norm: margin ``rho`` and Lipschitz radius ``lip``
+    of shape (B,), budget ``sum(theta1) <= L_x``, for every row."""
+    B, n = h.shape
+    return scp_radii_rows(E, k, h, _rows(rho, n), np.full((B, n), float(L_x)), np.zeros((B, n), dtype=np.bool_),
+                          W, r_x, _rows(lip, n), skip_rtol)
 
-    Parameters
-    ----------
-    V : ndarray, shape (S_x, S_w, B, n)
-        Successor samples, state samples row-major in ``counts``.
-    r_x, h_x : ndarray, shape (B, n)
-        Half-widths and sub-grid spacings of the state cells.
-    rho, lip : ndarray, shape (B,)
-        SCP margin and Lipschitz radius.
-    counts : tuple of int
-        State sub-grid points per axis.
-    rows : dict
-        ``'scp'`` (the paper's objective) and/or ``'scp_radius'`` -> positions of the triples to solve, increasing,
-        or ``None`` for all of them.
-    skip_rtol : float
-        ``cells.SCP_SKIP_RTOL`` (see :func:`scp_radii_nd`).
 
-    Returns
-    -------
-    dict
-        Name -> radii ``min(kappa(r_x), lip)``, shape (triples, n), in the order of ``rows[name]``.
-    """
-    B = V.shape[2]
-    given = [ix for ix in rows.values() if ix is not None]
-    every = len(given) < len(rows)
-    if every:
-        need = np.arange(B)
-    elif all(np.array_equal(ix, given[0]) for ix in given[1:]):  # one sample for both objectives
-        need = given[0]
-    else:
-        need = functools.reduce(np.union1d, given)
+def pair_maxima_of(V: np.ndarray, counts: tuple[int, ...]) -> np.ndarray:
+    """:func:`pair_maxima_nd` of successor samples ``V`` of shape (S_x, S_w, B, n), state samples row-major in
+    ``counts``: shape (S_x, n, B)."""
     pl, pm, cls, k = displacement_classes(counts)
-    S = k.shape[0]
-    Vn = V if every else V[:, :, need]
     # per state sample and component, extremes over the internal-input samples, the triples contiguous
-    vmax = np.ascontiguousarray(Vn.max(axis=1).transpose(0, 2, 1))
-    vmin = np.ascontiguousarray(Vn.min(axis=1).transpose(0, 2, 1))
-    E = pair_maxima_nd(vmax, vmin, pl, pm, cls, S)  # (S, n, len(need))
-    out = {}
-    for name, ix in rows.items():
-        at = need if ix is None else ix
-        pos = np.searchsorted(need, at)
-        Es = E if ix is None or pos.size == need.size else np.ascontiguousarray(E[:, :, pos])
-        rx, hx = np.ascontiguousarray(r_x[at]), np.ascontiguousarray(h_x[at])
-        W = np.ones_like(rx) if name == "scp" else rx
-        out[name] = scp_radii_nd(Es, k, hx, np.ascontiguousarray(rho[at]), float(L_x), W, rx,
-                                 np.ascontiguousarray(lip[at]), skip_rtol)
-    return out
+    vmax = np.ascontiguousarray(V.max(axis=1).transpose(0, 2, 1))
+    vmin = np.ascontiguousarray(V.min(axis=1).transpose(0, 2, 1))
+    return pair_maxima_nd(vmax, vmin, pl, pm, cls, k.shape[0])
 
 
 def scp_constraints(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -421,6 +414,7 @@ def warm_up() -> None:
     v = np.zeros((4, 2, 1))
     E = pair_maxima_nd(v, v, pl, pm, cls, 4)
     one = np.ones((1, 2))
-    scp_parameters_nd(E, k, one, np.ones(1), 1.0, one)
-    scp_radii_nd(E, k, one, np.ones(1), 1.0, one, one, np.ones(1), 0.0)
+    flags = np.zeros((1, 2), dtype=np.bool_)
+    scp_parameters_rows(E, k, one, one, one, flags, one)
+    scp_radii_rows(E, k, one, one, one, flags, one, one, one, 0.0)
 
