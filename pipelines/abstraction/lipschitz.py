@@ -2,9 +2,11 @@
 
 A growth bound is only sound if the Lipschitz constants it uses are (Assumptions 1-2). Data can refute a
 constant but never prove it: a slope observed between two samples above the given constant shows the
-constant is wrong, and the job fails (or, if the spec asks, raises the constant and says so). Estimated
-constants follow Wood & Zhang's reverse-Weibull fit of batch maxima, times a safety factor, and are never
-below the largest slope observed.
+constant is wrong, and the job fails (or, if the spec asks, raises the constant and says so). Constants are
+per component (:class:`~pipelines.abstraction.constants.LipschitzMatrix`: an entry per component of the successor
+and coordinate of the argument, and one in the infinity norm), each checked on its own. Estimated constants
+follow Wood & Zhang's reverse-Weibull fit of batch maxima, times a safety factor, and are never below the
+largest slope observed; an entry is estimated from pairs that differ in its coordinate only.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Literal
 
 import numpy as np
 
+from pipelines.abstraction.constants import LipschitzMatrix
 from pipelines.abstraction.relation import SLOPE_RTOL, SlopeRecord
 from pipelines.errors import LipschitzError
 from pipelines.network import Subsystem
@@ -22,13 +25,22 @@ from pipelines.network import Subsystem
 
 @dataclass(frozen=True)
 class LipschitzEstimate:
-    """Result of Algorithm 4 for one argument (``x`` or ``w``) of one subsystem."""
+    """Result of Algorithm 4 for one argument (``x`` or ``w``) of one subsystem, in the infinity norm."""
 
     value: float  # the constant to use: max(location, largest slope) * safety factor
     location: float  # reverse-Weibull location parameter (the paper's estimate)
     max_slope: float  # largest slope seen in all batches
     batches: int
     pairs: int
+
+
+@dataclass(frozen=True)
+class EntryEstimate:
+    """Algorithm 4 per entry: arrays of shape (n, d), component of the successor x coordinate of the argument."""
+
+    value: np.ndarray
+    location: np.ndarray
+    max_slope: np.ndarray
 
 
 def _reverse_weibull_location(maxima: np.ndarray) -> float:
@@ -103,25 +115,98 @@ def estimate_lipschitz(
     return LipschitzEstimate(max(location, max_slope) * safety_factor, location, max_slope, batches, pairs)
 
 
+def estimate_entries(
+    sub: Subsystem,
+    argument: str,
+    rng: np.random.Generator,
+    batches: int = 40,
+    pairs: int = 200,
+    delta: float | None = None,
+    safety_factor: float = 1.1,
+) -> EntryEstimate:
+    """Algorithm 4 per entry: ``L_x[i, j]`` (``argument='x'``) or ``L_w[i, j]`` (``'w'``) for every component ``i``
+    of the successor and coordinate ``j`` of the argument.
+
+    As :func:`estimate_lipschitz`, with the pairs of coordinate ``j`` differing in that coordinate only (the rest of
+    the argument and the other argument drawn at random and shared by the pair), and the slopes
+    ``|f_i(a) - f_i(b)| / |a_j - b_j|`` fitted per component: ``n`` fits per input and coordinate.
+    """
+    grid = sub.state_grid if argument == "x" else sub.internal_grid
+    n = sub.n
+    if grid is None:
+        empty = np.zeros((n, 0))
+        return EntryEstimate(empty, empty, empty)
+    lb, ub = np.asarray(grid.lb), np.asarray(grid.ub)
+    d = grid.dim
+    if delta is None:
+        delta = float(np.min(grid.eta_array)) / 10
+    u_pts = sub.input_grid.all_points()
+    n_u = u_pts.shape[0]
+    total = n_u * batches * pairs
+    other_grid = sub.internal_grid if argument == "x" else sub.state_grid
+    U = np.repeat(u_pts, batches * pairs, axis=0)
+    value, location, max_slope = np.zeros((n, d)), np.zeros((n, d)), np.zeros((n, d))
+    for j in range(d):
+        a = rng.uniform(lb, ub, (total, d))
+        b = a.copy()
+        b[:, j] = np.clip(a[:, j] + rng.uniform(-delta, delta, total), lb[j], ub[j])
+        same = a[:, j] == b[:, j]
+        b[same, j] = np.clip(a[same, j] + delta / 2, lb[j], ub[j])
+        if other_grid is None:
+            other = np.zeros((total, 0))
+        else:
+            other = rng.uniform(np.asarray(other_grid.lb), np.asarray(other_grid.ub), (total, other_grid.dim))
+        if argument == "x":
+            fa, fb = sub.dynamics(a, U, other), sub.dynamics(b, U, other)
+        else:
+            fa, fb = sub.dynamics(other, U, a), sub.dynamics(other, U, b)
+        dist = np.abs(a[:, j] - b[:, j])
+        ok = dist > 0  # a box of zero width along j: no pair, no slope
+        slopes = np.zeros((total, n))
+        slopes[ok] = np.abs(fa - fb)[ok] / dist[ok, None]
+        maxima = slopes.reshape(n_u, batches, pairs, n).max(axis=2)  # (n_u, batches, n)
+        for i in range(n):
+            locs = [_reverse_weibull_location(maxima[k, :, i]) for k in range(n_u)]
+            location[i, j] = float(max(locs))
+            max_slope[i, j] = float(maxima[:, :, i].max())
+    value = np.maximum(location, max_slope) * safety_factor
+    return EntryEstimate(value, location, max_slope)
+
+
 # ====================================================================================== constants of a job
 @dataclass
 class ConstantRecord:
-    """A Lipschitz constant and where it came from (for the report)."""
+    """The Lipschitz constants of one argument and where they came from (for the report).
 
-    value: float
+    ``value`` is a :class:`~pipelines.abstraction.constants.LipschitzMatrix`; ``float(value)`` is the constant in
+    the infinity norm, which the report's ``value`` gives (and ``matrix`` the entries, when they are not all that
+    constant).
+    """
+
+    value: LipschitzMatrix
     source: str  # given | raised | estimated | estimated (raised by cell data) | unused
-    given: float | None = None
+    given: LipschitzMatrix | None = None
     observed_max_slope: float = 0.0
     where: str = ""
     estimate: dict | None = None
+    observed: np.ndarray | None = None  # largest slope per entry, shape of value
 
     def as_dict(self) -> dict:
-        d: dict = {"value": self.value, "source": self.source, "observed_max_slope": self.observed_max_slope}
+        value = self.value
+        d: dict = {"value": float(value), "source": self.source, "observed_max_slope": self.observed_max_slope}
+        if not value.is_scalar:
+            d["matrix"] = value.entries.tolist()
+        if self.observed is not None and self.observed.size > 1:
+            d["observed_slopes"] = self.observed.tolist()
         if self.given is not None:
-            d["given"] = self.given
+            given = self.given
+            d["given"] = given.as_json()
             if self.source == "raised":  # how much the data made it grow (docs/method.md §3: say so in the report)
-                d["raised_by"] = self.value - self.given
-                d["raised_factor"] = self.value / self.given if self.given > 0 else None
+                if given.is_scalar and value.is_scalar:
+                    d["raised_by"] = float(value) - float(given)
+                    d["raised_factor"] = float(value) / float(given) if float(given) > 0 else None
+                else:
+                    d["raised_by"] = (value.entries - given.entries).tolist()
         if self.where:
             d["where"] = self.where
         if self.estimate:
@@ -129,23 +214,39 @@ class ConstantRecord:
         return d
 
 
+def _dims(sub: Subsystem, arg: str) -> tuple[int, int]:
+    return sub.n, (sub.n if arg == "x" else sub.p)
+
+
 def resolve_constant(sub: Subsystem, arg: Literal["x", "w"], rng: np.random.Generator) -> ConstantRecord:
-    """The constant ``L_arg`` a subsystem's abstraction starts with: given by the spec, or estimated
-    (Algorithm 4) when the spec says ``estimate``."""
+    """The constants ``L_arg`` a subsystem's abstraction starts with: given by the spec (a number, or a matrix of
+    one row per state component and one column per coordinate of ``arg``), or estimated (Algorithm 4, in the
+    infinity norm and, for more than one entry, per entry) when the spec says ``estimate``.
+
+    Raises
+    ------
+    SpecError
+        A matrix of the wrong shape, naming the field.
+    """
     lip = sub.spec.lipschitz
     given = getattr(lip, arg)
+    n, d = _dims(sub, arg)
     if arg == "w" and sub.internal_grid is None:
-        return ConstantRecord(0.0, "unused")
+        return ConstantRecord(LipschitzMatrix.scalar(0.0, n, 0), "unused")
     if given == "estimate":
         est = estimate_lipschitz(sub, arg, rng, lip.batches, lip.pairs, lip.delta, lip.safety_factor)
-        return ConstantRecord(
-            est.value,
-            "estimated",
-            observed_max_slope=est.max_slope,
-            estimate={"location": est.location, "max_slope": est.max_slope, "safety_factor": lip.safety_factor,
-                      "batches": est.batches, "pairs": est.pairs},
-        )
-    return ConstantRecord(float(given), "given", given=float(given))
+        info: dict = {"location": est.location, "max_slope": est.max_slope, "safety_factor": lip.safety_factor,
+                      "batches": est.batches, "pairs": est.pairs}
+        if n * d == 1:
+            value = LipschitzMatrix.scalar(est.value, n, d)
+        else:
+            ent = estimate_entries(sub, arg, rng, lip.batches, lip.pairs, lip.delta, lip.safety_factor)
+            value = LipschitzMatrix(ent.value, est.value)
+            info["entries"] = {"location": ent.location.tolist(), "max_slope": ent.max_slope.tolist()}
+        return ConstantRecord(value, "estimated", observed_max_slope=est.max_slope, estimate=info)
+    field = f"subsystems[{sub.spec.name}].lipschitz.{arg}"
+    value = LipschitzMatrix.given(given, n, d, field)
+    return ConstantRecord(value, "given", given=value)
 
 
 def _box(lo: np.ndarray, hi: np.ndarray) -> str:
@@ -163,15 +264,82 @@ def describe_cell(sub: Subsystem, rec: SlopeRecord) -> str:
     return where
 
 
+def steepest_pair(sub: Subsystem, arg: str, rec: SlopeRecord, component: int | None = None,
+                  coordinate: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """The pair of neighbouring samples of a triple that shows its largest slope, sampled again as the per-cell
+    stage samples it (:func:`pipelines.abstraction.cells.triple_samples`).
+
+    Parameters
+    ----------
+    arg : {'x', 'w'}
+        Along which argument the pair differs.
+    rec : SlopeRecord
+        The triple (``x_cell``, ``u_index``, ``w_cell``).
+    component, coordinate : int, optional
+        The entry: component of the successor and coordinate of ``arg``; ``None``: any (the infinity norm).
+
+    Returns
+    -------
+    x_a, w_a, x_b, w_b : ndarray
+        The two samples.
+    slope : float
+    """
+    from pipelines.abstraction.cells import triple_samples
+
+    X, W, u, counts = triple_samples(sub, rec.x_cell, rec.u_index, rec.w_cell)  # (*counts, n), (*counts, p)
+    N = X[..., 0].size
+    V = sub.dynamics(X.reshape(N, sub.n), np.repeat(u[None], N, axis=0), W.reshape(N, sub.p)).reshape(counts + (sub.n,))
+    first = 0 if arg == "x" else sub.n
+    axes = range(first, first + (sub.n if arg == "x" else sub.p))
+    best: tuple[float, tuple[int, ...] | None, tuple[int, ...] | None] = (-1.0, None, None)
+    for j, ax in enumerate(axes):
+        if coordinate is not None and j != coordinate or counts[ax] < 2:
+            continue
+        lo = [slice(None)] * len(counts)
+        hi = [slice(None)] * len(counts)
+        lo[ax], hi[ax] = slice(None, -1), slice(1, None)
+        P = (X if arg == "x" else W)
+        step = np.abs(P[tuple(hi)][..., j] - P[tuple(lo)][..., j])
+        diff = np.abs(V[tuple(hi)] - V[tuple(lo)])
+        diff = diff.max(axis=-1) if component is None else diff[..., component]
+        slope = np.divide(diff, step, out=np.zeros_like(diff), where=step > 0)
+        k = np.unravel_index(int(np.argmax(slope)), slope.shape)
+        if slope[k] > best[0]:
+            a = tuple(int(v) for v in k)
+            b = tuple(v + 1 if q == ax else v for q, v in enumerate(a))
+            best = (float(slope[k]), a, b)
+    slope_, a_, b_ = best
+    assert a_ is not None and b_ is not None  # a recorded positive slope has a pair
+    return X[a_], W[a_], X[b_], W[b_], slope_
+
+
+def _pair_text(sub: Subsystem, arg: str, rec: SlopeRecord, component: int | None, coordinate: int | None) -> str:
+    try:
+        xa, wa, xb, wb, _ = steepest_pair(sub, arg, rec, component, coordinate)
+    except Exception:  # a description must never hide the error it describes
+        return ""
+
+    def point(x: np.ndarray, w: np.ndarray) -> str:
+        text = f"x = {np.round(x, 12).tolist()}"
+        return text + (f", w = {np.round(w, 12).tolist()}" if sub.p else "")
+
+    return f"; the samples ({point(xa, wa)}) and ({point(xb, wb)})"
+
+
+def _entry_name(arg: str, i: int, j: int) -> str:
+    return f"L_{arg}[{i}][{j}]"
+
+
 def check_constants(
     sub: Subsystem, names: str, constants: dict[str, ConstantRecord], slopes: dict[str, SlopeRecord]
 ) -> bool:
     """Check the constants against the largest slopes the per-cell stage observed (docs/method.md §3).
 
-    Records each observed slope. A slope above a constant either fails the job with a
-    :class:`~pipelines.errors.LipschitzError` naming the cell and the slope (a given constant with
-    ``lipschitz.on_violation: fail``), or raises the constant to the slope times the safety factor and says so
-    in the record.
+    Records each observed slope. A slope above a constant (the one in the infinity norm, or an entry ``L[i][j]``
+    against the slope of component ``i`` along coordinate ``j``) either fails the job with a
+    :class:`~pipelines.errors.LipschitzError` naming the constant, the cell, the pair of samples and the slope (a
+    given constant with ``lipschitz.on_violation: fail``), or raises the constant to the slope times the safety
+    factor and says so in the record.
 
     Returns
     -------
@@ -184,19 +352,61 @@ def check_constants(
     for arg, rec in slopes.items():
         c = constants[arg]
         c.observed_max_slope = max(c.observed_max_slope, rec.slope)
-        if c.source != "unused" and rec.slope > c.value * (1 + SLOPE_RTOL):
-            violated.append((arg, rec))
-    for arg, rec in violated:
-        c = constants[arg]
-        where = describe_cell(sub, rec)
-        if c.source == "given" and spec.lipschitz.on_violation == "fail":
-            excess = f", {rec.slope - c.value:.6g} ({rec.slope / c.value - 1:.2%}) above it" if c.value > 0 else ""
+        if c.source == "unused":
+            continue
+        L = c.value
+        over = np.zeros(L.shape, dtype=bool)
+        if rec.entries and rec.shape == L.shape:
+            seen = rec.entry_slopes()
+            c.observed = seen if c.observed is None else np.maximum(c.observed, seen)
+            if not L.is_scalar:  # a scalar's entries are its norm: checked below
+                over = c.observed > L.entries * (1 + SLOPE_RTOL)
+        elif not L.is_scalar:
             raise LipschitzError(
-                f"subsystem {names}: the given L_{arg} = {c.value:g} is contradicted by the data: slope "
-                f"{rec.slope:.6g} observed at {where}{excess}. An abstraction built with it would be unsound. Give "
-                f"L_{arg} >= {rec.slope:.6g}, set lipschitz.{arg}: estimate, or lipschitz.on_violation: raise."
+                f"subsystem {names}: the stored data of some chunks carry no slope per entry, so the matrix L_{arg} "
+                "cannot be checked against them: run the job again into a new directory (or with --overwrite)."
             )
-        c.value = rec.slope * spec.lipschitz.safety_factor
+        over_norm = rec.slope > L.norm * (1 + SLOPE_RTOL)
+        if over_norm or over.any():
+            violated.append((arg, rec, over_norm, over))
+    for arg, rec, over_norm, over in violated:
+        c = constants[arg]
+        L = c.value
+        if c.source == "given" and spec.lipschitz.on_violation == "fail":
+            raise LipschitzError(_contradiction(sub, names, arg, L, rec, over_norm, over))
+        # only what the data contradict beyond rounding (SLOPE_RTOL) is raised
+        entry_slopes = np.where(over, c.observed, 0.0) if c.observed is not None else np.zeros(L.shape)
+        c.value = L.raised(entry_slopes, rec.slope if over_norm else 0.0, spec.lipschitz.safety_factor)
         c.source = "raised" if c.source in ("given", "raised") else "estimated (raised by cell data)"
-        c.where = where
+        c.where = describe_cell(sub, rec if over_norm else rec.entry(*np.argwhere(over)[0]))
     return not violated
+
+
+def _contradiction(sub: Subsystem, names: str, arg: str, L: LipschitzMatrix, rec: SlopeRecord, over_norm: bool,
+                   over: np.ndarray) -> str:
+    """The message of a given constant the data contradict: which constant, where, by how much, what to do."""
+    fix = f"set lipschitz.{arg}: estimate, or lipschitz.on_violation: raise"
+    if not L.is_scalar and not over.any():  # a given matrix implies its norm: an entry is contradicted first
+        over = rec.entry_slopes() >= rec.slope
+    if L.is_scalar:
+        value = float(L)
+        excess = f", {rec.slope - value:.6g} ({rec.slope / value - 1:.2%}) above it" if value > 0 else ""
+        return (
+            f"subsystem {names}: the given L_{arg} = {value:g} is contradicted by the data: slope {rec.slope:.6g} observed "
+            f"at {describe_cell(sub, rec)}{excess}{_pair_text(sub, arg, rec, None, None)}. An abstraction built with "
+            f"it would be unsound. Give L_{arg} >= {rec.slope:.6g}, {fix}."
+        )
+    ratio = np.where(over, rec.entry_slopes() / np.maximum(L.entries, 1e-300), 0.0)
+    i, j = (int(v) for v in np.unravel_index(int(np.argmax(ratio)), ratio.shape))
+    e = rec.entry(i, j)
+    value = float(L.entries[i, j])
+    name = _entry_name(arg, i, j)
+    excess = f", {e.slope - value:.6g} ({e.slope / value - 1:.2%}) above it" if value > 0 else ""
+    others = [_entry_name(arg, int(a), int(b)) for a, b in np.argwhere(over) if (a, b) != (i, j)]
+    more = f" (also contradicted: {', '.join(others)})" if others else ""
+    return (
+        f"subsystem {names}: the given {name} = {value:g} (component {i} of the successor along {arg}[{j}]) is "
+        f"contradicted by the data: slope {e.slope:.6g} observed at {describe_cell(sub, e)}{excess}"
+        f"{_pair_text(sub, arg, e, i, j)}{more}. An abstraction built with it would be unsound. Give {name} >= "
+        f"{e.slope:.6g}, {fix}."
+    )
