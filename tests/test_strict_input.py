@@ -135,6 +135,17 @@ def test_integers_are_still_numbers():
     assert parse_spec(spec).subsystems[0].lipschitz.x == 2.0
 
 
+def test_yaml_exponents_are_numbers_as_in_json():
+    """YAML 1.1 reads ``1e-6`` and ``1.5e3`` as strings, which the strict model would refuse; a spec reads numbers,
+    as YAML 1.2 and JSON do. A quoted one stays a string (and is refused)."""
+    text = (EXAMPLES / "scalability.yaml").read_text()
+    assert "alpha: 1.0e-6" in text
+    for literal, value in (("1e-6", 1e-6), ("1.5e-3", 1.5e-3), ("2E-2", 0.02)):
+        assert parse_spec(text.replace("alpha: 1.0e-6", f"alpha: {literal}")).interconnection.alpha == value
+    with pytest.raises(SpecError, match="interconnection.alpha: Input should be a number, not the string '1e-6'"):
+        parse_spec(text.replace("alpha: 1.0e-6", "alpha: '1e-6'"))
+
+
 @pytest.mark.parametrize("example", sorted(EXAMPLES.glob("*.yaml")), ids=lambda p: p.name)
 def test_every_example_is_still_accepted(example):
     spec = load_spec(example)

@@ -10,6 +10,7 @@
   dozen digits.
 * **Non-finite numbers** (``.inf``, ``.nan``, ``1e999``) are read as floats here and refused by the spec model
   (``allow_inf_nan=False``), which names the field; JSON's ``NaN``/``Infinity`` are refused here.
+* **Exponents without a dot or a sign** (``1e-6``, ``1.5e3``) are numbers, as in YAML 1.2 and JSON (YAML 1.1 reads them as strings).
 * **Duplicate keys** in one mapping (YAML) or object (JSON) are refused, naming the key and where: both readers
   would otherwise keep the last silently. A YAML merge key (``<<: *tap``) is not a duplicate: the mapping's own keys
   override the merged ones, as YAML says.
@@ -21,6 +22,7 @@ the value (JSON).
 from __future__ import annotations
 
 import json
+import re
 from typing import Any
 
 import yaml
@@ -81,6 +83,11 @@ class SpecLoader(yaml.SafeLoader):
 
 
 SpecLoader.add_constructor("tag:yaml.org,2002:int", SpecLoader.construct_bounded_int)
+# YAML 1.1 (PyYAML) reads an exponent without a dot or without a sign (``1e-6``, ``2E5``, ``1.5e3``) as a string;
+# YAML 1.2 and JSON read a number, and so does a spec (the strict model would refuse `alpha: 1e-6` as a string).
+#: A number with an exponent that YAML 1.1 does not read as one (no dot, or an exponent without a sign).
+EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$")
+SpecLoader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT_FLOAT, list("-+.0123456789"))
 
 
 def _children(node: yaml.Node) -> list[yaml.Node]:
