@@ -31,22 +31,23 @@ and caps"), checked by :func:`service.manager.validate_spec` before a job is que
 ``max_expression_length`` (2,000 characters)
     Each ``dynamics`` and the interconnection ``map``.
 ``max_evaluations`` (10^11)
-    Black-box evaluations of the per-cell stage (triples x ``samples`` over the distinct subsystems): a few
+    Black-box evaluations of the per-cell stage (triples x ``samples`` over the distinct subsystems, an ODE's
+    sample counting ``4 x substeps``): a few
     minutes on two workers for a cheap expression (``examples/stress.yaml``: 1.6e10, ~40 s).
 ``max_tasks`` (10,000)
     Tasks of the per-cell stage (``options.chunk_cells``, or the default chunk), all submitted to the cluster at
     once (50,001 tasks take the API process from 0.3 to 1.25 GB).
 ``max_lipschitz_pairs`` (2,000,000)
-    Pairs of one estimated Lipschitz constant (``batches x pairs x input points``), drawn at once in this
-    process (~90 bytes a pair for a scalar system: ~180 MB).
+    Pairs of one estimated Lipschitz constant (``batches x pairs x input points``, an ODE's pair counting
+    ``4 x substeps``), drawn at once in this process (~90 bytes a pair for a scalar system: ~180 MB).
 ``max_sample_values`` (20,000,000) and ``max_interconnection_values`` (10^9)
     The interconnection stage's largest array of sampled states (160 MB) and its total work, in state values.
 ``max_audit_evaluations`` (10^8)
-    Black-box evaluations of the audit (``options.audit_transitions`` per part, plus the composed ones): a minute
-    or two.
+    Black-box evaluations of the audit (``options.audit_transitions`` per part, plus the composed ones; an ODE
+    subsystem's transition counts ``4 x substeps``): a minute or two.
 ``max_closed_loop_steps`` (10,000,000)
     Subsystem steps of the closed loop (``(closed_loop_runs + initial_states) x closed_loop_steps x
-    subsystems``): ~3 minutes, and the trajectories' ~200 MB.
+    subsystems``, an ODE subsystem's step counting ``4 x substeps``): ~3 minutes, and the trajectories' ~200 MB.
 
 ``compabs run`` and ``compabs validate`` check the same model with ``Caps.local()`` (larger: hours of work at
 most); :func:`local_caps` is that with each ``COMPABS_MAX_*`` variable that is set taking precedence.

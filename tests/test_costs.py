@@ -10,6 +10,7 @@ a few MB allocated, and nothing of the job is run.
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 import tracemalloc
 from collections.abc import Callable, Iterator
@@ -362,3 +363,60 @@ def test_an_astronomical_grid_is_refused_not_500(make_client, example):
         check(data, Caps())
     r = make_client().post("/jobs", json=data, headers=AUTH)
     assert 400 <= r.status_code < 500, r.text
+
+
+# ====================================================================================== ODE sub-steps (issue 47)
+def ode(substeps: int, estimate: bool = False, **options: Any) -> dict[str, Any]:
+    """small.yaml's agent as an ODE of ``substeps`` Runge-Kutta 4 steps per period (its L_x estimated if
+    ``estimate``)."""
+    data = small(**options)
+    sub = agent(data)
+    sub["ode"] = sub.pop("dynamics")
+    sub.update(sampling_time=0.1, substeps=substeps)
+    if estimate:
+        sub["lipschitz"]["x"] = "estimate"
+    return data
+
+
+def knob_values(data: dict[str, Any]) -> dict[str, int]:
+    spec = parse_spec(data)
+    return {c.cap_name: c.value for c in estimate_costs(spec, build_network(spec, ()))}
+
+
+@pytest.mark.parametrize("cap_name", ["max_evaluations", "max_lipschitz_pairs", "max_audit_evaluations",
+                                      "max_closed_loop_steps"])
+def test_every_cost_that_evaluates_the_black_box_counts_the_sub_steps(cap_name):
+    """An ODE step is 4 x substeps evaluations of its right-hand side: substeps 1000 costs about 1000 times
+    substeps 1 in each knob that evaluates the black box (the audit of 1000 substeps took 94 s against 0.7 s and
+    was counted the same)."""
+    one, many = knob_values(ode(1, estimate=True)), knob_values(ode(1000, estimate=True))
+    mapped = small()
+    agent(mapped)["lipschitz"]["x"] = "estimate"
+    base = knob_values(mapped)  # the same dynamics as a map: one evaluation per step
+    assert one[cap_name] > base[cap_name]
+    if cap_name == "max_audit_evaluations":  # the interconnection's map is one evaluation either way
+        assert 500 * one[cap_name] < many[cap_name] < 1000 * one[cap_name]
+    else:
+        assert many[cap_name] == 1000 * one[cap_name]
+
+
+def test_an_audit_of_many_sub_steps_is_refused_naming_them():
+    data = ode(1000, audit_transitions=1_000_000, synthesis=False)
+    check(ode(1, audit_transitions=1_000_000, synthesis=False), Caps())  # one substep: within the cap
+    with pytest.raises(CostError) as err:
+        check(data, Caps())
+    e = err.value
+    assert e.cap_name == "max_audit_evaluations" and "4 x substeps evaluations ('agent': 4000)" in e.message
+    assert "options.audit_transitions" in e.message and "lower options.audit_transitions to at most" in e.message
+    limit = int(re.search(r"at most (\d+)", e.message).group(1))
+    check(ode(1000, audit_transitions=limit, synthesis=False), Caps())  # the fix it names is within the cap
+    with pytest.raises(CostError):
+        check(ode(1000, audit_transitions=limit + 1, synthesis=False), Caps())
+
+
+def test_a_closed_loop_of_many_sub_steps_is_refused_naming_them():
+    data = ode(1000, audit_transitions=0, closed_loop_runs=10_000, closed_loop_steps=100)
+    check(ode(1, audit_transitions=0, closed_loop_runs=10_000, closed_loop_steps=100), Caps())
+    with pytest.raises(CostError) as err:
+        check(data, Caps())
+    assert err.value.cap_name == "max_closed_loop_steps" and "4 x substeps" in err.value.message

@@ -17,15 +17,16 @@ The knobs, each with its cap (:class:`Caps` field; ``COMPABS_<NAME>`` for the se
     ``(x, u, w)`` triples of one subsystem: state cells x input points x internal cells (the size of its
     relation). The spec's own ``options.max_cells`` applies too; the smaller cap is named.
 ``max_evaluations``
-    Black-box evaluations of the per-cell stage: triples x ``samples``, summed over the distinct subsystems
-    (identical replicas are abstracted once).
+    Black-box evaluations of the per-cell stage: triples x ``samples`` x evaluations per step, summed over the
+    distinct subsystems (identical replicas are abstracted once).
 ``max_tasks``
     Tasks of the per-cell stage, summed over the distinct subsystems: ``ceil(state cells / chunk)`` with
     ``options.chunk_cells`` or the default chunk (:func:`pipelines.abstraction.relation.chunk_ranges`). A cluster
     receives them all at once.
 ``max_lipschitz_pairs``
     Pairs Algorithm 4 draws for one estimated constant (``lipschitz.x`` or ``.w: estimate``) of one distinct
-    subsystem: ``batches x pairs x input points``, held in memory at once (~90 bytes a pair for a scalar system).
+    subsystem, each weighted by the evaluations of one step: ``batches x pairs x input points x evaluations per
+    step``; the pairs are held in memory at once (~90 bytes a pair for a scalar system).
 ``max_sample_values``
     The largest array of sampled composed states of the interconnection stage: ``max(samples, holdout) x n``
     (``n`` the composed state dimension).
@@ -38,11 +39,15 @@ The knobs, each with its cap (:class:`Caps` field; ``COMPABS_<NAME>`` for the se
 ``max_audit_evaluations``
     Black-box evaluations of the audit: ``options.audit_transitions`` for each distinct subsystem and for the
     interconnection, plus the composed transitions (a tenth, at least ``min(count, 10^4)``) times every
-    subsystem and the map.
+    subsystem and the map; a subsystem's transition counts its evaluations per step.
 ``max_closed_loop_steps``
     Subsystem steps of the closed loop (only with ``options.synthesis``): ``(closed_loop_runs + initial_states) x
-    closed_loop_steps x subsystems``. Automatic steps (``closed_loop_steps: null``) depend on the fixed point and
-    are counted as their least, ``AUTO_STEPS_MIN``.
+    closed_loop_steps x subsystems``, each subsystem's step counting its evaluations per step. Automatic steps
+    (``closed_loop_steps: null``) depend on the fixed point and are counted as their least, ``AUTO_STEPS_MIN``.
+
+*Evaluations per step*: 1 for a discrete-time map (``dynamics``), ``4 x substeps`` for an ``ode`` (one per
+Runge-Kutta 4 stage of each substep, :attr:`~pipelines.spec.model.SubsystemSpec.rhs_evaluations`): every cost
+that evaluates a subsystem's black box counts them, so ``substeps: 1000`` costs 1000 times ``substeps: 1``.
 
 Entry points: :func:`check_spec` (before ``build_network``), :func:`check_costs` (everything, returns a summary
 line), :func:`estimate_costs` (every knob's value, for reports and tests). A knob over its cap raises
@@ -276,16 +281,20 @@ def _lipschitz_costs(spec: JobSpec, groups: list[Subsystem]) -> list[Cost]:
                 continue
             other = sub.internal_grid if arg == "x" else sub.state_grid
             n_u = sub.input_grid.size
-            value = lip.batches * lip.pairs * n_u
+            steps = sub.spec.rhs_evaluations
+            pairs = lip.batches * lip.pairs * n_u
+            value = pairs * steps
             width = 3 * grid.dim + (other.dim if other is not None else 0) + sub.m + 3 * sub.n + 3
             most = (lip.batches, lip.pairs)
             field = f"subsystems[{i}].lipschitz"
+            ode = (f" x {steps} evaluations per step (4 x subsystems[{i}].substeps) = {value}"
+                   if sub.spec.ode is not None else "")
             costs.append(Cost(
                 "max_lipschitz_pairs", f"{field}.batches × {field}.pairs", value,
                 f"{field}.batches × {field}.pairs: estimating L_{arg} of subsystem '{sub.name}' draws batches x "
-                f"pairs x input points = {most[0]} x {most[1]} x {n_u} = {value} pairs at once "
-                f"({_mb(value * width)})",
-                partial(_lipschitz_fix, field, arg, lip.batches, n_u),
+                f"pairs x input points = {most[0]} x {most[1]} x {n_u} = {pairs} pairs at once "
+                f"({_mb(pairs * width)}){ode}",
+                partial(_lipschitz_fix, field, arg, lip.batches, n_u * steps),
             ))
     return costs
 
@@ -314,41 +323,68 @@ def _interconnection_costs(spec: JobSpec, network: Network) -> list[Cost]:
     return costs
 
 
-def audit_evaluations(count: int, distinct: int, subsystems: int, composition: int | None = None) -> int:
+def audit_evaluations(count: int, distinct: int, subsystems: int, composition: int | None = None, *,
+                      distinct_steps: int | None = None, subsystem_steps: int | None = None) -> int:
     """Black-box evaluations of an audit of ``count`` transitions per part and ``composition`` composed ones
     (default: the job's, :func:`~pipelines.verification.audit.composition_transitions`), as
-    :func:`~pipelines.verification.audit.audit_abstraction` draws them."""
+    :func:`~pipelines.verification.audit.audit_abstraction` draws them.
+
+    ``distinct_steps`` and ``subsystem_steps``: the evaluations of one step summed over the distinct subsystems and
+    over all subsystems (1 for a map, ``4 x substeps`` for an ODE); default ``distinct`` and ``subsystems`` (maps).
+    """
     if count <= 0:
         return 0
     if composition is None:
         composition = composition_transitions(count)
-    return count * (distinct + 1) + composition * (subsystems + 1)
+    d = distinct if distinct_steps is None else distinct_steps
+    n = subsystems if subsystem_steps is None else subsystem_steps
+    return count * (d + 1) + composition * (n + 1)
 
 
-def _tail_costs(spec: JobSpec, network: Network, distinct: int) -> list[Cost]:
+def _steps(subs: Iterable[Subsystem]) -> int:
+    """The evaluations of one step of each of ``subs``, summed (1 for a map, ``4 x substeps`` for an ODE)."""
+    return sum(s.spec.rhs_evaluations for s in subs)
+
+
+def _ode_note(subs: Iterable[Subsystem]) -> str:
+    """What the ODE subsystems among ``subs`` add to a count of evaluations, or ``""``."""
+    odes = {s.spec.name: s.spec.rhs_evaluations for s in subs if s.spec.ode is not None}
+    if not odes:
+        return ""
+    shown = ", ".join(f"'{name}': {k}" for name, k in list(odes.items())[:3])
+    return f"; an ODE's step counts 4 x substeps evaluations ({shown})"
+
+
+def _tail_costs(spec: JobSpec, network: Network, groups: list[Subsystem]) -> list[Cost]:
     opts = spec.options
-    subs = len(network.subsystems)
+    distinct, subs = len(groups), len(network.subsystems)
+    d_steps, n_steps = _steps(groups), _steps(network.subsystems)
+    note = _ode_note(network.subsystems)
     count = opts.audit_transitions
-    audit = audit_evaluations(count, distinct, subs)
+    audit = audit_evaluations(count, distinct, subs, distinct_steps=d_steps, subsystem_steps=n_steps)
     composition = composition_transitions(count)
     costs = [Cost(
         "max_audit_evaluations", "options.audit_transitions", audit,
         f"options.audit_transitions = {count} means {audit} black-box evaluations in the audit ({count} for each of "
         f"{distinct} distinct subsystems and the interconnection, {composition} composed transitions x {subs + 1} "
-        "black boxes)",
-        lambda cap: _audit_fix(count, distinct, subs, cap),
+        f"black boxes{note})",
+        lambda cap: _audit_fix(count, distinct, subs, cap, d_steps, n_steps),
     )]
     if opts.synthesis:
         runs = opts.closed_loop_runs + len(opts.initial_states)
         steps = opts.closed_loop_steps or AUTO_STEPS_MIN
         how = "" if opts.closed_loop_steps else f" (automatic: at least {AUTO_STEPS_MIN})"
-        value = runs * steps * subs
+        value = runs * steps * n_steps
+        if n_steps == subs:
+            per, unit = f"{subs}", "subsystem steps"
+        else:
+            per, unit = f"{n_steps} evaluations per step of the {subs} subsystems", f"black-box evaluations{note}"
         costs.append(Cost(
             "max_closed_loop_steps", "options.closed_loop_runs × options.closed_loop_steps", value,
             f"options.closed_loop_runs × options.closed_loop_steps: the closed loop simulates (runs + initial states) "
-            f"x steps x subsystems = ({opts.closed_loop_runs} + {len(opts.initial_states)}) x {steps}{how} x {subs} = "
-            f"{value} subsystem steps",
-            lambda cap: _closed_loop_fix(runs, subs, cap),
+            f"x steps x subsystems = ({opts.closed_loop_runs} + {len(opts.initial_states)}) x {steps}{how} x {per} = "
+            f"{value} {unit}",
+            lambda cap: _closed_loop_fix(runs, n_steps, cap),
         ))
     return costs
 
@@ -363,7 +399,7 @@ def estimate_costs(spec: JobSpec, network: Network, task_points: int | None = No
     groups = [members[0] for members in network.unique_subsystems().values()]
     points = DEFAULT_CHUNK_POINTS if task_points is None else task_points
     return (spec_costs(spec) + _cell_costs(spec, groups, points) + _lipschitz_costs(spec, groups)
-            + _interconnection_costs(spec, network) + _tail_costs(spec, network, len(groups)))
+            + _interconnection_costs(spec, network) + _tail_costs(spec, network, groups))
 
 
 # ====================================================================================== checking
@@ -386,11 +422,13 @@ def _samples_fix(which: str, n: int, cap: int) -> str:
     return f"lower interconnection.{which} to at most {cap // n} (or use fewer subsystems)"
 
 
-def _audit_fix(count: int, distinct: int, subs: int, cap: int) -> str:
+def _audit_fix(count: int, distinct: int, subs: int, cap: int, d_steps: int | None = None,
+               n_steps: int | None = None) -> str:
     lo, hi = 0, count  # the largest count within the cap (the evaluations grow with it)
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        lo, hi = (mid, hi) if audit_evaluations(mid, distinct, subs) <= cap else (lo, mid - 1)
+        within = audit_evaluations(mid, distinct, subs, distinct_steps=d_steps, subsystem_steps=n_steps) <= cap
+        lo, hi = (mid, hi) if within else (lo, mid - 1)
     return f"lower options.audit_transitions to at most {lo} (0: no audit)"
 
 
