@@ -47,6 +47,7 @@ from service.models import ErrorDetail
 from service.routers import dashboard, health, jobs, schema
 from service.routers.jobs import _StreamEnded
 from service.settings import Settings
+from service.streams import StreamLimitMiddleware, StreamLimits
 
 log = logging.getLogger("compabs.service")
 
@@ -315,6 +316,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
+    app.state.streams = StreamLimits(settings.max_streams, settings.max_streams_per_client)
+    app.add_middleware(StreamLimitMiddleware, limits=app.state.streams)
     _install_handlers(app)
     app.include_router(jobs.router)
     app.include_router(schema.router)

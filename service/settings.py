@@ -18,6 +18,10 @@ Caps (each refusal names the cap and its value, so a user knows what to change o
     ``max_time_limit`` is refused (422). A job past its limit, or cancelled, gets ``SIGTERM`` and, ``stop_grace``
     seconds later, ``SIGKILL`` (its whole process group), and is marked failed (cancelled) with the reason.
 
+``max_streams`` (64), ``max_streams_per_client`` (8), ``stream_idle_timeout`` (120 s)
+    Open ``GET /jobs/{id}/events`` streams in all and per client address (a 429 beyond, :mod:`service.streams`);
+    a stream with no event for ``stream_idle_timeout`` seconds is closed (``EventSource`` reconnects by itself).
+
 The cost model's caps (:class:`pipelines.spec.costs.Caps`; what each counts: that module and docs/spec.md "Costs
 and caps"), checked by :func:`service.manager.validate_spec` before a job is queued, each refusal a
 ``CapExceeded`` (422) naming the knob (the spec's field), its value and the cap:
@@ -139,6 +143,14 @@ class Settings(BaseModel):
     max_resumes: int = Field(
         default=3, ge=0,
         description="times a job interrupted by an API stop is resumed before it is marked failed",
+    )
+    max_streams: int = Field(default=64, ge=1, description="open GET /jobs/{id}/events streams in all (429 beyond)")
+    max_streams_per_client: int = Field(
+        default=8, ge=1, description="open event streams per client address (429 beyond)",
+    )
+    stream_idle_timeout: float = Field(
+        default=120.0, gt=0, le=86400,
+        description="seconds an event stream stays open without an event (EventSource reconnects by itself)",
     )
     host: str = Field(default="127.0.0.1", description="address to bind; 127.0.0.1 unless told otherwise")
     port: int = Field(default=8000, ge=0, le=65535)

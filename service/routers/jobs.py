@@ -127,7 +127,10 @@ def _stream_start(
     "/{job_id}/events", response_class=EventSourceResponse,
     responses={**_NOT_FOUND, 204: {"description": "the job has ended and the client has every event"},
                200: {"description": "``event: progress`` (data: ProgressEvent) and ``event: status`` (data: Job); "
-                     "ids count 1, 2, ... per job; the stream ends after a terminal status"}},
+                     "ids count 1, 2, ... per job; the stream ends after a terminal status, or after "
+                     "stream_idle_timeout seconds without an event (reconnect with Last-Event-ID)"},
+               429: {"model": ErrorDetail,
+                     "description": "max_streams_per_client streams of this client, or max_streams in all, are open"}},
 )
 async def job_events(
     start: Annotated[tuple[JobRecord, int], Depends(_stream_start)], manager: Manager,
@@ -135,16 +138,21 @@ async def job_events(
     """The job's events as server-sent events: all stored ones, then live ones, until it ends.
 
     ``progress`` events carry ``{stage, done, total, message}``, ``status`` events the job's JSON. A client that
-    reconnects with ``Last-Event-ID`` gets only the events after it.
+    reconnects with ``Last-Event-ID`` gets only the events after it. A stream without an event for
+    ``stream_idle_timeout`` seconds ends (``EventSource`` reconnects by itself); open streams are capped in all and
+    per client (:mod:`service.streams`).
     """
     rec, after = start
     store = manager.store
+    idle = manager.settings.stream_idle_timeout
+    last_event = time.monotonic()
     while True:
         events = await run_in_threadpool(store.events_after, rec.id, after)
         for ev in events:
             after = ev.seq
             data = ProgressEvent(**ev.data).model_dump() if ev.kind == "progress" else ev.data
             yield ServerSentEvent(event=ev.kind, data=data, id=str(ev.seq))
+            last_event = time.monotonic()
             if ev.kind == "status" and ev.data.get("status") in TERMINAL:
                 return
         if events:
@@ -152,9 +160,11 @@ async def job_events(
         now = await run_in_threadpool(store.get, rec.id)
         if now is None or (now.terminal and now.last_seq <= after):
             return
+        if time.monotonic() - last_event >= idle:
+            return  # idle: the client reconnects with Last-Event-ID if it still wants the job
         # Wait for news: events this process writes are announced in memory; the DB is asked at least every
         # _DB_POLL seconds in case another process wrote (a job store shared by mistake must not hang streams).
-        deadline = time.monotonic() + _DB_POLL
+        deadline = min(time.monotonic() + _DB_POLL, last_event + idle)
         while time.monotonic() < deadline:
             known = store.known_seq(rec.id)
             if known is not None and known > after:
