@@ -124,8 +124,10 @@ def test_spec_errors_are_one_clear_message(sub, message):
 
 
 def test_an_ode_of_the_wrong_dimension_is_a_spec_error():
+    """A state box given per dimension fixes the dimension (a box of numbers would take the ODE's two)."""
+    box = {"lb": [-2], "ub": [2], "eta": [0.25]}
     with pytest.raises(SpecError, match="returns 2 components, expected 1"):
-        build_network(parse_spec(_spec({"ode": "[x[0], u[0]]", "sampling_time": 0.1})))
+        build_network(parse_spec(_spec({"ode": "[x[0], u[0]]", "sampling_time": 0.1, "state": box})))
 
 
 def test_discrete_time_specs_dump_as_before():
