@@ -92,6 +92,7 @@ def child_end_to_end(p: dict, emit: Emit) -> None:
     """
     from pipelines.network import build_network
     from pipelines.spec.model import load_spec
+    from workers.executors import Execution
     from workers.job import run_job
 
     spec = load_spec(p["spec"], p.get("set"))
@@ -99,7 +100,7 @@ def child_end_to_end(p: dict, emit: Emit) -> None:
     clock = StageClock(emit)
     workers = int(p.get("workers", 0))
     with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
-        rep = run_job(spec, out, workers=max(1, workers), in_process=not workers, progress=clock)
+        rep = run_job(spec, out, execution=Execution(workers=max(1, workers), in_process=not workers), progress=clock)
     audit = rep["audit"]
     seconds = dict(rep["stage_seconds"])
     if audit.get("beside_synthesis"):  # the harness's audit stage is the wait for it, not its own seconds

@@ -29,6 +29,7 @@ from pipelines.abstraction.cells import CellTask, abstract_cells
 from pipelines.abstraction.relation import chunk_ranges
 from pipelines.network import build_network
 from pipelines.spec.model import JobSpec, load_spec
+from workers.executors import Execution
 from workers.job import run_abstraction
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +50,7 @@ def stage_seconds(spec: JobSpec, workers: int | None) -> tuple[float, dict]:
     from workers.job import abstract_job
 
     with tempfile.TemporaryDirectory() as out:
-        r, info = abstract_job(spec, out, workers=workers, audit=False)
+        r, info = abstract_job(spec, out, execution=Execution(workers=workers), audit=False)
     return r.report["stage_seconds"]["subsystems"], info
 
 
@@ -89,9 +90,10 @@ def task_overhead(spec: JobSpec, n_tasks: int = 40) -> dict[str, float]:
     # Throughput: many one-cell tasks on both workers at once; worker time not spent computing, per task.
     tiny = spec.model_copy(update={"options": spec.options.model_copy(update={"chunk_cells": 1})})
     with tempfile.TemporaryDirectory() as out:
+        from workers.executors import Execution
         from workers.job import abstract_job
 
-        r, info = abstract_job(tiny, out, workers=2, audit=False)
+        r, info = abstract_job(tiny, out, execution=Execution(workers=2), audit=False)
     stage = r.report["stage_seconds"]["subsystems"]
     pipelined = (stage * info["workers"] - info["task_compute_seconds"]) / info["chunks_computed"]
     return {

@@ -35,6 +35,7 @@ TARGET = 1.7
 def child_workers(p: dict, emit: Emit) -> None:
     """(c) The per-cell stage on an embedded Dask cluster of ``p['workers']`` workers, fresh store."""
     from pipelines.spec.model import load_spec
+    from workers.executors import Execution
     from workers.job import abstract_job
 
     spec = load_spec(p["spec"], p.get("set"))
@@ -42,7 +43,7 @@ def child_workers(p: dict, emit: Emit) -> None:
         spec = with_samples(spec, p["samples"], p.get("input_eta"))
     clock = StageClock(emit)
     with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
-        r, info = abstract_job(spec, out, workers=p["workers"], audit=False, progress=clock)
+        r, info = abstract_job(spec, out, execution=Execution(workers=p["workers"]), audit=False, progress=clock)
         clock.mark("other")  # cluster shutdown and the store's consolidation
     emit({"type": "info", "stage_seconds": r.report["stage_seconds"], "abstract_states": r.report["abstract_states"],
           "runner": jsonable({k: info.get(k) for k in ("workers", "chunks_total", "chunks_computed",

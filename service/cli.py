@@ -174,7 +174,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     """The ``run`` subcommand: the job, then its summary (or ``--json`` its report) on stdout, its warnings on
     stderr, and the exit status (module docstring)."""
     from pipelines.spec.validate import cap_synthesis_processes
+    from workers.executors import Execution
     from workers.job import run_job
+    from workers.stages import JobPolicy
 
     t0 = time.perf_counter()
     spec = _load(args)  # run_job validates it (pipelines.spec.validate) before creating --out or a cluster
@@ -184,9 +186,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         with _quiet_workers():
             report = run_job(
-                spec, Path(args.out), scheduler=scheduler,
-                workers=args.workers, in_process=args.in_process, progress=bars, allowed_modules=None,
-                audit=not args.no_audit, synthesis=not args.no_synthesis, overwrite=args.overwrite, caps=local_caps(),
+                spec, Path(args.out), Execution(scheduler=scheduler, workers=args.workers, in_process=args.in_process),
+                progress=bars, policy=JobPolicy(allowed_modules=None, caps=local_caps()), audit=not args.no_audit,
+                synthesis=not args.no_synthesis, overwrite=args.overwrite,
             )
     finally:
         bars.close()

@@ -81,7 +81,9 @@ def run(job_id: str, settings: Any, store: Any, scheduler: str | None) -> int:
     from service.models import summarize
     from service.store import JobStatus
     from service.supervisor import EXIT_STOPPED, end_job
+    from workers.executors import Execution
     from workers.job import JobCancelled, run_job
+    from workers.stages import JobPolicy
 
     rec = store.get(job_id)
     if rec is None or rec.status != JobStatus.RUNNING or rec.cancel_requested:
@@ -90,8 +92,8 @@ def run(job_id: str, settings: Any, store: Any, scheduler: str | None) -> int:
         # Local synthesis helpers at most one per core (a spec may ask for 64).
         spec = cap_synthesis_processes(parse_spec(json.loads(rec.spec)), on_cluster=scheduler is not None)
         report = run_job(
-            spec, settings.jobs_dir / job_id, scheduler=scheduler, in_process=scheduler is None,
-            progress=_progress(store, job_id), allowed_modules=tuple(settings.allowed_modules), caps=settings.caps(),
+            spec, settings.jobs_dir / job_id, execution=Execution(scheduler=scheduler, in_process=scheduler is None),
+            progress=_progress(store, job_id), policy=JobPolicy(allowed_modules=tuple(settings.allowed_modules), caps=settings.caps()),
         )
     except JobCancelled:
         return EXIT_STOPPED

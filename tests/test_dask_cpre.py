@@ -33,6 +33,7 @@ from workers.dask_parts import (
     join_part,
     receive,
 )
+from workers.executors import Execution
 from workers.job import run_abstraction, run_job
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 
@@ -244,7 +245,7 @@ def test_a_job_synthesizes_on_its_cluster(tmp_path, client):
     one process's."""
     spec = parse_spec(_consensus(4, synthesis_parallel_after=0.0, fixed_points=["reach_safe"],
                                  controller="reach_safe"))
-    report = run_job(spec, tmp_path / "job", client=client)
+    report = run_job(spec, tmp_path / "job", execution=Execution(client=client))
     assert report["domain_states"] == 191_493
     assert report["synthesis"]["parallel"]["on"] == "cluster"
     assert report["synthesis"]["parallel"]["calls"] > 0

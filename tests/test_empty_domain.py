@@ -11,6 +11,7 @@ from pipelines.controller import load_controller
 from pipelines.spec.model import parse_spec
 from pipelines.spec.regions import spec_regions
 from pipelines.verification.empty_domain import explain_empty_domain, local_game
+from workers.executors import Execution
 from workers.job import run_abstraction, run_job
 
 from .conftest import EXAMPLES
@@ -56,7 +57,7 @@ CASES = {
 @pytest.mark.parametrize("case", list(CASES))
 def test_the_report_names_the_cause_of_an_empty_domain(case, tmp_path):
     spec, cause, detail = CASES[case]
-    report = run_job(spec, tmp_path / "job", in_process=True)
+    report = run_job(spec, tmp_path / "job", execution=Execution(in_process=True))
     assert report["domain_states"] == 0
     (why,) = [w for w in report["warnings"] if w.startswith("why the winning domain is empty")]
     assert "subsystem 'agent[0]' (and 1 identical)" in why
@@ -77,7 +78,7 @@ def test_the_favourable_game_keeps_what_a_controller_keeps(tmp_path):
     controller's domain (the argument that makes an empty favourable game a cause of an empty domain)."""
     spec = _spec("32 / (1 + exp(-0.2 * (x[0] + u[0] + 0.1 * (x[0] - w[0]) - 16)))", {"x": 1.76, "w": 0.16},
                  safe(5.5, 25.5))
-    report = run_job(spec, tmp_path / "job", in_process=True)
+    report = run_job(spec, tmp_path / "job", execution=Execution(in_process=True))
     assert report["domain_states"] > 0
     assert not any(w.startswith("why the winning domain is empty") for w in report.get("warnings", []))
     controller = load_controller(tmp_path / "job")

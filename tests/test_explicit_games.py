@@ -223,6 +223,7 @@ def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_a
     from pipelines.controller import load_controller
     from pipelines.export.emit import export_controller
     from pipelines.spec.model import parse_spec
+    from workers.executors import Execution
     from workers.job import run_job
 
     from .test_export_c import check, compile_driver
@@ -232,7 +233,7 @@ def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_a
     reports, controllers = {}, {}
     for backend in ("explicit", "bdd"):
         spec = parse_spec(text.replace("options: {", f"options: {{synthesis_backend: {backend}, "))
-        reports[backend] = run_job(spec, tmp_path / backend, in_process=True)
+        reports[backend] = run_job(spec, tmp_path / backend, execution=Execution(in_process=True))
         controllers[backend] = load_controller(tmp_path / backend)
     e, b = reports["explicit"], reports["bdd"]
     assert e["synthesis"]["backend"] == "explicit" and b["synthesis"]["backend"] == "bdd"

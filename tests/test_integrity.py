@@ -24,6 +24,7 @@ import zarr
 from pipelines.spec.model import parse_spec
 from service.cli import main
 from workers.errors import StoreMismatchError
+from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction
 from workers.jobdir import relations_url
 from workers.store import RelationStore
@@ -57,7 +58,7 @@ def fresh(spec):
 def stored(spec, tmp_path_factory) -> Path:
     """A store of the spec with every chunk done (in-process)."""
     out = tmp_path_factory.mktemp("integrity") / "job"
-    _, info = abstract_job(spec, out, in_process=True, audit=False)
+    _, info = abstract_job(spec, out, execution=Execution(in_process=True), audit=False)
     assert info["chunks_computed"] == N_CHUNKS
     return out
 
@@ -113,7 +114,7 @@ def test_damaged_chunk_is_recomputed_not_reused(job, spec, fresh, kind, caplog):
     chunks = damage(job, kind)
     group = the_group(job)
     with caplog.at_level("WARNING", logger="workers.executors"):
-        result, info = abstract_job(spec, job, in_process=True, audit=False)  # no exception, no traceback
+        result, info = abstract_job(spec, job, execution=Execution(in_process=True), audit=False)  # no exception, no traceback
     assert (info["chunks_computed"], info["chunks_reused"]) == (len(chunks), N_CHUNKS - len(chunks))
     assert_same(fresh, result)
     warned = [r.getMessage() for r in caplog.records if r.name == "workers.executors"]
@@ -126,7 +127,7 @@ def test_damaged_chunk_is_recomputed_not_reused(job, spec, fresh, kind, caplog):
     if kind == "deleted":
         assert "lo data chunk is missing" in warned[0]
     # Repaired: the next run reuses everything.
-    again, info = abstract_job(spec, job, in_process=True, audit=False)
+    again, info = abstract_job(spec, job, execution=Execution(in_process=True), audit=False)
     assert (info["chunks_computed"], info["chunks_reused"]) == (0, N_CHUNKS)
     assert_same(fresh, again)
     record(f"integrity: {kind} relation chunk (rerun)", faults=1, identical=1, wrong=0)
@@ -144,7 +145,7 @@ def test_chunk_swapped_with_its_marker_is_recomputed(job, spec, fresh, caplog):
         a.write_bytes(db)
         b.write_bytes(da)
     with caplog.at_level("WARNING", logger="workers.executors"):
-        result, info = abstract_job(spec, job, in_process=True, audit=False)
+        result, info = abstract_job(spec, job, execution=Execution(in_process=True), audit=False)
     assert (info["chunks_computed"], info["chunks_reused"]) == (2, N_CHUNKS - 2)
     assert_same(fresh, result)
     warned = [r.getMessage() for r in caplog.records if r.name == "workers.executors"]
@@ -166,7 +167,7 @@ def test_damaged_marker_counts_as_not_done(job, spec, fresh, marker):
         else:  # the slopes feed the Lipschitz check: a marker's metadata are in the checksum too
             meta["slope_x"]["slope"] = 0.0
         done[2] = json.dumps(meta)
-    result, info = abstract_job(spec, job, in_process=True, audit=False)
+    result, info = abstract_job(spec, job, execution=Execution(in_process=True), audit=False)
     assert (info["chunks_computed"], info["chunks_reused"]) == (1, N_CHUNKS - 1)
     assert_same(fresh, result)
     assert result.report["subsystems"] == fresh.report["subsystems"]
@@ -177,11 +178,11 @@ def test_store_of_the_previous_layout_is_refused_then_overwritten(job, spec, fre
     root = zarr.open_group(str(job / "relations.zarr"), mode="r+", use_consolidated=False)
     root.attrs["layout"] = 1
     with pytest.raises(StoreMismatchError) as err:
-        abstract_job(spec, job, in_process=True, audit=False)
+        abstract_job(spec, job, execution=Execution(in_process=True), audit=False)
     message = str(err.value)
     assert "layout 1" in message and "no chunk checksums" in message and "--overwrite" in message, message
     assert "another job" not in message  # the same spec: only the store layout differs
-    result, info = abstract_job(spec, job, in_process=True, audit=False, overwrite=True)
+    result, info = abstract_job(spec, job, execution=Execution(in_process=True), audit=False, overwrite=True)
     assert info["chunks_computed"] == N_CHUNKS
     assert_same(fresh, result)
     assert RelationStore.open(relations_url(job), spec, result.network).attrs()["layout"] == 2
@@ -191,11 +192,11 @@ def test_cluster_recomputes_damaged_chunks(tmp_path, client, spec, fresh, caplog
     """The Dask path: deleted, swapped and garbage chunks at once; the reused ones are verified while the cluster
     computes, the damaged ones become tasks."""
     out = tmp_path / "job"
-    _, info = abstract_job(spec, out, client=client, audit=False)
+    _, info = abstract_job(spec, out, execution=Execution(client=client), audit=False)
     assert info["chunks_computed"] == N_CHUNKS
     chunks = sorted(k for kind in DAMAGES for k in damage(out, kind))
     with caplog.at_level("WARNING", logger="workers.executors"):
-        result, info = abstract_job(spec, out, client=client, audit=False)
+        result, info = abstract_job(spec, out, execution=Execution(client=client), audit=False)
     assert (info["chunks_computed"], info["chunks_reused"]) == (len(chunks), N_CHUNKS - len(chunks))
     assert_same(fresh, result)
     warned = " ".join(r.getMessage() for r in caplog.records if r.name == "workers.executors")

@@ -17,6 +17,7 @@ import pytest
 from pipelines.spec.model import load_spec
 from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize
+from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction
 
 from .conftest import EXAMPLES
@@ -65,7 +66,7 @@ def test_the_numbers_of_every_example_are_pinned(case, request, tmp_path):
     pin = PINNED[case]
     spec = load_spec(EXAMPLES / f"{pin['example']}.yaml", pin["set"])
     if case in ON_CLUSTER:
-        r, info = abstract_job(spec, tmp_path, client=request.getfixturevalue("client"), audit=False)
+        r, info = abstract_job(spec, tmp_path, execution=Execution(client=request.getfixturevalue("client")), audit=False)
         assert info["workers"] == 2 and info["chunks_computed"] == info["chunks_total"] > 1
     else:
         r = run_abstraction(spec, audit=False)

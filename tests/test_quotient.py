@@ -208,10 +208,11 @@ def test_the_fine_tanks_end_to_end_on_the_quotient(tmp_path):
     process: a non-empty domain inside the outer bound, 100 closed-loop runs of the concrete tanks without a
     violation, the paper's initial state outside (as the domain bound proves for the maximal domain), and a
     warning that the domain may be smaller than the maximal one."""
+    from workers.executors import Execution
     from workers.job import run_job
 
     spec = with_quotient(EXAMPLES / "tanks_fine.yaml", 1)
-    report = run_job(spec, tmp_path / "job", in_process=True, audit=False)
+    report = run_job(spec, tmp_path / "job", execution=Execution(in_process=True), audit=False)
     syn = report["synthesis"]
     assert syn["quotient"]["level"] == 1 and syn["quotient"]["maximal"] is False
     assert 0 < report["domain_states"] <= syn["domain_bound"]["domain_states_at_most"]

@@ -182,17 +182,18 @@ def test_tree_is_in_post_order_with_in_degree_two():
 def test_scalability_job_with_a_declared_max_runs_and_audits_clean(tmp_path):
     """A whole job (embedded cluster, audit, synthesis) on the scalability example at N = 8 with error: max."""
     from pipelines.spec.model import parse_spec as parse
+    from workers.executors import Execution
     from workers.job import run_job
 
     spec = parse(spec_text(8))
-    report = run_job(spec, tmp_path / "job", workers=2)
+    report = run_job(spec, tmp_path / "job", execution=Execution(workers=2))
     parts = report["audit"]["parts"]
     assert parts["interconnection"]["violations"] == 0 and parts["interconnection"]["transitions_checked"] > 0
     assert parts["composition"]["violations"] == 0 and parts["composition"]["transitions_checked"] > 0
     assert report["interconnection"]["output_modes"] == ["max"]
     # The same job under the paper's certify: M̂ admits every w cell (no affine fit of max is close), so its
     # domain cannot be larger than the exact reduction's (the example's placeholder safety spec makes them equal).
-    paper = run_job(parse(spec_text(8, "certify", "max(x)")), tmp_path / "paper", workers=2)
+    paper = run_job(parse(spec_text(8, "certify", "max(x)")), tmp_path / "paper", execution=Execution(workers=2))
     assert paper["interconnection"]["output_modes"] == ["certify"]
     assert 0 < paper["domain_states"] <= report["domain_states"]
 

@@ -14,6 +14,7 @@ import workers.job
 import workers.resume
 from pipelines.spec.model import parse_spec
 from workers import jobdir, resume
+from workers.executors import Execution
 from workers.job import abstract_job, run_job
 
 from .conftest import EXAMPLES
@@ -34,12 +35,12 @@ def _refuse(what):
 @pytest.mark.parametrize("synthesis", [False, True], ids=["audit in process", "audit beside synthesis"])
 def test_a_resumed_run_reads_back_the_interconnection_and_the_audit(tmp_path, monkeypatch, synthesis):
     spec, out = _spec(), tmp_path / "job"
-    first = run_job(spec, out, in_process=True, synthesis=synthesis)
+    first = run_job(spec, out, execution=Execution(in_process=True), synthesis=synthesis)
     assert first["audit"]["transitions_checked"] > 0 and "read_back" not in first["interconnection"]
     monkeypatch.setattr(workers.resume, "abstract_interconnection", _refuse("the interconnection"))
     monkeypatch.setattr(workers.job, "audit_abstraction", _refuse("the audit"))
     monkeypatch.setattr("workers.processes.audit_beside.BackgroundAudit", _refuse("the audit"))
-    again = run_job(spec, out, in_process=True, synthesis=synthesis)
+    again = run_job(spec, out, execution=Execution(in_process=True), synthesis=synthesis)
     assert again["interconnection"].pop("read_back") is True
     assert json.loads(json.dumps(again["interconnection"])) == json.loads(json.dumps(first["interconnection"]))
     assert again["audit"]["stored"] is True
@@ -53,7 +54,7 @@ def test_a_resumed_run_reads_back_the_interconnection_and_the_audit(tmp_path, mo
 def test_the_generator_resumes_where_the_interconnection_left_it(tmp_path):
     """The audit after a read-back interconnection draws what it draws after a computed one."""
     spec, out = _spec(), tmp_path / "job"
-    result, _ = abstract_job(spec, out, in_process=True, audit=False)
+    result, _ = abstract_job(spec, out, execution=Execution(in_process=True), audit=False)
     # small.yaml's constants are given (no draws): the interconnection is the first to use the job's generator.
     computed = np.random.default_rng(spec.options.seed)
     ia, read_back = resume.interconnection(None, spec, result.network, computed)
@@ -66,7 +67,7 @@ def test_the_generator_resumes_where_the_interconnection_left_it(tmp_path):
 
 def test_an_audit_is_read_back_only_where_it_checked_the_same_relations(tmp_path):
     spec, out = _spec(), tmp_path / "job"
-    run_job(spec, out, in_process=True, synthesis=False)
+    run_job(spec, out, execution=Execution(in_process=True), synthesis=False)
     assert resume.stored_audit(out, spec, interconnection_read_back=True, chunks_computed=0) is not None
     assert resume.stored_audit(out, spec, interconnection_read_back=True, chunks_computed=1) is None
     assert resume.stored_audit(out, spec, interconnection_read_back=False, chunks_computed=0) is None
@@ -75,16 +76,16 @@ def test_an_audit_is_read_back_only_where_it_checked_the_same_relations(tmp_path
     # A damaged resume file is no resume file.
     (out / jobdir.RESUME).write_text("{not json")
     assert resume.stored_audit(out, spec, interconnection_read_back=True, chunks_computed=0) is None
-    again = run_job(spec, out, in_process=True, synthesis=False)
+    again = run_job(spec, out, execution=Execution(in_process=True), synthesis=False)
     assert "read_back" not in again["interconnection"] and "stored" not in again["audit"]
 
 
 def test_overwrite_removes_the_resume_file(tmp_path):
     spec, out = _spec(), tmp_path / "job"
-    run_job(spec, out, in_process=True, synthesis=False)
+    run_job(spec, out, execution=Execution(in_process=True), synthesis=False)
     assert (out / jobdir.RESUME).is_file()
     other = _spec(seed=5)
-    report = run_job(other, out, in_process=True, synthesis=False, overwrite=True)
+    report = run_job(other, out, execution=Execution(in_process=True), synthesis=False, overwrite=True)
     assert "read_back" not in report["interconnection"]
     assert json.loads(Path(out / jobdir.RESUME).read_text())["spec_hash"] == report["spec_hash"]
 
@@ -92,10 +93,10 @@ def test_overwrite_removes_the_resume_file(tmp_path):
 def test_an_edited_interconnection_is_computed_again_not_reused(tmp_path, monkeypatch):
     """A stored node shrunk after the first run: the resumed run computes the interconnection and the audit again."""
     spec, out = _spec(), tmp_path / "job"
-    first = run_job(spec, out, in_process=True, synthesis=False)
+    first = run_job(spec, out, execution=Execution(in_process=True), synthesis=False)
     arrays = dict(np.load(out / jobdir.INTERCONNECTION_ARRAYS))
     arrays["node0_hi"] = np.maximum(arrays["node0_lo"], arrays["node0_hi"] - 1)
     np.savez_compressed(out / jobdir.INTERCONNECTION_ARRAYS, **arrays)
-    again = run_job(spec, out, in_process=True, synthesis=False)
+    again = run_job(spec, out, execution=Execution(in_process=True), synthesis=False)
     assert "read_back" not in again["interconnection"] and "stored" not in again["audit"]
     assert again["audit"]["parts"] == first["audit"]["parts"]

@@ -19,6 +19,7 @@ from pipelines.spec.model import parse_spec
 from pipelines.spec.regions import closed_loop_regions
 from pipelines.verification.closed_loop import Run, admits, simulate
 from workers import jobdir
+from workers.executors import Execution
 from workers.job import run_job
 
 from .conftest import EXAMPLES
@@ -43,7 +44,7 @@ options: {audit_transitions: 1000, closed_loop_runs: 2, initial_states: [[5.0]],
 def shuttle(tmp_path_factory):
     out = tmp_path_factory.mktemp("shuttle") / "job"
     spec = parse_spec(SHUTTLE)
-    report = run_job(spec, out, in_process=True)
+    report = run_job(spec, out, execution=Execution(in_process=True))
     assert report["domain_states"] > 0
     return spec, out, report
 
@@ -80,7 +81,7 @@ def test_admits_agrees_with_the_listed_inputs_of_a_bdd_controller(tmp_path):
     data = yaml.safe_load((EXAMPLES / "small.yaml").read_text())
     data["options"].update(audit_transitions=0, closed_loop_runs=1)
     spec = parse_spec(data)
-    run_job(spec, tmp_path / "job", in_process=True)
+    run_job(spec, tmp_path / "job", execution=Execution(in_process=True))
     controller = load_controller(tmp_path / "job")
     assert hasattr(controller, "model")  # the BDD path of admits()
     rng = np.random.default_rng(1)

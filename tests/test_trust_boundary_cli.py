@@ -28,6 +28,7 @@ import yaml
 
 from pipelines.spec.model import load_spec
 from service.cli import main
+from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction
 
 from .conftest import EXAMPLES
@@ -130,7 +131,7 @@ def test_random_chunk_damage(finished, tmp_path, capsys):
         audited.check(code == 3 and found == sorted(hit) and named and "Traceback" not in out + err,
                       f"{done}: exit {code}, damaged {found}, expected {sorted(hit)}: {err[-300:]}")
         try:
-            again, info = abstract_job(spec, job, in_process=True, audit=False)
+            again, info = abstract_job(spec, job, execution=Execution(in_process=True), audit=False)
             ok = (info["chunks_computed"], info["chunks_reused"]) == (len(hit), N_CHUNKS - len(hit)) and \
                 same_relations(fresh, again)
             outcome = f"computed {info['chunks_computed']}, reused {info['chunks_reused']}"

@@ -38,6 +38,7 @@ from pipelines.spec.model import parse_spec
 from service.cli import main
 from workers.cluster import credentials_env
 from workers.errors import StoreError, TaskTimeoutError
+from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction, run_job
 
 from .conftest import EXAMPLES, ROOT, wait_idle
@@ -81,7 +82,7 @@ HOSTILE = [
 def test_hostile_black_box_fails_the_job_naming_subsystem_and_cell(tmp_path, client, box, pattern):
     spec = spec_of(f"tests.hostile_boxes:{box}")
     with pytest.raises(BlackBoxError) as err:
-        abstract_job(spec, tmp_path, client=client, audit=False)
+        abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     message = str(err.value)
     assert message.startswith("subsystem 'agent[0]' dynamics: "), message
     assert re.search(pattern, message), message
@@ -104,7 +105,7 @@ def test_hung_black_box_times_out_while_another_job_completes(tmp_path, client, 
 
     def run_other() -> None:
         try:
-            other["result"], other["info"] = abstract_job(spec_of(), tmp_path / "other", client=client, audit=False)
+            other["result"], other["info"] = abstract_job(spec_of(), tmp_path / "other", execution=Execution(client=client), audit=False)
         except BaseException as exc:  # reported by the assertion below
             other["error"] = exc
 
@@ -113,7 +114,7 @@ def test_hung_black_box_times_out_while_another_job_completes(tmp_path, client, 
     thread.start()
     try:
         with pytest.raises(TaskTimeoutError) as err:
-            abstract_job(hung, tmp_path / "hung", client=client, audit=False)
+            abstract_job(hung, tmp_path / "hung", execution=Execution(client=client), audit=False)
     finally:
         thread.join(300)
     assert not thread.is_alive(), "the other job did not end within 300 s of the hung one"
@@ -131,7 +132,7 @@ def test_hung_black_box_times_out_while_another_job_completes(tmp_path, client, 
     else:
         assert len(after - pids) == 1  # a thread blocked in C cannot be: its worker was restarted
     # The cluster still works: a third job completes.
-    again, _ = abstract_job(spec_of(), tmp_path / "third", client=client, audit=False)
+    again, _ = abstract_job(spec_of(), tmp_path / "third", execution=Execution(client=client), audit=False)
     assert same_as_reference(again, reference)
     record(f"black box: {box} (cluster, task_timeout, 2 other jobs)", inputs=1, failed_cleanly=1, identical=2, wrong=0)
 
@@ -174,7 +175,7 @@ def test_worker_killed_in_every_runner_stage(tmp_path, client, reference, capsys
                 killed.append((stage, victim))
 
     out = tmp_path / "job"
-    report = run_job(spec, out, client=client, progress=progress)
+    report = run_job(spec, out, execution=Execution(client=client), progress=progress)
     assert [s for s, _ in killed] == list(stages)
     client.wait_for_workers(2, timeout=240)
     assert not {v for _, v in killed} & set(client.run(os.getpid).values())  # each victim died, was replaced
@@ -260,8 +261,8 @@ def test_runner_killed_between_chunk_data_and_marker(tmp_path, client, reference
     spec_file = tmp_path / "spec.json"
     spec_file.write_text(spec.model_dump_json())
     out, flag, release, k = tmp_path / "out", tmp_path / "paused", tmp_path / "release", 5
-    code = ("import sys; from pipelines.spec.model import load_spec; from workers.job import abstract_job; "
-            "abstract_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)")
+    code = ("import sys; from pipelines.spec.model import load_spec; from workers.job import Execution, abstract_job; "
+            "abstract_job(load_spec(sys.argv[1]), sys.argv[2], Execution(scheduler=sys.argv[3]), audit=False)")
     client.run(_pause_after_data, str(flag), str(release), 4 * k, 300.0)
     proc = None
     log = tmp_path / "runner.log"
@@ -292,7 +293,7 @@ def test_runner_killed_between_chunk_data_and_marker(tmp_path, client, reference
     assert done[k] == ""  # ... its marker was not
     done_before = sum(1 for t in done if t)
 
-    result, info = abstract_job(spec, out, client=client, audit=False)
+    result, info = abstract_job(spec, out, execution=Execution(client=client), audit=False)
     assert info["chunks_computed"] == 9 - done_before and info["chunks_reused"] == done_before
     assert store_of(out)[group]["done"][k] != ""
     assert same_as_reference(result, reference)
@@ -327,7 +328,7 @@ def _partial_job(spec, out: Path, client, chunks: int) -> int:
             raise Stop
 
     with pytest.raises(Stop):
-        abstract_job(spec, out, client=client, audit=False, progress=progress)
+        abstract_job(spec, out, execution=Execution(client=client), audit=False, progress=progress)
     wait_idle(client)
     return marker_counts(out)[0]
 
@@ -369,7 +370,7 @@ def test_store_full_or_read_only_fails_cleanly_and_resumes(tmp_path, client, ref
             else:
                 subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True)
             with pytest.raises(StoreError) as err:
-                abstract_job(spec, out, client=client, audit=False)
+                abstract_job(spec, out, execution=Execution(client=client), audit=False)
             wait_idle(client)
         finally:
             if fault == "full":
@@ -387,7 +388,7 @@ def test_store_full_or_read_only_fails_cleanly_and_resumes(tmp_path, client, ref
         # Intact: every file that was there is unchanged; chunks finished meanwhile are whole (marker last).
         assert {k: v for k, v in after.items() if k in before} == before
         assert marker_counts(out)[0] >= done_before
-        result, info = abstract_job(spec, out, client=client, audit=False)
+        result, info = abstract_job(spec, out, execution=Execution(client=client), audit=False)
         assert info["chunks_computed"] + info["chunks_reused"] == 17
         assert_same_relations(ref, result)
     record(f"faults: store {fault} mid-job", faults=1, failed_cleanly=1, identical=1, wrong=0)
@@ -397,7 +398,7 @@ def test_store_full_or_read_only_fails_cleanly_and_resumes(tmp_path, client, ref
 def test_contradicted_constant_fails_on_the_cluster_too(tmp_path, client):
     spec = spec_of(sub={"lipschitz": {"x": 1.0, "w": 0.16}})
     with pytest.raises(LipschitzError) as err:
-        run_job(spec, tmp_path, client=client)
+        run_job(spec, tmp_path, execution=Execution(client=client))
     message = str(err.value)
     assert "the given L_x = 1 is contradicted by the data" in message and "state cell" in message, message
     assert not (tmp_path / "controller.json").exists() and not (tmp_path / "report.json").exists()

@@ -25,6 +25,7 @@ from pipelines.errors import BlackBoxError
 from pipelines.spec.model import load_spec, parse_spec, spec_hash
 from workers.cluster import connect, credentials_env
 from workers.errors import ClusterError, StoreError, StoreMismatchError
+from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction
 from workers.jobdir import relations_url
 from workers.store import code_version, marker, result_from, write_chunk
@@ -336,7 +337,7 @@ def test_tanks_distributed_equals_in_process(tmp_path, client):
     spec = spec.model_copy(update={"options": spec.options.model_copy(update={"audit_transitions": 100_000})})
     reference = run_abstraction(spec)
     events = []
-    result, info = abstract_job(spec, tmp_path, client=client, progress=lambda *e: events.append(e))
+    result, info = abstract_job(spec, tmp_path, execution=Execution(client=client), progress=lambda *e: events.append(e))
 
     assert_same_relations(reference, result)
     assert without_timings(result.report) == without_timings(reference.report)
@@ -364,7 +365,7 @@ def test_tanks_distributed_equals_in_process(tmp_path, client):
         assert (g.attrs["L_x"], g.attrs["L_w"]) == (0.98, 0.49)
 
     # Same job again: everything is read back, nothing computed.
-    again, info2 = abstract_job(spec, tmp_path, client=client, audit=False)
+    again, info2 = abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     assert info2["chunks_reused"] == 2 and info2["chunks_computed"] == 0
     assert_same_relations(reference, again)
 
@@ -382,7 +383,7 @@ def test_worker_killed_mid_job(tmp_path, client, small_reference):
             os.kill(victim, signal.SIGKILL)  # both workers are busy: 28 chunks still queued
             killed.append(done)
 
-    result, info = abstract_job(spec, tmp_path, client=client, audit=False, progress=progress)
+    result, info = abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False, progress=progress)
     assert killed
     assert_same_relations(reference, result)
     assert info["chunks_computed"] == info["chunks_total"] == 33
@@ -397,8 +398,8 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
     spec_file = tmp_path / "spec.json"
     spec_file.write_text(spec.model_dump_json())
     code = (
-        "import sys; from pipelines.spec.model import load_spec; from workers.job import abstract_job; "
-        "abstract_job(load_spec(sys.argv[1]), sys.argv[2], scheduler=sys.argv[3], audit=False)"
+        "import sys; from pipelines.spec.model import load_spec; from workers.job import Execution, abstract_job; "
+        "abstract_job(load_spec(sys.argv[1]), sys.argv[2], Execution(scheduler=sys.argv[3]), audit=False)"
     )
     out = tmp_path / "out"
     proc = subprocess.Popen(
@@ -421,7 +422,7 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
     done_before, total = marker_counts(out)
     assert total == 33 and 6 <= done_before < total
 
-    result, info = abstract_job(spec, out, client=client, audit=False)
+    result, info = abstract_job(spec, out, execution=Execution(client=client), audit=False)
     assert info["chunks_computed"] == total - done_before
     assert info["chunks_reused"] == done_before
     assert_same_relations(reference, result)
@@ -430,7 +431,7 @@ def test_runner_killed_mid_job_resumes(tmp_path, client, small_reference):
 
 def test_missing_marker_recomputes_that_chunk(tmp_path, client):
     spec = small_spec(chunk_cells=4, dynamics=None)
-    first, info = abstract_job(spec, tmp_path, client=client, audit=False)
+    first, info = abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     assert info["chunks_computed"] == 9
     (group,) = [name for name, _ in store_of(tmp_path).groups()]
     # Data written, marker not: what a task killed between its two writes leaves behind.
@@ -438,7 +439,7 @@ def test_missing_marker_recomputes_that_chunk(tmp_path, client):
     assert marker_file.exists() and (tmp_path / "relations.zarr" / group / "lo" / "c" / "3").exists()
     marker_file.unlink()
     (marker_file.parent / "4.0123abcd.partial").write_text("{")  # a killed writer's temporary: ignored
-    again, info = abstract_job(spec, tmp_path, client=client, audit=False)
+    again, info = abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     assert (info["chunks_computed"], info["chunks_reused"]) == (1, 8)
     assert_same_relations(first, again)
     assert marker_file.exists()
@@ -446,14 +447,14 @@ def test_missing_marker_recomputes_that_chunk(tmp_path, client):
 
 def test_changed_spec_is_refused_then_overwritten(tmp_path, client):
     spec = small_spec(chunk_cells=8, dynamics=None)
-    abstract_job(spec, tmp_path, client=client, audit=False)
+    abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     changed = small_spec(chunk_cells=8, dynamics=None, samples=90)
     with pytest.raises(StoreMismatchError, match="another job") as err:
-        abstract_job(changed, tmp_path, client=client, audit=False)
+        abstract_job(changed, tmp_path, execution=Execution(client=client), audit=False)
     assert "--overwrite" in str(err.value) and spec_hash(changed) in str(err.value)
     assert marker_counts(tmp_path) == (5, 5)  # refused: nothing deleted
 
-    result, info = abstract_job(changed, tmp_path, client=client, audit=False, overwrite=True)
+    result, info = abstract_job(changed, tmp_path, execution=Execution(client=client), audit=False, overwrite=True)
     assert info["chunks_reused"] == 0 and info["chunks_computed"] == info["chunks_total"] == 5
     assert store_of(tmp_path).attrs["spec_hash"] == spec_hash(changed)
     assert_same_relations(run_abstraction(changed, audit=False), result)
@@ -463,14 +464,14 @@ def test_raised_lipschitz_constant_gets_its_own_group(tmp_path, client):
     # L_x = 1.0 is below the data's slope: the stage runs twice, the second time with the raised constant.
     spec = small_spec(chunk_cells=8, dynamics=None, lipschitz={"x": 1.0, "w": 0.16, "on_violation": "raise"})
     reference = run_abstraction(spec, audit=False)
-    result, info = abstract_job(spec, tmp_path, client=client, audit=False)
+    result, info = abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     assert_same_relations(reference, result)
     assert without_timings(result.report) == without_timings(reference.report)
     assert reference.report["subsystems"][0]["lipschitz"]["x"]["source"] == "raised"
     groups = dict(store_of(tmp_path).groups())
     assert len(groups) == 2 and sorted(g.attrs["L_x"] for g in groups.values())[0] == 1.0
     assert info["chunks_computed"] == info["chunks_total"] == 10
-    again, info = abstract_job(spec, tmp_path, client=client, audit=False)
+    again, info = abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     assert (info["chunks_reused"], info["chunks_computed"]) == (10, 0)
     assert_same_relations(reference, again)
 
@@ -479,7 +480,7 @@ def test_not_a_store_is_refused(tmp_path, client):
     (tmp_path / "relations.zarr").mkdir()
     (tmp_path / "relations.zarr" / "notes.txt").write_text("mine")
     with pytest.raises(StoreMismatchError, match="not a compabs relation store"):
-        abstract_job(small_spec(dynamics=None), tmp_path, client=client, audit=False)
+        abstract_job(small_spec(dynamics=None), tmp_path, execution=Execution(client=client), audit=False)
     assert (tmp_path / "relations.zarr" / "notes.txt").exists()
 
 
@@ -487,7 +488,7 @@ def test_not_a_store_is_refused(tmp_path, client):
 def test_black_box_error_surfaces_unchanged(tmp_path, client):
     spec = small_spec(chunk_cells=4, dynamics="sqrt(x[0] - 16)")  # NaN below x = 16
     with pytest.raises(BlackBoxError) as err:
-        abstract_job(spec, tmp_path, client=client, audit=False)
+        abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     message = str(err.value)
     assert "subsystem 'agent[0]' dynamics" in message and "not finite" in message and "state cell" in message
     text = "".join(traceback.format_exception(err.value))
@@ -502,7 +503,7 @@ def test_black_box_error_surfaces_unchanged(tmp_path, client):
 def test_task_that_kills_its_workers_is_a_clear_error(tmp_path, client):
     spec = small_spec(chunk_cells=33, dynamics="tests.test_workers:killer_agent")
     with pytest.raises(ClusterError, match=r"subsystem 'agent\[0\], agent\[1\]', chunk 0 \(state cells 0\.\.32\).*KilledWorker"):
-        abstract_job(spec, tmp_path, client=client, audit=False)
+        abstract_job(spec, tmp_path, execution=Execution(client=client), audit=False)
     assert marker_counts(tmp_path) == (0, 1)
 
 
@@ -531,6 +532,8 @@ def test_small_jobs_run_in_process_unless_told_otherwise():
 
     small = build_network(load_spec(EXAMPLES / "small.yaml"))
     large = build_network(load_spec(EXAMPLES / "consensus.yaml"))
-    assert runs_in_process(small) and not runs_in_process(large)
-    assert not runs_in_process(small, scheduler="tls://127.0.0.1:8786") and not runs_in_process(small, client=object())
-    assert not runs_in_process(small, in_process=False) and runs_in_process(large, in_process=True)
+    auto = Execution(in_process=None)
+    assert runs_in_process(small, auto) and not runs_in_process(large, auto)
+    assert not runs_in_process(small, Execution(scheduler="tls://127.0.0.1:8786", in_process=None))
+    assert not runs_in_process(small, Execution(client=object(), in_process=None))
+    assert not runs_in_process(small, Execution()) and runs_in_process(large, Execution(in_process=True))

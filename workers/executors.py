@@ -33,6 +33,29 @@ from workers.store import ChunkCheck, RelationStore, chunk_place, group_name
 
 log = logging.getLogger(__name__)
 
+@dataclass(frozen=True)
+class Execution:
+    """Where a job's per-cell tasks (and its synthesis' parts) run, as :func:`workers.job.run_job` is asked.
+
+    Attributes
+    ----------
+    client : distributed.Client, optional
+        A long-lived client (the service's): used, never closed.
+    scheduler : str, optional
+        ``tls://HOST:PORT`` of a scheduler to connect to; ``None`` with no client: an embedded cluster.
+    workers : int
+        Worker processes of an embedded cluster.
+    in_process : bool or None
+        ``True``: no cluster, this process; ``None``: in this process when no cluster is given and the job is
+        small (:func:`workers.job.runs_in_process`); ``False``: on a cluster.
+    """
+
+    client: Any = None
+    scheduler: str | None = None
+    workers: int = 2
+    in_process: bool | None = False
+
+
 #: Black-box evaluations per Dask task: a ~0.5 s task on the compiled per-cell pass, so the ~10 ms per task that
 #: Dask, the store write and the read back cost stay a few per cent (``bench/runner.py`` measures it).
 TASK_POINTS = 100_000_000

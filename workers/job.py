@@ -35,7 +35,6 @@ from pipelines.abstraction.lipschitz import ConstantRecord, check_constants, res
 from pipelines.abstraction.relation import CellsResult, SubsystemRelation, assemble, chunk_ranges
 from pipelines.errors import CompabsError
 from pipelines.network import Network, Subsystem, build_network
-from pipelines.spec.costs import Caps
 from pipelines.spec.model import JobSpec, spec_hash
 from pipelines.spec.regions import spec_regions
 from pipelines.spec.validate import Validation, check_cells, validate_spec
@@ -43,8 +42,8 @@ from pipelines.verification.audit import audit_abstraction
 from workers import jobdir, resume
 from workers.control import run_synthesis
 from workers.errors import StoreError
-from workers.executors import Executor, InProcess, OnDask
-from workers.stages import STAGES, Abstraction, JobCancelled, Progress, Stage, no_progress
+from workers.executors import Execution, Executor, InProcess, OnDask
+from workers.stages import STAGES, Abstraction, JobCancelled, JobPolicy, Progress, Stage, no_progress
 from workers.store import RelationStore
 
 
@@ -227,30 +226,28 @@ IN_PROCESS_EVALUATIONS = 20_000_000
 IN_PROCESS_STATES = 10_000_000
 
 
-def runs_in_process(network: Network, *, client: Any = None, scheduler: str | None = None,
-                    in_process: bool | None = None) -> bool:
-    """Whether a job runs its per-cell stage in this process: as asked, or (``in_process=None``) when no cluster
-    is given and the job is small (:data:`IN_PROCESS_EVALUATIONS`, :data:`IN_PROCESS_STATES`), so a small job
-    does not pay for an embedded cluster."""
-    if in_process is not None:
-        return in_process
-    if client is not None or scheduler is not None:
+def runs_in_process(network: Network, execution: Execution) -> bool:
+    """Whether a job runs its per-cell stage in this process: as ``execution.in_process`` says, or (``None``) when
+    no cluster is given and the job is small (:data:`IN_PROCESS_EVALUATIONS`, :data:`IN_PROCESS_STATES`), so a
+    small job does not pay for an embedded cluster."""
+    if execution.in_process is not None:
+        return execution.in_process
+    if execution.client is not None or execution.scheduler is not None:
         return False
     evaluations = sum(s.triples * s.spec.samples * s.spec.rhs_evaluations
                       for s in (m[0] for m in network.unique_subsystems().values()))
     return evaluations <= IN_PROCESS_EVALUATIONS and network.abstract_states <= IN_PROCESS_STATES
 
 
-def _executor(spec: JobSpec, network: Network, store: RelationStore, *, client: Any, scheduler: str | None,
-              workers: int, in_process: bool) -> tuple[Executor, Any]:
+def _executor(spec: JobSpec, store: RelationStore, execution: Execution, in_process: bool) -> tuple[Executor, Any]:
     """The executor a job asks for, and the cluster connection to close afterwards (or ``None``)."""
     if in_process:
         return InProcess(store), None
     from workers.cluster import client_info, connect
 
-    if client is not None:
-        return OnDask(client, store, client_info(client), spec.options.task_timeout), None
-    conn = connect(scheduler, workers)
+    if execution.client is not None:
+        return OnDask(execution.client, store, client_info(execution.client), spec.options.task_timeout), None
+    conn = connect(execution.scheduler, execution.workers)
     client, info = conn
     return OnDask(client, store, info, spec.options.task_timeout), conn
 
@@ -258,34 +255,28 @@ def _executor(spec: JobSpec, network: Network, store: RelationStore, *, client: 
 def abstract_job(
     spec: JobSpec,
     out_dir: str | os.PathLike[str],
+    execution: Execution | None = None,
     *,
-    client: Any = None,
-    scheduler: str | None = None,
-    workers: int = 2,
-    in_process: bool | None = False,
     progress: Progress = no_progress,
-    allowed_modules: Sequence[str] | None = None,
+    policy: JobPolicy | None = None,
     audit: bool = True,
     overwrite: bool = False,
-    audit_beside: bool = False,
-    caps: Caps | None = None,
-    keep_cluster: bool = False,
+    for_synthesis: bool = False,
 ) -> tuple[Abstraction, dict[str, Any]]:
     """The abstraction stages of a job whose relations go into its directory's store (resumable).
 
     ``out_dir`` is the job directory or an fsspec URL; its relation store is ``out_dir/relations.zarr`` and chunks
-    marked done there by an earlier run of the same spec are reused. The per-cell tasks run on ``client`` (a
-    service's long-lived Dask client, not closed), on the scheduler ``scheduler`` (default: ``COMPABS_SCHEDULER``,
-    else an embedded cluster of ``workers`` processes), or in this process (``in_process``; ``None``: in this
-    process when no cluster is given and the job is small, :func:`runs_in_process`).
+    marked done there by an earlier run of the same spec are reused. The per-cell tasks run where ``execution``
+    says (:class:`~workers.executors.Execution`; default: an embedded cluster of two workers).
 
     Returns the abstraction and the report's ``runner`` section (``scheduler``, ``workers``, ``dashboard``,
-    ``embedded``, ``store``, chunk counts, ``task_compute_seconds``). With ``keep_cluster`` the abstraction's
-    ``client`` is the cluster's client, left open for synthesis: the caller must call
-    :meth:`Abstraction.close_cluster` (a cluster this call started closes then).
+    ``embedded``, ``store``, chunk counts, ``task_compute_seconds``). With ``for_synthesis`` the audit starts in a
+    child process beside synthesis (:meth:`Abstraction.finish_audit`), and the abstraction's ``client`` is the
+    cluster's client, left open for synthesis: the caller must call :meth:`Abstraction.close_cluster` (a cluster
+    this call started closes then).
 
-    Before anything else the spec is validated (:func:`pipelines.spec.validate.validate_spec`, with ``caps`` for
-    the cost model) and a local directory claimed (:func:`workers.jobdir.claim`: created if needed, writable, not
+    Before anything else the spec is validated (:func:`pipelines.spec.validate.validate_spec`, with ``policy``'s
+    allowed modules and caps) and a local directory claimed (:func:`workers.jobdir.claim`: created if needed, writable, not
     another spec's); a directory this call created is removed again if the call fails before storing anything.
 
     Raises
@@ -298,21 +289,23 @@ def abstract_job(
     """
     # Check the spec, claim the directory and open the store before starting a cluster: a bad spec, a directory
     # that cannot be written or holds another job, or a stale store fails at once, and leaves no new directory.
-    validated = validate_spec(spec, allowed_modules=allowed_modules, caps=caps)
+    execution = execution if execution is not None else Execution()
+    policy = policy if policy is not None else JobPolicy()
+    validated = validate_spec(spec, allowed_modules=policy.allowed_modules, caps=policy.caps)
     network = validated.network
-    in_process = runs_in_process(network, client=client, scheduler=scheduler, in_process=in_process)
+    in_process = runs_in_process(network, execution)
     local = "://" not in os.fspath(out_dir)
     created = None
     if local:
         out_dir, created = jobdir.claim(out_dir, spec, overwrite=overwrite)
     try:
         store = RelationStore.open(jobdir.relations_url(out_dir), spec, network, overwrite=overwrite)
-        executor, conn = _executor(spec, network, store, client=client, scheduler=scheduler, workers=workers,
-                                   in_process=in_process)
+        executor, conn = _executor(spec, store, execution, in_process)
         kept = False
         try:
-            result = run_abstraction(spec, executor=executor, progress=progress, allowed_modules=allowed_modules,
-                                     audit=audit, audit_beside=audit_beside, validated=validated,
+            result = run_abstraction(spec, executor=executor, progress=progress,
+                                     allowed_modules=policy.allowed_modules, audit=audit, audit_beside=for_synthesis,
+                                     validated=validated,
                                      resume_dir=Path(out_dir) if local else None)
             try:
                 store.consolidate()
@@ -327,8 +320,8 @@ def abstract_job(
             except BaseException:
                 result.cancel_audit()
                 raise
-            if keep_cluster and not in_process:
-                result.client = client if conn is None else conn.client
+            if for_synthesis and not in_process:
+                result.client = execution.client if conn is None else conn.client
                 result.cluster, kept = conn, True
         finally:
             if conn is not None and not kept:
@@ -345,17 +338,13 @@ def abstract_job(
 def run_job(
     spec: JobSpec,
     out_dir: str | os.PathLike[str],
+    execution: Execution | None = None,
     *,
-    client: Any = None,
-    scheduler: str | None = None,
-    workers: int = 2,
-    in_process: bool | None = False,
     progress: Progress | None = None,
-    allowed_modules: Sequence[str] | None = None,
+    policy: JobPolicy | None = None,
     audit: bool = True,
     synthesis: bool = True,
     overwrite: bool = False,
-    caps: Caps | None = None,
 ) -> dict[str, Any]:
     """Run every stage of a job and write its files into ``out_dir`` (:mod:`workers.jobdir`).
 
@@ -365,22 +354,21 @@ def run_job(
     out_dir : str or path
         The job's directory: created, or one of an earlier run of the same spec (its stored chunks are reused);
         refused if it cannot be written or holds another spec's job (before any work).
-    client, scheduler, workers, in_process
-        Where the per-cell tasks run, as for :func:`abstract_job`.
+    execution : Execution, optional
+        Where the per-cell tasks (and the synthesis' parts) run (:class:`~workers.executors.Execution`; default: an
+        embedded cluster of two workers).
     progress : callable, optional
         ``progress(stage, done, total, message)``; raising from it (e.g. :class:`JobCancelled`) stops the job and
         cancels its outstanding cluster tasks.
-    allowed_modules : sequence of str, optional
-        Modules a ``module:function`` black box may come from (``None``: any, as on the local command line;
-        ``()``: none).
+    policy : JobPolicy, optional
+        What the caller allows (:class:`~workers.stages.JobPolicy`): the modules a ``module:function`` black box may
+        come from and the cost model's caps the spec is validated against before anything starts (default: any
+        module and the command line's caps, as on the local command line; the service passes its own).
     audit, synthesis : bool
         Run the audit; synthesize a controller, run the closed loop and draw the figures (if
         ``spec.options.synthesis`` too).
     overwrite : bool
         Replace the relation store and job files of another spec in ``out_dir`` instead of refusing.
-    caps : Caps, optional
-        The cost model's caps (:mod:`pipelines.spec.costs`) the spec is validated against before anything starts
-        (``None``: the command line's, :meth:`~pipelines.spec.costs.Caps.local`; the service passes its own).
 
     Returns
     -------
@@ -400,10 +388,8 @@ def run_job(
     # the audit runs beside it in a child process: it needs nothing synthesis makes, and its violations set the
     # job's status at the end either way.
     # The cluster stays up through synthesis: the fixed points' parts run on its workers (workers.dask_cpre).
-    result, runner = abstract_job(spec, Path(out_dir), client=client, scheduler=scheduler, workers=workers,
-                                  in_process=in_process, progress=progress, allowed_modules=allowed_modules,
-                                  audit=audit, overwrite=overwrite, audit_beside=synthesize, caps=caps,
-                                  keep_cluster=synthesize)
+    result, runner = abstract_job(spec, Path(out_dir), execution, progress=progress, policy=policy, audit=audit,
+                                  overwrite=overwrite, for_synthesis=synthesize)
     out = Path(out_dir)
     result.report["runner"] = runner
     try:
@@ -425,5 +411,5 @@ def run_job(
     return result.report
 
 
-__all__ = ["STAGES", "Abstraction", "JobCancelled", "Progress", "Stage", "abstract_job", "run_abstraction",
-           "run_job"]
+__all__ = ["STAGES", "Abstraction", "Execution", "JobCancelled", "JobPolicy", "Progress", "Stage", "abstract_job",
+           "run_abstraction", "run_job"]

@@ -6,13 +6,14 @@ which shows one progress bar per :class:`Stage`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
 from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.network import Network
+from pipelines.spec.costs import Caps
 from pipelines.spec.model import JobSpec
 
 Progress = Callable[[str, int, int, str], None]
@@ -45,6 +46,24 @@ def no_progress(stage: str, done: int, total: int, message: str) -> None:
     return None
 
 
+@dataclass(frozen=True)
+class JobPolicy:
+    """What the caller of a job allows.
+
+    Attributes
+    ----------
+    allowed_modules : sequence of str, optional
+        Modules a ``module:function`` black box may come from (``None``: any, as on the local command line;
+        ``()``: none).
+    caps : Caps, optional
+        The cost model's caps (:mod:`pipelines.spec.costs`) the spec is validated against before anything starts
+        (``None``: the command line's, :meth:`~pipelines.spec.costs.Caps.local`; the service passes its own).
+    """
+
+    allowed_modules: Sequence[str] | None = None
+    caps: Caps | None = None
+
+
 @dataclass
 class Abstraction:
     """Everything the abstraction stages produce; synthesis consumes it."""
@@ -59,7 +78,7 @@ class Abstraction:
     cluster: Any = field(default=None, repr=False)  # the Connection to close after synthesis, if this job opened it
 
     def close_cluster(self) -> None:
-        """Close the cluster connection kept for synthesis (``abstract_job(keep_cluster=True)``), if this job
+        """Close the cluster connection kept for synthesis (``abstract_job(for_synthesis=True)``), if this job
         opened it; a caller's client stays open (idempotent)."""
         conn, self.cluster, self.client = self.cluster, None, None
         if conn is not None:
