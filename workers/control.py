@@ -88,7 +88,7 @@ def run_synthesis(
         events += 1
         progress("synthesis", events, events + 1, message)
 
-    store = None
+    store: DirectoryCheckpoints | None = None
     results: Mapping[str, SynthesisResult | ExplicitResult]
     if backend == "explicit":
         results, syn_report, make = _explicit_synthesis(abstraction, iteration)
@@ -97,22 +97,7 @@ def run_synthesis(
             key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
                               abstraction.interconnection.nodes, quotient=opts.synthesis_quotient)
             store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
-        initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
-        first, last = network.composed_state_grid().cells_touching(initial, initial)
-        parts = partitioning(opts, client)
-        options = replace(SynthesisOptions.from_spec(opts, list(zip(first.tolist(), last.tolist()))),
-                          auto_parts=parts["auto_parts"])
-        cpre, bdd_results, syn_report = synthesize(
-            network, abstraction.relations, abstraction.interconnection, spec.specification, options,
-            partitioned=parts["partitioned"], progress=iteration, checkpoints=store,
-        )
-        results = bdd_results
-
-        def make(result: Any, meta: dict[str, Any]) -> Any:
-            return controller_of(cpre, result, meta)
-
-        if store is not None:
-            syn_report["checkpoints"] = store.describe()
+        results, syn_report, make = _bdd_synthesis(abstraction, iteration, store, client)
     syn_report["backend"] = backend
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     seconds = {"synthesis": time.perf_counter() - t0}
@@ -171,6 +156,30 @@ def run_synthesis(
         + (explain_empty_domain(network, abstraction.relations, abstraction.interconnection, spec)
            if main.domain_states == 0 else []),
     }
+
+
+def _bdd_synthesis(
+    abstraction: Abstraction, progress: IterationProgress, store: DirectoryCheckpoints | None, client: Any,
+) -> tuple[dict[str, SynthesisResult], dict[str, Any], Any]:
+    """The BDD back end (:func:`pipelines.synthesis.synthesize.synthesize`, its parts where :func:`partitioning`
+    says), its results, its report and a maker of the controllers (explicit or layered BDDs)."""
+    spec, network = abstraction.spec, abstraction.network
+    opts = spec.options
+    initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
+    first, last = network.composed_state_grid().cells_touching(initial, initial)
+    parts = partitioning(opts, client)
+    options = replace(SynthesisOptions.from_spec(opts, list(zip(first.tolist(), last.tolist()))),
+                      auto_parts=parts["auto_parts"])
+    cpre, results, report = synthesize(network, abstraction.relations, abstraction.interconnection,
+                                       spec.specification, options, partitioned=parts["partitioned"],
+                                       progress=progress, checkpoints=store)
+    if store is not None:
+        report["checkpoints"] = store.describe()
+
+    def make(result: SynthesisResult, meta: dict[str, Any]) -> Any:
+        return controller_of(cpre, result, meta)
+
+    return results, report, make
 
 
 def _explicit_synthesis(

@@ -327,6 +327,88 @@ def _binary(op: int, a: float, b: float) -> float:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _operator(op, a, b, m):  # noqa: PLR0912 - one branch per opcode
+    """``a[:m] = a OP b`` for a binary operator or comparison (comparisons give 1.0 or 0.0)."""
+    if op == ADD:
+        for i in range(m):
+            a[i] = a[i] + b[i]
+    elif op == SUB:
+        for i in range(m):
+            a[i] = a[i] - b[i]
+    elif op == MUL:
+        for i in range(m):
+            a[i] = a[i] * b[i]
+    elif op == DIV:
+        for i in range(m):
+            a[i] = a[i] / b[i]
+    elif op == POW:
+        for i in range(m):
+            a[i] = a[i] ** b[i]
+    elif op == LT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] < b[i] else 0.0
+    elif op == LE:
+        for i in range(m):
+            a[i] = 1.0 if a[i] <= b[i] else 0.0
+    elif op == GT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] > b[i] else 0.0
+    elif op == GE:
+        for i in range(m):
+            a[i] = 1.0 if a[i] >= b[i] else 0.0
+    elif op == EQ:
+        for i in range(m):
+            a[i] = 1.0 if a[i] == b[i] else 0.0
+    else:
+        for i in range(m):
+            a[i] = 1.0 if a[i] != b[i] else 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _with_constant(op, a, c, m):  # noqa: PLR0912 - one branch per opcode
+    """``a[:m] = a OP c`` for an operator with a constant right operand (:data:`WITH_CONSTANT`)."""
+    if op == ADD + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = a[i] + c
+    elif op == SUB + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = a[i] - c
+    elif op == MUL + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = a[i] * c
+    elif op == DIV + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = a[i] / c
+    elif op == POW + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = a[i] ** c
+    elif op == RSUB_C:
+        for i in range(m):
+            a[i] = c - a[i]
+    elif op == RDIV_C:
+        for i in range(m):
+            a[i] = c / a[i]
+    elif op == LT + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] < c else 0.0
+    elif op == LE + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] <= c else 0.0
+    elif op == GT + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] > c else 0.0
+    elif op == GE + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] >= c else 0.0
+    elif op == EQ + WITH_CONSTANT:
+        for i in range(m):
+            a[i] = 1.0 if a[i] == c else 0.0
+    else:
+        for i in range(m):
+            a[i] = 1.0 if a[i] != c else 0.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _component(ops, first, last, consts, xs, us, ws, m, stack):  # noqa: PLR0912 - one branch per opcode
     """Run rows ``first:last`` of ``ops`` on the first ``m`` columns of ``xs``, ``us``, ``ws`` (component-major:
     one contiguous row per component); the value is ``stack[0, :m]``."""
@@ -362,81 +444,9 @@ def _component(ops, first, last, consts, xs, us, ws, m, stack):  # noqa: PLR0912
                     stack[sp - 1, i] = stack[sp + 1, i]
         elif op < SELECT:  # a binary operator or comparison
             sp -= 1
-            a, b = stack[sp - 1], stack[sp]
-            if op == ADD:
-                for i in range(m):
-                    a[i] = a[i] + b[i]
-            elif op == SUB:
-                for i in range(m):
-                    a[i] = a[i] - b[i]
-            elif op == MUL:
-                for i in range(m):
-                    a[i] = a[i] * b[i]
-            elif op == DIV:
-                for i in range(m):
-                    a[i] = a[i] / b[i]
-            elif op == POW:
-                for i in range(m):
-                    a[i] = a[i] ** b[i]
-            elif op == LT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] < b[i] else 0.0
-            elif op == LE:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] <= b[i] else 0.0
-            elif op == GT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] > b[i] else 0.0
-            elif op == GE:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] >= b[i] else 0.0
-            elif op == EQ:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] == b[i] else 0.0
-            else:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] != b[i] else 0.0
+            _operator(op, stack[sp - 1], stack[sp], m)
         elif op >= WITH_CONSTANT:
-            a, c = stack[sp - 1], consts[arg]
-            if op == ADD + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = a[i] + c
-            elif op == SUB + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = a[i] - c
-            elif op == MUL + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = a[i] * c
-            elif op == DIV + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = a[i] / c
-            elif op == POW + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = a[i] ** c
-            elif op == RSUB_C:
-                for i in range(m):
-                    a[i] = c - a[i]
-            elif op == RDIV_C:
-                for i in range(m):
-                    a[i] = c / a[i]
-            elif op == LT + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] < c else 0.0
-            elif op == LE + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] <= c else 0.0
-            elif op == GT + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] > c else 0.0
-            elif op == GE + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] >= c else 0.0
-            elif op == EQ + WITH_CONSTANT:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] == c else 0.0
-            else:
-                for i in range(m):
-                    a[i] = 1.0 if a[i] != c else 0.0
+            _with_constant(op, stack[sp - 1], consts[arg], m)
         elif op < 50:
             sp -= 1
             for i in range(m):
