@@ -276,9 +276,10 @@ def _reduced(name: str):
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("name", ["dcdc", "vehicle"])
+@pytest.mark.parametrize("name", ["dcdc"])
 def test_the_examples_domains_are_the_same_set_on_both_back_ends(name):
-    """SCOTS's examples, from one abstraction: the explicit and the BDD fixed points win the same cells."""
+    """SCOTS's DC-DC example, from one abstraction: the explicit and the BDD fixed points win the same cells (the
+    vehicle's are compared by ``bench/run.py --cases general``, whose abstraction takes minutes)."""
     from pipelines.synthesis.synthesize import synthesize
     from workers.job import run_abstraction
 
