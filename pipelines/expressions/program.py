@@ -11,8 +11,10 @@ numpy evaluators. The machine (:func:`rk4`) is one numba function compiled once 
 opcodes this module emitted, never text, so nothing from a spec is compiled or executed beyond the whitelist.
 
 The operations are those of the numpy evaluators, in the order of the parse tree, with numpy's error model (a
-division by zero is ``inf``, not an exception), so arithmetic gives the same bits; and :func:`rk4` takes the
-steps of :func:`pipelines.integrators.rk4` in its order. Samples are processed in blocks of :data:`BLOCK` rows
+division by zero is ``inf``, not an exception), and :func:`rk4` takes the steps of
+:func:`pipelines.integrators.rk4` in its order: ``+ - * /``, comparisons and selections give the same bits, powers
+and transcendental functions agree to within a few ulps (numpy's SIMD implementations and the C library's
+differ). Every stage evaluates an ODE through one of the two paths, so the map the guarantees are about is one map. Samples are processed in blocks of :data:`BLOCK` rows
 whose intermediate values stay in cache, and each opcode's loop over a block is one vectorisable loop.
 """
 
