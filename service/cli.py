@@ -454,7 +454,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--x0", required=True, help="initial state, comma-separated")
     m.add_argument("--steps", type=count(1), default=50)
     m.add_argument("--seed", type=count(0), default=0)
-    m.add_argument("--choose", choices=["random", "first"], default="random", help="which admissible input")
+    m.add_argument("--choose", choices=["random", "first", "steady"], default="random",
+                   help="which admissible input: random, the first, or steady (the previous one while admissible)")
     m.add_argument("--free", action="store_true", help="all inputs 0 instead of the controller")
     m.set_defaults(func=cmd_simulate)
     s = sub.add_parser("schema", help="print the JSON Schema of job specs")

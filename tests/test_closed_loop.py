@@ -116,10 +116,11 @@ def test_runs_in_lockstep_are_the_runs_one_at_a_time(small_job, kind):
     assert stopped > 0  # some runs ended early, so the bookkeeping of finished runs was exercised
 
 
-def test_simulate_command(small_job, capsys):
+@pytest.mark.parametrize("choose", ["random", "first", "steady"])
+def test_simulate_command(small_job, capsys, choose):
     out, spec, _ = small_job
     x0 = ",".join(str(v) for v in spec.options.initial_states[0])
-    assert main(["simulate", str(out), "--x0", x0, "--steps", "20"]) == 0
+    assert main(["simulate", str(out), "--x0", x0, "--steps", "20", "--choose", choose]) == 0
     run = json.loads(capsys.readouterr().out)
     assert len(run["states"]) == 21 and run["violation"] is None and run["in_target"][-1]
 
