@@ -316,3 +316,22 @@ def test_standard_bounds_put_the_chosen_one_first():
     names = [b.name for b in standard_bounds(ScpBound(L, W, "radius"))]
     assert names == ["scp_radius", "lipschitz", "hull", "scp"]
     assert growth_bound("scp", L, W, "radius") == ScpBound(L, W, "radius") != ScpBound(L, W, "paper")
+
+
+def test_validate_refuses_a_matrix_of_the_wrong_shape(tmp_path, capsys):
+    """``compabs validate`` refuses a Lipschitz matrix that does not fit the subsystem, naming the field and the
+    shape expected, before any black-box evaluation (one error line, exit 2)."""
+    import yaml
+
+    from service.cli import main
+
+    from .conftest import EXAMPLES
+
+    data = yaml.safe_load((EXAMPLES / "vehicle.yaml").read_text())
+    data["subsystems"][0]["lipschitz"]["x"] = [[1, 0], [0, 1]]
+    spec = tmp_path / "vehicle.yaml"
+    spec.write_text(yaml.safe_dump(data))
+    assert main(["validate", str(spec)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: subsystems[car].lipschitz.x: a matrix of Lipschitz constants")
+    assert "3 x 3 here, got 2 rows of lengths [2, 2]" in err[0]

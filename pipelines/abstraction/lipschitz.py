@@ -218,6 +218,17 @@ def _dims(sub: Subsystem, arg: str) -> tuple[int, int]:
     return sub.n, (sub.n if arg == "x" else sub.p)
 
 
+def check_given_constants(sub: Subsystem) -> None:
+    """Refuse a given matrix of constants whose shape does not fit the subsystem, before anything runs (the
+    same check and message as when the job resolves its constants, :func:`resolve_constant`)."""
+    lip = sub.spec.lipschitz
+    for arg in ("x", "w"):
+        given = getattr(lip, arg)
+        if isinstance(given, list) and not (arg == "w" and sub.internal_grid is None):
+            n, d = _dims(sub, arg)
+            LipschitzMatrix.given(given, n, d, f"subsystems[{sub.spec.name}].lipschitz.{arg}")
+
+
 def resolve_constant(sub: Subsystem, arg: Literal["x", "w"], rng: np.random.Generator) -> ConstantRecord:
     """The constants ``L_arg`` a subsystem's abstraction starts with: given by the spec (a number, or a matrix of
     one row per state component and one column per coordinate of ``arg``), or estimated (Algorithm 4, in the

@@ -26,6 +26,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from pipelines.abstraction.lipschitz import check_given_constants
 from pipelines.errors import SpecError
 from pipelines.network import Network, build_network
 from pipelines.spec.costs import Caps, check_costs, check_spec
@@ -153,6 +154,8 @@ def validate_spec(spec: JobSpec, *, allowed_modules: Sequence[str] | None = (), 
     lines = [f"spec: '{spec.name}' parses", f"parameters: {params}"]
     check_spec(spec, caps)  # subsystems after replicate, expression lengths: before anything is built
     network = build_network(spec, allowed_modules)
+    for members in network.unique_subsystems().values():
+        check_given_constants(members[0])
     distinct = len(network.unique_subsystems())
     lines.append(
         f"network: {len(network.subsystems)} subsystems ({distinct} distinct), {network.state_dim} states, "
