@@ -72,3 +72,38 @@ def test_a_single_system_runs_end_to_end(tmp_path, text):
     # The stored job reloads: its interconnection has no outputs, and a second audit passes.
     again = audit_job(tmp_path / "job", transitions=1000, seed=3, runs=5, write=False)
     assert again["violations"] == 0
+
+
+def test_cells_no_controller_can_use_are_not_abstracted():
+    """A single system's cells outside the safe set or inside the avoid set are blocking under every input (not
+    sampled); every other cell's relation is bit for bit what a full abstraction gives, and so is the domain."""
+    from pipelines.abstraction.cells import abstract_cells
+    from pipelines.spec.regions import never_winning, spec_regions
+    from pipelines.synthesis import explicit
+    from workers.job import run_abstraction
+
+    text = SINGLE.replace(
+        "specification:\n  kind: safe\n  safe: {boxes: [{lb: [-0.8, -0.8], ub: [0.8, 0.8]}]}",
+        "specification:\n  kind: reach_avoid\n  target: {boxes: [{lb: [-0.2, -0.2], ub: [0.2, 0.2]}]}\n"
+        "  avoid: {boxes: [{lb: [0.3, -0.1], ub: [0.5, 0.1]}]}\n  safe: {boxes: [{lb: [-0.9, -0.9], ub: [0.9, 0.9]}]}",
+    )
+    spec = parse_spec(text)
+    ab = run_abstraction(spec, audit=False)
+    (rel,) = ab.relations.values()
+    sub = ab.network.subsystems[0]
+    dead = never_winning(spec, ab.network, spec_regions(spec, ab.network))
+    assert dead is not None and 0 < dead.sum() < dead.size
+    assert ab.report["subsystems"][0]["cells_not_abstracted"] == int(dead.sum())
+    full = abstract_cells(sub, 0, sub.state_grid.size, rel.L_x, rel.L_w, sub.spec.growth_bound, sub.spec.scp_objective)
+    live = ~dead
+    np.testing.assert_array_equal(rel.lo[live], full.lo[live])
+    np.testing.assert_array_equal(rel.hi[live], full.hi[live])
+    np.testing.assert_array_equal(rel.blocking[live], full.blocking[live])
+    assert rel.blocking[dead].all() and (rel.hi[dead] < rel.lo[dead]).all()
+    grid = ab.network.composed_state_grid()
+    skipped = explicit.solve(explicit.ExplicitGame.from_relation(rel, grid.shape), spec.specification, grid)
+    whole = explicit.solve(explicit.ExplicitGame.from_relation(
+        type(rel)(rel.method, full.lo, full.hi, full.blocking, rel.L_x, rel.L_w), grid.shape), spec.specification, grid)
+    np.testing.assert_array_equal(skipped["reach_avoid"].domain, whole["reach_avoid"].domain)
+    np.testing.assert_array_equal(skipped["reach_avoid"].admissible, whole["reach_avoid"].admissible)
+    assert skipped["reach_avoid"].domain_states > 0

@@ -36,7 +36,7 @@ from pipelines.abstraction.relation import CellsResult, SubsystemRelation, assem
 from pipelines.errors import CompabsError
 from pipelines.network import Network, Subsystem, build_network
 from pipelines.spec.model import JobSpec, spec_hash
-from pipelines.spec.regions import spec_regions
+from pipelines.spec.regions import dead_ranges, never_winning, spec_regions
 from pipelines.spec.validate import Validation, check_cells, validate_spec
 from pipelines.verification.audit import audit_abstraction
 from workers import jobdir, resume
@@ -50,16 +50,20 @@ from workers.store import RelationStore
 # ====================================================================================== abstraction stages
 def _abstract_subsystem(
     members: list[Subsystem], constants: dict[str, ConstantRecord], executor: Executor, chunk_cells: int | None,
-    progress: Progress, done_before: int, total: int,
+    progress: Progress, done: tuple[int, int], dead: np.ndarray | None = None,
 ) -> tuple[SubsystemRelation, dict]:
     """Algorithm 1 for one distinct subsystem, its constants checked against its data (docs/method.md §3): a constant
-    the data contradict fails the job, or is raised and the relation computed again with it."""
+    the data contradict fails the job, or is raised and the relation computed again with it. ``done``: the chunks
+    done before and in all (progress); ``dead``: the cells not abstracted
+    (:func:`~pipelines.spec.regions.never_winning`)."""
+    done_before, total = done
     sub, spec = members[0], members[0].spec
     chunks = chunk_ranges(sub, chunk_cells, executor.chunk_points)
     names = [m.name for m in members]
     for _ in range(2):
         L_x, L_w = constants["x"].value, constants["w"].value
-        tasks = [CellTask(sub, a, b, L_x, L_w, spec.growth_bound, spec.scp_objective) for a, b in chunks]
+        tasks = [CellTask(sub, a, b, L_x, L_w, spec.growth_bound, spec.scp_objective, dead_ranges(dead, a, b))
+                 for a, b in chunks]
         results: list[CellsResult] = []
         for i, r in enumerate(executor.map_cells(tasks, names)):
             results.append(r)
@@ -91,6 +95,7 @@ def _abstract_subsystem(
         "chunks": len(chunks),
         "samples_per_cell": spec.samples,
         "blocking_fraction": float(rel.blocking.mean()),
+        "cells_not_abstracted": 0 if dead is None else int(dead.sum()),
         "mean_successors": {name: (s / k if k else None) for name, (s, k) in totals.items()},
         "non_blocking": {name: k for name, (s, k) in totals.items()},
         "lipschitz": {arg: c.as_dict() for arg, c in constants.items()},
@@ -166,8 +171,8 @@ def run_abstraction(
     total = sum(len(chunk_ranges(m[0], spec.options.chunk_cells, executor.chunk_points)) for m in groups.values())
     done = 0
     for key, members in groups.items():
-        rel, info = _abstract_subsystem(members, constants[key], executor, spec.options.chunk_cells, progress, done,
-                                         total)
+        rel, info = _abstract_subsystem(members, constants[key], executor, spec.options.chunk_cells, progress,
+                                         (done, total), never_winning(spec, network, regions))
         done += info["chunks"]
         relations[key] = rel
         infos.append(info)

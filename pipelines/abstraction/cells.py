@@ -359,6 +359,8 @@ class CellTask:
     L_w: float | LipschitzMatrix
     method: str
     objective: str
+    #: Ranges ``[a, b)`` of cells no controller can use (:func:`~pipelines.spec.regions.never_winning`): not sampled.
+    dead: tuple[tuple[int, int], ...] = ()
 
     @property
     def bound(self) -> GrowthBound:
@@ -368,8 +370,8 @@ class CellTask:
     def cost(self) -> float:
         """Work of the task in black-box evaluations (:func:`~pipelines.abstraction.cost.triple_cost`)."""
         sub = self.subsystem
-        triples = (self.stop - self.start) * sub.input_grid.size * sub.n_w_cells
-        return triples * triple_cost(sub, self.method, self.objective)
+        cells = self.stop - self.start - sum(b - a for a, b in self.dead)
+        return cells * sub.input_grid.size * sub.n_w_cells * triple_cost(sub, self.method, self.objective)
 
     @property
     def constants(self) -> tuple[float | LipschitzMatrix, float | LipschitzMatrix, str, str]:
@@ -377,7 +379,40 @@ class CellTask:
         return (self.L_x, self.L_w, self.method, self.objective)
 
     def run(self) -> CellsResult:
+        if self.dead:
+            return abstract_live(self.subsystem, self.start, self.stop, self.dead, self.bound)
         return abstract_chunk(self.subsystem, self.start, self.stop, self.bound)
+
+
+def abstract_live(sub: Subsystem, start: int, stop: int, dead: tuple[tuple[int, int], ...],
+                  bound: GrowthBound) -> CellsResult:
+    """:func:`abstract_chunk` on the cells of ``[start, stop)`` outside the ``dead`` ranges, each live run as its own
+    chunk (the same bits: every quantity is per triple). A dead cell is blocking under every input: that claims no
+    transition, and the fixed points never let it in (outside the safe set, inside an avoid set)."""
+    n_u, n_w, n = sub.input_grid.size, sub.n_w_cells, sub.n
+    c = stop - start
+    lo = np.zeros((c, n_u, n_w, n), dtype=np.int32)
+    hi = np.full((c, n_u, n_w, n), -1, dtype=np.int32)
+    blocking = np.ones((c, n_u, n_w), dtype=bool)
+    parts: list[CellsResult] = []
+    at = start
+    for a, b in sorted(dead) + [(stop, stop)]:
+        if at < a:
+            parts.append(abstract_chunk(sub, at, a, bound))
+        at = max(at, b)
+    for r in parts:
+        live = slice(r.start - start, r.stop - start)
+        lo[live], hi[live], blocking[live] = r.lo, r.hi, r.blocking
+    if not parts:  # nothing live: no slopes (zero per entry, as a live chunk's records have them), no successors
+        zero = [SlopeRecord(0.0, start, 0, 0, ((0.0, start, 0, 0),) * (n * d), (n, d)) if d else
+                SlopeRecord(0.0, start, 0, 0) for d in (n, sub.p)]
+        return CellsResult(start, stop, lo, hi, blocking, {b.name: (0, 0) for b in standard_bounds(bound)}, *zero)
+    successors = {name: (sum(r.successors[name][0] for r in parts), sum(r.successors[name][1] for r in parts))
+                  for name in parts[0].successors}
+    slope_x, slope_w = parts[0].slope_x, parts[0].slope_w
+    for r in parts[1:]:
+        slope_x, slope_w = slope_x.merge(r.slope_x), slope_w.merge(r.slope_w)
+    return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
 
 
 class _Block(NamedTuple):

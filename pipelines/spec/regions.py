@@ -187,3 +187,37 @@ def closed_loop_regions(spec: JobSpec, network: Network,
     kind = spec.specification.kind
     return {"target": regions.get("safe") if kind == "safe" else regions.get("target"),
             "safe": regions.get("safe"), "avoid": regions.get("avoid")}
+
+
+def never_winning(spec: JobSpec, network: Network, regions: dict[str, AbstractRegion]) -> np.ndarray | None:
+    """The cells of a single system that no fixed point of its specification can ever let in, as a boolean per
+    flat cell (SCOTS does not abstract them either), or ``None`` for a network (whose composed cells are not one
+    subsystem's) or where there are none.
+
+    Every fixed point (docs/method.md §6) keeps to the safe set ``S`` (a ``safe`` specification's region, else the
+    optional ``specification.safe``) and out of the avoid set ``A``: the cells outside ``S`` (inner approximation)
+    or meeting ``A`` (outer approximation) are in no iterate, so no controller needs their successors.
+    """
+    if len(network.subsystems) != 1 or network.subsystems[0].reads:
+        return None
+    grid = network.composed_state_grid()
+    dead = np.zeros(grid.shape, dtype=bool)
+    safe = regions.get("safe")
+    if safe is not None:
+        dead[...] = True
+        for lo, hi in safe.boxes:
+            dead[tuple(slice(int(a), int(b) + 1) for a, b in zip(lo, hi))] = False
+    avoid = regions.get("avoid") if spec.specification.kind == "reach_avoid" else None
+    if avoid is not None:
+        for lo, hi in avoid.boxes:
+            dead[tuple(slice(int(a), int(b) + 1) for a, b in zip(lo, hi))] = True
+    return dead.reshape(-1) if dead.any() else None
+
+
+def dead_ranges(dead: np.ndarray | None, start: int, stop: int) -> tuple[tuple[int, int], ...]:
+    """The runs ``[a, b)`` of ``True`` in ``dead[start:stop]``, as flat cell indices (empty for ``None``)."""
+    if dead is None:
+        return ()
+    part = np.concatenate([[False], dead[start:stop], [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(part))
+    return tuple((start + int(a), start + int(b)) for a, b in zip(edges[::2], edges[1::2]))
