@@ -20,7 +20,7 @@ FORBIDDEN_IN_PIPELINES = {"dask", "distributed", "zarr", "fastapi", "subprocess"
 MAX_LINES = 600
 #: A reference to a file a user of the repository does not have (the workspace around it, the method notes that
 #: docs/method.md replaces).
-OUTSIDE = re.compile(r"\.\./shared|/work/shared|METHOD\.md|METHOD §")
+OUTSIDE = re.compile(r"\.\./shared|/work/shared|METHOD\.md|METHOD\s§")
 #: A date: ISO (2026-11-27, 2026/11/27) or with the month's name (November 2026, 27 Nov 2026, Nov. 27, 2026).
 _MONTH = (r"(?:Jan(?:uary)?|Feb(?:ruary)?|Mar(?:ch)?|Apr(?:il)?|May|June?|July?|Aug(?:ust)?|Sept?(?:ember)?"
           r"|Oct(?:ober)?|Nov(?:ember)?|Dec(?:ember)?)")
@@ -157,8 +157,8 @@ def test_bench_has_no_import_cycle():
 
 
 def test_nothing_refers_to_files_outside_the_repository():
-    """A user has the repository only: no ``../shared``, ``/work/shared`` or the method notes that docs/method.md
-    replaces, in code, docs or configuration."""
+    """A user has the repository only: no path into the shared folder beside it (``/work/shared`` or relative) or
+    the method notes that docs/method.md replaces, in code, docs or configuration."""
     me = Path(__file__).resolve()  # names the patterns
     found = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}"
              for p in repository_files(".py", ".md", ".yaml", ".yml") if p.resolve() != me
