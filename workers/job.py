@@ -50,13 +50,11 @@ from workers.store import RelationStore
 # ====================================================================================== abstraction stages
 def _abstract_subsystem(
     members: list[Subsystem], constants: dict[str, ConstantRecord], executor: Executor, chunk_cells: int | None,
-    progress: Progress, done: tuple[int, int], dead: np.ndarray | None = None,
+    progress: Progress, done_before: int, total: int, dead: np.ndarray | None = None,
 ) -> tuple[SubsystemRelation, dict]:
     """Algorithm 1 for one distinct subsystem, its constants checked against its data (docs/method.md §3): a constant
-    the data contradict fails the job, or is raised and the relation computed again with it. ``done``: the chunks
-    done before and in all (progress); ``dead``: the cells not abstracted
-    (:func:`~pipelines.spec.regions.never_winning`)."""
-    done_before, total = done
+    the data contradict fails the job, or is raised and the relation computed again with it. ``dead``: the cells
+    not abstracted (:func:`~pipelines.spec.regions.never_winning`)."""
     sub, spec = members[0], members[0].spec
     chunks = chunk_ranges(sub, chunk_cells, executor.chunk_points)
     names = [m.name for m in members]
@@ -171,8 +169,8 @@ def run_abstraction(
     total = sum(len(chunk_ranges(m[0], spec.options.chunk_cells, executor.chunk_points)) for m in groups.values())
     done = 0
     for key, members in groups.items():
-        rel, info = _abstract_subsystem(members, constants[key], executor, spec.options.chunk_cells, progress,
-                                         (done, total), never_winning(spec, network, regions))
+        rel, info = _abstract_subsystem(members, constants[key], executor, spec.options.chunk_cells, progress, done,
+                                         total, never_winning(spec, network, regions))
         done += info["chunks"]
         relations[key] = rel
         infos.append(info)
