@@ -14,7 +14,6 @@ meta, the SHA-256 of the arrays' file), and ``NAME.npz``, the arrays (``domain``
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 from pipelines.errors import CompabsError
 from pipelines.export.table import quantize
 from pipelines.grid import UniformGrid
+from pipelines.symbolic.files import file_sha256
 
 #: ``format`` of an array controller's header.
 ARRAY_FORMAT = "compabs-array-controller/1"
@@ -99,10 +99,6 @@ class ArrayController:
     def nodes(self) -> int:
         """Bytes of the arrays (an array controller has no BDD nodes; reports compare sizes by this)."""
         return int(self._admissible.size // 8 + (0 if self._layer is None else self._layer.nbytes))
-
-    @property
-    def domain_states(self) -> int:
-        return int(self._domain.sum())
 
     # ------------------------------------------------------------------ queries
     def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +199,7 @@ class ArrayController:
             "roots": [arrays.name],
             "shape": list(self._admissible.shape),
             "layered": self._layer is not None,
-            "sha256": _sha256(arrays),
+            "sha256": file_sha256(arrays),
         }
         head.write_text(json.dumps(header, indent=1))
         return arrays, head
@@ -223,7 +219,7 @@ class ArrayController:
         if header.get("format") != ARRAY_FORMAT:
             raise CompabsError(f"{head_path}: format {header.get('format')!r}, expected {ARRAY_FORMAT!r}")
         try:
-            digest = _sha256(arrays)
+            digest = file_sha256(arrays)
         except OSError as exc:
             raise CompabsError(f"{arrays}: cannot read the controller's arrays ({exc.strerror or exc})") from None
         if digest != header.get("sha256"):
@@ -238,14 +234,6 @@ class ArrayController:
         if admissible.shape != shape:
             raise CompabsError(f"{arrays}: arrays of shape {admissible.shape}, the header says {shape}")
         return cls(admissible, layer, meta)
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def is_array_controller(header_path: str | os.PathLike[str]) -> bool:

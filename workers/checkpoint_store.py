@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from pipelines.symbolic.files import file_sha256
 from pipelines.symbolic.model import Function, SymbolicModel
 
 FORMAT = "compabs-checkpoint/1"
@@ -69,14 +70,6 @@ def problem_key(specification: Mapping[str, Any], relations: Mapping[str, Any], 
 def variables_key(model: SymbolicModel) -> str:
     """A hash of the BDD variables' names (not their order): an iterate is read back by name."""
     return hashlib.blake2b(json.dumps(sorted(model.variables)).encode(), digest_size=12).hexdigest()
-
-
-def _file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _stem(name: str) -> str:
@@ -142,7 +135,7 @@ class DirectoryCheckpoints:
             return self._refuse(f"{where} has no iteration count; the fixed point started afresh")
         if not bdd_path.exists():
             return self._refuse(f"{where} names {bdd_path.name}, which is missing; the fixed point started afresh")
-        if _file_sha256(bdd_path) != head.get("sha256"):
+        if file_sha256(bdd_path) != head.get("sha256"):
             return self._refuse(f"{bdd_path} does not match the SHA-256 its checkpoint records (damaged or "
                                 f"replaced); the fixed point started afresh")
         try:
@@ -180,7 +173,7 @@ class DirectoryCheckpoints:
             model.bdd.dump(str(tmp_bdd), [Z], filetype="dddmp")
         head = {"format": FORMAT, "problem": self.key, "variables": variables_key(model), "name": name,
                 "iteration": int(iteration),
-                "sha256": _file_sha256(tmp_bdd), "nodes": Z.dag_size, "saved": time.time()}
+                "sha256": file_sha256(tmp_bdd), "nodes": Z.dag_size, "saved": time.time()}
         os.replace(tmp_bdd, bdd_path)
         tmp_head.write_text(json.dumps(head, indent=1))
         os.replace(tmp_head, head_path)

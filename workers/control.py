@@ -143,7 +143,8 @@ def run_synthesis(
         "domain_states": main.domain_states,
         "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
         "controller": {"fixed_point": main_key,
-                       "form": "array" if backend == "explicit" else "layered" if main.layers else "explicit",
+                       "form": "layered" if isinstance(main, SynthesisResult) and main.layers else
+                       "explicit" if isinstance(main, SynthesisResult) else "array",
                        "nodes": controller.nodes, "files": files},
         "synthesis": syn_report,
         "closed_loop": loop.summary(),

@@ -11,6 +11,7 @@ header (:mod:`pipelines.synthesis.parts`), so the levels match.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -23,6 +24,15 @@ from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout
 
 HEADER_FORMAT = "compabs-bdd/1"
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes, read in blocks (controller and checkpoint files carry it in their headers)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def header(model: SymbolicModel) -> dict[str, Any]:

@@ -224,13 +224,6 @@ class ExplicitResult:
     def domain_states(self) -> int:
         return int(self.domain.sum())
 
-    @property
-    def layers(self) -> tuple[int, ...]:
-        """Cells per layer (for reports; the layers themselves are ``layer``)."""
-        if self.layer is None or not self.domain.any():
-            return ()
-        return tuple(np.bincount(self.layer[self.domain]).tolist())
-
     def summary(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
