@@ -11,8 +11,6 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from workers.figures import redraw_figures
-
 
 def axes_pair(text: str) -> tuple[int, int]:
     """An argparse type: two comma-separated state coordinates, 0-based (``0,1`` is x1 and x2)."""
@@ -28,6 +26,8 @@ def axes_pair(text: str) -> tuple[int, int]:
 
 def cmd_figures(args: argparse.Namespace) -> int:
     """The ``figures`` subcommand: prints the figures written; 0 (2 for a user error, raised)."""
+    from workers.figures import redraw_figures  # matplotlib: only when drawing (the CLI starts in under a second)
+
     for path in redraw_figures(args.dir, axes=args.axes):
         print(path)
     return 0

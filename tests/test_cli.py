@@ -1,6 +1,8 @@
 """The ``compabs`` command: bad input fails with a specific message and a non-zero exit."""
 
 import json
+import subprocess
+import sys
 
 import pytest
 import yaml
@@ -78,3 +80,15 @@ def test_bad_set_override(tmp_path, capsys):
 def test_schema_command(capsys):
     assert main(["schema"]) == 0
     assert json.loads(capsys.readouterr().out)["title"] == "JobSpec"
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["schema"], ["validate", str(EXAMPLES / "dcdc.yaml")]])
+def test_quick_commands_import_no_plotting_or_bdds(argv):
+    """``--version``, ``schema`` and ``validate`` answer in well under a second because they import neither
+    matplotlib nor CUDD (asserted on what is imported, not on a time)."""
+    code = ("import sys; from service.cli import main; status = main(sys.argv[1:]); "
+            "heavy = sorted({m.split('.')[0] for m in sys.modules} & {'matplotlib', 'dd', 'distributed', 'zarr'}); "
+            "print('HEAVY', heavy); sys.exit(status)")
+    out = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stdout

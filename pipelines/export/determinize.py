@@ -21,20 +21,11 @@ from __future__ import annotations
 import numpy as np
 
 from pipelines.controller import Controller, LayeredController
-from pipelines.export.table import BDDTable, ExportError, node_table
+from pipelines.export.table import RULES, BDDTable, ExportError, node_table
 from pipelines.symbolic.counting import enumerate_cells
 from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.synthesis.at_state import cpre_at_state
 from pipelines.synthesis.cpre import bad_inputs
-
-RULES = ("auto", "earliest_layer", "smallest_index")
-RULE_TEXT = {
-    "earliest_layer": "a cell first in layer k > 0 gets an input into the earliest layer it can reach in one step "
-                      "(most progress), ties by the smallest input index; cells of layer 0 the smallest input "
-                      "keeping the invariant (reach-and-stay) or the smallest valid input (a reach target)",
-    "smallest_index": "the smallest admissible input index (per-subsystem flat input indices, lexicographic in "
-                      "subsystem order)",
-}
 
 
 def resolve_rule(ctrl: Controller, rule: str) -> str:

@@ -17,8 +17,18 @@ import numpy as np
 
 from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
-from pipelines.export.determinize import RULE_TEXT, bdd_table, determinize
-from pipelines.export.table import EXPORT_FORMAT, BDDTable, ExportedController, ExportError, TreeTable, codes_from_bits
+from pipelines.export.determinize import bdd_table, determinize
+from pipelines.export.table import (
+    CSV_MAX_ROWS,
+    EXPORT_FORMAT,
+    FORMS,
+    RULE_TEXT,
+    BDDTable,
+    ExportedController,
+    ExportError,
+    TreeTable,
+    codes_from_bits,
+)
 from pipelines.export.tree import decision_tree
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import count
@@ -26,11 +36,8 @@ from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import pair_set
 
-FORMS = ("auto", "bdd", "tree")
 #: Largest state grid for which the exact tree is built (it labels every cell of the grid).
 TREE_MAX_CELLS = 1 << 21
-#: Default cap on the rows of a CSV export (one row per domain cell).
-CSV_MAX_ROWS = 100_000
 #: Cells evaluated at once when labelling the grid.
 BLOCK = 1 << 16
 

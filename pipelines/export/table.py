@@ -28,6 +28,20 @@ import numpy as np
 from pipelines.errors import CompabsError
 from pipelines.grid import UniformGrid
 
+#: The determinization rules (:mod:`pipelines.export.determinize`), ``auto`` first, and what each does.
+RULES = ("auto", "earliest_layer", "smallest_index")
+RULE_TEXT = {
+    "earliest_layer": "a cell first in layer k > 0 gets an input into the earliest layer it can reach in one step "
+                      "(most progress), ties by the smallest input index; cells of layer 0 the smallest input "
+                      "keeping the invariant (reach-and-stay) or the smallest valid input (a reach target)",
+    "smallest_index": "the smallest admissible input index (per-subsystem flat input indices, lexicographic in "
+                      "subsystem order)",
+}
+#: The export forms (:mod:`pipelines.export.emit`); ``auto`` is the one with fewer bytes.
+FORMS = ("auto", "bdd", "tree")
+#: Default cap on the rows of a CSV export (one row per domain cell).
+CSV_MAX_ROWS = 100_000
+
 #: ``format`` of a JSON export.
 EXPORT_FORMAT = "compabs-controller/1"
 #: Cells :meth:`BDDTable.evaluate` walks at once.
