@@ -35,12 +35,9 @@ import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
-from service.settings import local_caps
 from service.table import Row, format_table
 from service.termination import Terminated, terminate_as_interrupt
-from workers import jobdir
 from workers.huge_pages import restart_with_huge_pages
-from workers.jobdir import json_default as _json_default
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.spec.model import JobSpec
@@ -164,6 +161,7 @@ def _quiet_workers() -> Iterator[None]:
 def cmd_validate(args: argparse.Namespace) -> int:
     """The ``validate`` subcommand: one line per check, then ``ok`` (exit 0), or one ``error:`` line (exit 2)."""
     from pipelines.spec.validate import validate_spec
+    from service.settings import local_caps
 
     result = validate_spec(_load(args), allowed_modules=None, caps=local_caps())
     print("\n".join([*result.lines, "ok"]))
@@ -174,8 +172,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     """The ``run`` subcommand: the job, then its summary (or ``--json`` its report) on stdout, its warnings on
     stderr, and the exit status (module docstring)."""
     from pipelines.spec.validate import cap_synthesis_processes
+    from service.settings import local_caps
     from workers.executors import Execution
     from workers.job import run_job
+    from workers.jobdir import json_default
     from workers.stages import JobPolicy
 
     t0 = time.perf_counter()
@@ -193,7 +193,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         bars.close()
     if args.json:
-        print(json.dumps(report, indent=2, default=_json_default))  # as report.json (workers.jobdir.write_report)
+        print(json.dumps(report, indent=2, default=json_default))  # as report.json (workers.jobdir.write_report)
     else:
         print("\n".join(summary_lines(report, Path(args.out), time.perf_counter() - t0)))
     for warning in report.get("warnings", []):
@@ -277,6 +277,8 @@ def _runner_parts(runner: dict) -> list[str]:
 def _file_lines(report: dict, out: Path) -> list[Row]:
     """The job's files: report, relations, controller (its header; its DDDMP files, or an explicit game's arrays, lie
     beside it), figures."""
+    from workers import jobdir
+
     lines = [_line("report", str(out / jobdir.REPORT)), _line("relations", str(out / jobdir.RELATIONS))]
     files = list(report.get("controller", {}).get("files", []))
     headers = [f for f in files if f.endswith(".json")]
@@ -495,14 +497,20 @@ def _fail(message: str, status: int = 2) -> int:
 HUGE_PAGE_COMMANDS = frozenset({"run", "serve", "export", "simulate"})
 
 
+def _command_word(argv: Sequence[str]) -> str | None:
+    """The subcommand of a command line (its first word that is not an option; ``compabs`` itself has only
+    ``--version`` and ``--help``), read before the parser is built."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv``; returns the exit status (usage errors too, which argparse raises)."""
+    if argv is None and _command_word(sys.argv[1:]) in HUGE_PAGE_COMMANDS:  # the command line, not main([...])
+        restart_with_huge_pages()  # before the parser imports the subcommands' modules, which it would do twice
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, its error: line printed)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-    if argv is None and args.command in HUGE_PAGE_COMMANDS:  # the command line itself, not a caller's main([...])
-        restart_with_huge_pages()
     try:
         # SIGTERM, SIGHUP: unwound like Ctrl-C, the cluster and the children stopped (serve handles its own).
         with terminate_as_interrupt() if args.command != "serve" else contextlib.nullcontext():
