@@ -215,7 +215,7 @@ def test_default_chunking_counts_the_executor_tasks():
     # maxima over 316 state samples, the hull's extremes), which sizes tasks by their real cost (triple_cost)
     assert tasks == 50_001 // 5 + 1
     in_process = {c.cap_name: c.value for c in estimate_costs(spec, network)}["max_tasks"]
-    assert in_process == 50_001  # 2e6 per in-process chunk: one cell a task
+    assert in_process == 50_001  # 2.5e7 per in-process chunk: one cell a task
     with pytest.raises(CostError, match=r"set options\.chunk_cells to at least \d+"):
         check_costs(spec, network, dataclasses.replace(Caps.local(), max_tasks=100, max_evaluations=10**14))
 

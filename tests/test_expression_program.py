@@ -42,11 +42,16 @@ EXACT = [
     "[(x[0] - 1)*(x[0] - 1) - x[1], minimum(x[0], x[1], u[0]) + max(x[1], w[0]) + clip(x[0], -0.5, 0.5)]",
     "[where(x[0] > 0, x[1], -x[1]), abs(x[0]) - square(x[1]) + 3 / 4 * pi]",
     "[-(a + b*a/(a - b))/2*x[0] - b/(5*(a + b))*x[1] + 1/a, 5*a/(a + b)/2*x[0] - x[1]/(2*(a + b))]",
+    # repeated sub-expressions (registers) and ones of the inputs only (held through the integration)
+    "[(x[0] + u[0]) * (x[0] + u[0]) - x[1], (x[0] + u[0]) / (1 + w[0]*u[0]) if u[0]*w[0] < 0.5 else x[1]*(1 + w[0]*u[0])]",
+    "[x[1] if u[0] < 0 else -x[1], x[0] if u[0] < 0 else (u[0] - w[0])*(u[0] - w[0])]",
 ]
 TRANSCENDENTAL = [
     "[cos(x[1]) * u[0], sin(x[1]) * u[0] - tanh(x[0])]",
     "[(x[0] - 1)**2 - x[1], x[0]**3 - abs(x[1])**0.5]",
     "[exp(-x[0]*x[0]) - sqrt(abs(x[1])), log(1 + x[1]*x[1]) + arctan2(x[0], x[1]) + hypot(x[0], w[0])]",
+    # SCOTS's vehicle, x[1] as its heading: input-only angles held, the shared angle sum computed once
+    "[u[0]*cos(atan(tan(w[0])/2) + x[1])/cos(atan(tan(w[0])/2)), u[0]*sin(atan(tan(w[0])/2) + x[1])/cos(atan(tan(w[0])/2))]",
 ]
 
 
@@ -95,6 +100,20 @@ def test_constants_are_folded_as_numpy_computes_them():
     assert p is not None
     assert np.float64(-0.7) / np.float64(-1.3) in p.constants and 0.125 in p.constants
     assert p.ops.shape[0] == 4  # x0 *c +c ; x1
+
+
+def test_repeated_and_input_only_sub_expressions_are_registers():
+    """The vehicle's right-hand side: tan, atan and cos of the steering input once per sample (held through the
+    integration), the angle sum once per evaluation; per evaluation one cos and one sin remain."""
+    from pipelines.expressions.program import REG, UNARY
+
+    p = compile_program("[u[0]*cos(atan(tan(w[0])/2) + x[1])/cos(atan(tan(w[0])/2)), "
+                        "u[0]*sin(atan(tan(w[0])/2) + x[1])/cos(atan(tan(w[0])/2)), u[0]*tan(w[0])]",
+                        {"x": 2, "u": 1, "w": 1}, {}, 3)
+    assert p is not None and p.out_dim == 3 and p.held == 4 and p.registers == 5
+    per_evaluation = p.ops[p.starts[p.held]:]
+    assert sorted(per_evaluation[np.isin(per_evaluation[:, 0], list(UNARY.values())), 0]) == [UNARY["sin"], UNARY["cos"]]
+    assert (p.ops[p.starts[-2]:, 0] == REG).all()  # the last component is a held register
 
 
 _LEAVES = st.sampled_from(["x[0]", "x[1]", "u[0]", "w[0]", "a", "b", "0.5", "3", "pi"])

@@ -537,3 +537,24 @@ def test_small_jobs_run_in_process_unless_told_otherwise():
     assert not runs_in_process(small, Execution(scheduler="tls://127.0.0.1:8786", in_process=None))
     assert not runs_in_process(small, Execution(client=object(), in_process=None))
     assert not runs_in_process(small, Execution()) and runs_in_process(large, Execution(in_process=True))
+
+
+def test_threads_in_process_give_the_same_relations_and_errors(tmp_path):
+    """In this process on two threads (the chunks finish in any order) through the store: the same bits as one
+    thread in memory, and a black box's NaN is the same error."""
+    data = yaml.safe_load((EXAMPLES / "dcdc.yaml").read_text())
+    data["subsystems"][0]["state"]["eta"] = 0.005  # 81 x 81 cells
+    data["options"] = {"chunk_cells": 500, "audit_transitions": 0}  # 14 chunks
+    spec = parse_spec(data)
+    reference = run_abstraction(spec, audit=False)
+    result, info = abstract_job(spec, tmp_path / "job", execution=Execution(in_process=True, workers=2), audit=False)
+    assert info["threads"] == 2 and info["chunks_computed"] == info["chunks_total"] == 14
+    assert_same_relations(reference, result)
+    assert without_timings(result.report) == without_timings(reference.report)
+
+    nan = small_spec(chunk_cells=4, dynamics="sqrt(x[0] - 16)")  # NaN below x = 16, in several chunks
+    with pytest.raises(BlackBoxError) as threaded:
+        abstract_job(nan, tmp_path / "nan", execution=Execution(in_process=True, workers=2), audit=False)
+    with pytest.raises(BlackBoxError) as alone:
+        run_abstraction(nan, audit=False)
+    assert "not finite" in str(threaded.value) and type(threaded.value) is type(alone.value)

@@ -4,7 +4,8 @@ An executor takes one batch of :class:`~pipelines.abstraction.cells.CellTask` (t
 subsystem, computed with one set of constants) and yields their :class:`~pipelines.abstraction.relation.CellsResult`
 as they complete, in any order. Two kinds:
 
-- :class:`InProcess`: in this process, one task after another (tests, tiny jobs, ``compabs run --in-process``);
+- :class:`InProcess`: in this process, on threads or one task after another (tests, small jobs, ``compabs run
+  --in-process``);
 - :class:`OnDask`: one Dask task per chunk on a cluster (:mod:`workers.cluster`), each writing its chunk into the
   relation store (:mod:`workers.store`) and returning its small done-marker.
 
@@ -162,11 +163,15 @@ def _reused(store: RelationStore, group: str, check: ChunkCheck, good: list[dict
 
 
 class InProcess:
-    """Every task in this process, one after another; through ``store`` if given (resumable), else in memory."""
+    """Every task in this process: one after another, or on ``threads`` threads (the compiled black box and
+    numpy's loops release the interpreter, so threads share the cores without a cluster's start-up); through
+    ``store`` if given (resumable), else in memory."""
 
-    def __init__(self, store: RelationStore | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS) -> None:
+    def __init__(self, store: RelationStore | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS,
+                 threads: int = 1) -> None:
         self.store = store
         self.chunk_points = chunk_points
+        self.threads = max(1, int(threads))
         self.stats = ExecutorStats()
 
     def map_cells(self, tasks: Sequence[CellTask], members: Sequence[str]) -> Iterator[CellsResult]:
@@ -181,18 +186,37 @@ class InProcess:
             check, good, redo = _verify(self.store, group, chunk_cells, reuse, tasks)
             todo = sorted([*todo, *redo], key=lambda t: t.start)
             yield from _reused(self.store, group, check, good, self.stats)
-        for t in todo:
-            t0 = time.perf_counter()
-            result = t.run()
-            seconds = time.perf_counter() - t0
-            if self.store is not None:
-                self.store.write(group, result, seconds)
-            self.stats.chunks_computed += 1
-            self.stats.task_seconds += seconds
-            yield result
+        if self.threads == 1 or len(todo) < 2:
+            for t in todo:
+                yield self._count(*self._compute(group, t))
+            return
+        from concurrent.futures import ThreadPoolExecutor, as_completed
+
+        with ThreadPoolExecutor(min(self.threads, len(todo)), thread_name_prefix="compabs-cells") as pool:
+            futures = [pool.submit(self._compute, group, t) for t in todo]
+            try:
+                for fut in as_completed(futures):
+                    yield self._count(*fut.result())
+            finally:  # an error, or an abandoned generator: what has not started does not start
+                for fut in futures:
+                    fut.cancel()
+
+    def _compute(self, group: str, t: CellTask) -> tuple[CellsResult, float]:
+        t0 = time.perf_counter()
+        result = t.run()
+        seconds = time.perf_counter() - t0
+        if self.store is not None:
+            self.store.write(group, result, seconds)
+        return result, seconds
+
+    def _count(self, result: CellsResult, seconds: float) -> CellsResult:
+        self.stats.chunks_computed += 1
+        self.stats.task_seconds += seconds
+        return result
 
     def describe(self) -> dict[str, Any]:
-        return {"scheduler": None, "workers": 0, "dashboard": None, "embedded": True, "in_process": True}
+        return {"scheduler": None, "workers": 0, "threads": self.threads, "dashboard": None, "embedded": True,
+                "in_process": True}
 
 
 class OnDask:

@@ -224,7 +224,7 @@ def run_abstraction(
 
 #: Black-box evaluations of the per-cell stage below which a job that would start an embedded cluster runs in
 #: process instead (``in_process=None``): a few seconds on one core, less than starting and stopping two workers.
-IN_PROCESS_EVALUATIONS = 20_000_000
+IN_PROCESS_EVALUATIONS = 1_000_000_000
 #: Composed abstract states above which a job keeps the cluster anyway (its synthesis may run parts there).
 IN_PROCESS_STATES = 10_000_000
 
@@ -245,7 +245,7 @@ def runs_in_process(network: Network, execution: Execution) -> bool:
 def _executor(spec: JobSpec, store: RelationStore, execution: Execution, in_process: bool) -> tuple[Executor, Any]:
     """The executor a job asks for, and the cluster connection to close afterwards (or ``None``)."""
     if in_process:
-        return InProcess(store), None
+        return InProcess(store, threads=execution.workers), None
     from workers.cluster import client_info, connect
 
     if execution.client is not None:

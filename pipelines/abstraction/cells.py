@@ -48,7 +48,7 @@ from pipelines.abstraction.relation import CellsResult, SlopeRecord
 from pipelines.grid import SNAP_RTOL, UniformGrid
 from pipelines.network import Subsystem
 
-__all__ = ["SCP_SKIP_RTOL", "STATISTICS_SAMPLE", "CellTask", "abstract_cells", "abstract_chunk", "bound_of", "statistics_sample",
+__all__ = ["SCP_SKIP_RTOL", "STATISTICS_SAMPLE", "CellTask", "abstract_cells", "abstract_chunk", "bound_of", "statistics_rows", "statistics_sample",
            "triple_samples"]
 
 
@@ -172,7 +172,13 @@ def statistics_sample(first_triple: int, count: int, fraction: float = STATISTIC
     ndarray of int64, shape (k,)
         Positions within the range, increasing.
     """
-    t = np.arange(first_triple, first_triple + count, dtype=np.uint64)
+    return statistics_rows(np.arange(first_triple, first_triple + count, dtype=np.uint64), fraction)
+
+
+def statistics_rows(triples: np.ndarray, fraction: float = STATISTICS_SAMPLE) -> np.ndarray:
+    """:func:`statistics_sample` of any global flat triple indices (positions in ``triples`` that the sample
+    takes): the same fixed hash, so the sample of a triple never depends on which others are computed with it."""
+    t = np.asarray(triples, dtype=np.uint64)
     with np.errstate(over="ignore"):
         hashed = (t * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(40)  # Fibonacci hashing, top 24 bits
     return np.flatnonzero(hashed < np.uint64(int(fraction * (1 << 24))))
@@ -287,19 +293,27 @@ def abstract_chunk(
     computed per triple, so blocks give the same bits as one pass; the slope records keep the first largest
     slope, as ``argmax`` over the whole chunk would.
     """
+    lo, hi, blocking, successors, slope_x, slope_w = _abstract_at(sub, np.arange(start, stop), bound, full_statistics)
+    return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
+
+
+def _abstract_at(sub: Subsystem, cells: np.ndarray, bound: GrowthBound, full_statistics: bool | None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, tuple[int, int]], SlopeRecord, SlopeRecord]:
+    """:func:`abstract_chunk` of the state cells ``cells`` (flat indices, increasing): ``lo``, ``hi`` of shape
+    ``(len(cells), n_u, n_w, n)``, ``blocking``, the successor counts and the slope records."""
     if bound.L_x.shape != (sub.n, sub.n) or bound.L_w.shape != (sub.n, sub.p):
         raise ValueError(f"constants of shapes {bound.L_x.shape} and {bound.L_w.shape} for a subsystem with "
                          f"dim(x) = {sub.n}, dim(w) = {sub.p}")
     xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
     u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, sub.n)
-    c, n_u, n_w = stop - start, u_pts.shape[0], w_lo.shape[0]
-    x_lo, x_hi = xg.clipped_cells(xg.unravel(np.arange(start, stop)))  # (c, n)
+    c, n_u, n_w = cells.size, u_pts.shape[0], w_lo.shape[0]
+    x_lo, x_hi = xg.clipped_cells(xg.unravel(cells))  # (c, n)
     samples = off_x.shape[0] * ws.shape[0]
     B = c * n_u * n_w
     step = max(1, BLOCK_POINTS // samples)
     full = sub.n == 1 if full_statistics is None else full_statistics
     parts = [
-        _abstract_block(sub, start, x_lo, x_hi, t0, min(t0 + step, B), bound, full)
+        _abstract_block(sub, cells, x_lo, x_hi, t0, min(t0 + step, B), bound, full)
         for t0 in range(0, B, step)
     ]
     successors = {
@@ -313,7 +327,7 @@ def abstract_chunk(
     lo = np.concatenate([p.lo for p in parts]).reshape(cshape + (sub.n,))
     hi = np.concatenate([p.hi for p in parts]).reshape(cshape + (sub.n,))
     blocking = np.concatenate([p.blocking for p in parts]).reshape(cshape)
-    return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
+    return lo, hi, blocking, successors, slope_x, slope_w
 
 
 def bound_of(sub: Subsystem, L_x: float | LipschitzMatrix, L_w: float | LipschitzMatrix, method: str,
@@ -386,32 +400,26 @@ class CellTask:
 
 def abstract_live(sub: Subsystem, start: int, stop: int, dead: tuple[tuple[int, int], ...],
                   bound: GrowthBound) -> CellsResult:
-    """:func:`abstract_chunk` on the cells of ``[start, stop)`` outside the ``dead`` ranges, each live run as its own
-    chunk (the same bits: every quantity is per triple). A dead cell is blocking under every input: that claims no
+    """:func:`abstract_chunk` on the cells of ``[start, stop)`` outside the ``dead`` ranges, gathered into one pass
+    (the same bits: every quantity is per triple). A dead cell is blocking under every input: that claims no
     transition, and the fixed points never let it in (outside the safe set, inside an avoid set)."""
     n_u, n_w, n = sub.input_grid.size, sub.n_w_cells, sub.n
     c = stop - start
+    live = np.ones(c, dtype=bool)
+    for a, b in dead:
+        live[max(a, start) - start:max(min(b, stop), start) - start] = False
+    if not live.any():  # nothing live: no slopes (zero per entry, as a live chunk's records have them), no successors
+        zero = [SlopeRecord(0.0, start, 0, 0, ((0.0, start, 0, 0),) * (n * d), (n, d)) if d else
+                SlopeRecord(0.0, start, 0, 0) for d in (n, sub.p)]
+        return CellsResult(start, stop, np.zeros((c, n_u, n_w, n), dtype=np.int32),
+                           np.full((c, n_u, n_w, n), -1, dtype=np.int32), np.ones((c, n_u, n_w), dtype=bool),
+                           {b.name: (0, 0) for b in standard_bounds(bound)}, *zero)
+    # The live cells in one pass (not one per run between dead cells: a grid's border splits every row)
+    lo_, hi_, blocking_, successors, slope_x, slope_w = _abstract_at(sub, start + np.flatnonzero(live), bound, None)
     lo = np.zeros((c, n_u, n_w, n), dtype=np.int32)
     hi = np.full((c, n_u, n_w, n), -1, dtype=np.int32)
     blocking = np.ones((c, n_u, n_w), dtype=bool)
-    parts: list[CellsResult] = []
-    at = start
-    for a, b in sorted(dead) + [(stop, stop)]:
-        if at < a:
-            parts.append(abstract_chunk(sub, at, a, bound))
-        at = max(at, b)
-    for r in parts:
-        live = slice(r.start - start, r.stop - start)
-        lo[live], hi[live], blocking[live] = r.lo, r.hi, r.blocking
-    if not parts:  # nothing live: no slopes (zero per entry, as a live chunk's records have them), no successors
-        zero = [SlopeRecord(0.0, start, 0, 0, ((0.0, start, 0, 0),) * (n * d), (n, d)) if d else
-                SlopeRecord(0.0, start, 0, 0) for d in (n, sub.p)]
-        return CellsResult(start, stop, lo, hi, blocking, {b.name: (0, 0) for b in standard_bounds(bound)}, *zero)
-    successors = {name: (sum(r.successors[name][0] for r in parts), sum(r.successors[name][1] for r in parts))
-                  for name in parts[0].successors}
-    slope_x, slope_w = parts[0].slope_x, parts[0].slope_w
-    for r in parts[1:]:
-        slope_x, slope_w = slope_x.merge(r.slope_x), slope_w.merge(r.slope_w)
+    lo[live], hi[live], blocking[live] = lo_, hi_, blocking_
     return CellsResult(start, stop, lo, hi, blocking, successors, slope_x, slope_w)
 
 
@@ -439,7 +447,7 @@ def _cost_names(bound: GrowthBound) -> tuple[str, str]:
 
 def _abstract_block(
     sub: Subsystem,
-    start: int,
+    cells: np.ndarray,
     x_lo: np.ndarray,
     x_hi: np.ndarray,
     t0: int,
@@ -447,14 +455,17 @@ def _abstract_block(
     bound: GrowthBound,
     full_statistics: bool,
 ) -> _Block:
-    """The triples ``t0 .. t1-1`` of the chunk starting at state cell ``start`` (see :func:`abstract_chunk`).
+    """The triples ``t0 .. t1-1`` of the state cells ``cells`` under every input and internal cell (see
+    :func:`abstract_chunk`).
 
     Parameters
     ----------
+    cells : ndarray of int, shape (c,)
+        Flat state-cell indices, increasing.
     x_lo, x_hi : ndarray, shape (c, n)
-        The chunk's clipped state cells.
+        Their clipped cells.
     t0, t1 : int
-        Flat triple range within the chunk, row-major over ``(c, n_u, n_w)``.
+        Flat triple range within them, row-major over ``(c, n_u, n_w)``.
 
     Returns
     -------
@@ -479,6 +490,7 @@ def _abstract_block(
     Sx, Sw = off_x.shape[0], ws.shape[0]
     t = np.arange(t0, t1)
     ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
+    xi = cells[ci]  # the state cells' flat indices
     B = t.size
     shape = (Sx, Sw, B)
 
@@ -492,19 +504,19 @@ def _abstract_block(
     def record(s: np.ndarray) -> SlopeRecord:
         """The first largest slope of the block, overall and per entry; ``s`` of shape (B, n, d)."""
         if s.shape[2] == 0:  # no such argument: slope 0 at the first triple, no entries
-            return SlopeRecord(0.0, start + int(ci[0]), int(ui[0]), int(wi[0]))
+            return SlopeRecord(0.0, int(xi[0]), int(ui[0]), int(wi[0]))
         overall = s.reshape(B, -1).max(axis=1)
         k = int(np.argmax(overall))  # the first largest slope, as over the whole chunk
         first = np.argmax(s, axis=0)  # (n, d)
         entries = tuple(
-            (float(s[b, i, j]), start + int(ci[b]), int(ui[b]), int(wi[b]))
+            (float(s[b, i, j]), int(xi[b]), int(ui[b]), int(wi[b]))
             for (i, j), b in np.ndenumerate(first)
         )
-        return SlopeRecord(float(overall[k]), start + int(ci[k]), int(ui[k]), int(wi[k]), entries,
+        return SlopeRecord(float(overall[k]), int(xi[k]), int(ui[k]), int(wi[k]), entries,
                            (s.shape[1], s.shape[2]))
 
     def where_triple(b: int) -> str:
-        return f"state cell {start + int(ci[b])}, input {int(ui[b])}, internal cell {int(wi[b])}"
+        return f"state cell {int(xi[b])}, input {int(ui[b])}, internal cell {int(wi[b])}"
 
     def where_sample(row: int) -> str:
         return where_triple(int(np.unravel_index(row, shape)[2]))
@@ -558,7 +570,7 @@ def _abstract_block(
         fraction = statistics_fraction(sub, *_cost_names(bound))
         for b in bounds[1:]:
             if isinstance(b, ScpBound):
-                rows[b.name] = statistics_sample(start * n_u * n_w + t0, B, fraction)
+                rows[b.name] = statistics_rows((xi * n_u + ui) * n_w + wi, fraction)
     boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds}
 
     # Successor cells of every box at once (elementwise, so the same bits as one box at a time).

@@ -21,8 +21,9 @@ METHODS = ("lipschitz", "scp", "scp_radius", "hull")
 #: Relative slack when comparing an observed slope with a given Lipschitz constant: slopes are differences
 #: of float64 values, and an excess below this is rounding, not evidence.
 SLOPE_RTOL = 1e-9
-#: Black-box evaluations per chunk when neither the spec nor the caller says: a few tenths of a second.
-DEFAULT_CHUNK_POINTS = 2_000_000
+#: Black-box evaluations per chunk when neither the spec nor the caller says (the tasks of a job in one process):
+#: a few tenths of a second, so a chunk's store write (a few ms) stays small and threads share the chunks evenly.
+DEFAULT_CHUNK_POINTS = 25_000_000
 
 
 @dataclass(frozen=True)

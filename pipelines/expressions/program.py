@@ -38,7 +38,7 @@ __all__ = ["Program", "compile_program", "rk4"]
 BLOCK = 256
 
 # Opcodes (the second column of a program row is the operand: a constant's or a component's index).
-CONST, X, U, W = 0, 1, 2, 3
+CONST, X, U, W, REG = 0, 1, 2, 3, 4
 ADD, SUB, MUL, DIV, POW, NEG = 10, 11, 12, 13, 14, 15
 LT, LE, GT, GE, EQ, NE = 20, 21, 22, 23, 24, 25
 SELECT = 30
@@ -62,27 +62,38 @@ _VARIABLES = {"x": X, "u": U, "w": W}
 
 @dataclass(frozen=True)
 class Program:
-    """Per output component a postfix program (module docstring).
+    """Postfix programs (module docstring): first the registers' definitions, then one per output component.
+
+    A register holds a sub-expression that the components would otherwise compute more than once, or one that
+    reads only ``u``, ``w`` and constants: those (the first :attr:`held` registers) are computed once per sample
+    and held through every Runge-Kutta stage and sub-step, as the inputs are; the others once per evaluation of
+    the right-hand side. A register's definition reads only registers defined before it.
 
     Attributes
     ----------
     ops : ndarray of int64, shape (K, 2)
-        ``(opcode, operand)`` rows, the components' programs one after the other.
-    starts : ndarray of int64, shape (n_out + 1,)
-        Component ``c``'s rows are ``ops[starts[c]:starts[c + 1]]``.
+        ``(opcode, operand)`` rows, the programs one after the other.
+    starts : ndarray of int64, shape (registers + n_out + 1,)
+        Program ``k``'s rows are ``ops[starts[k]:starts[k + 1]]``: registers ``0 .. registers - 1``, then the
+        components.
     constants : ndarray of float64
     depth : int
-        The deepest stack any component needs.
+        The deepest stack any program needs.
+    registers : int
+    held : int
+        Registers ``0 .. held - 1`` read no state.
     """
 
     ops: np.ndarray
     starts: np.ndarray
     constants: np.ndarray
     depth: int
+    registers: int = 0
+    held: int = 0
 
     @property
     def out_dim(self) -> int:
-        return int(self.starts.size - 1)
+        return int(self.starts.size - 1 - self.registers)
 
 
 class _Unsupported(Exception):
@@ -90,13 +101,44 @@ class _Unsupported(Exception):
 
 
 class _Emitter:
-    def __init__(self, variables: dict[str, int], constants: dict[str, float]) -> None:
+    """Postfix code of scalar expressions. ``registers`` (the text of a sub-expression, as :func:`ast.dump` writes
+    it -> its register) are read instead of computed; every other composite sub-expression met is counted in
+    :attr:`visits`: how often, and how often where its parent reads the state (or it is a whole component)."""
+
+    def __init__(self, variables: dict[str, int], constants: dict[str, float],
+                 registers: dict[str, int] | None = None) -> None:
         self.variables = variables
         self.names = {**BUILTIN_CONSTANTS, **constants}
         self.ops: list[tuple[int, int]] = []
         self.constants: list[float] = []
         self.depth = 0
         self.sp = 0
+        self.registers = registers or {}
+        self.visits: dict[str, _Visits] = {}
+        self._state_context = True
+
+    def _visit(self, node: ast.AST) -> bool:
+        """Count a composite sub-expression, or push its register: whether it was pushed."""
+        key = ast.dump(node)
+        if key in self.registers:
+            self.push(REG, self.registers[key])
+            return True
+        v = self.visits.get(key)
+        if v is None:
+            v = self.visits[key] = _Visits(node)
+        v.count += 1
+        v.in_state_context += self._state_context
+        self._state_context = v.reads_state
+        return False
+
+    def value(self, node: ast.AST) -> None:
+        """A register's definition: the code of ``node`` itself (not its register), as a condition where it is a
+        comparison."""
+        self._state_context = _reads_state(node)
+        if isinstance(node, ast.Compare):
+            self._compare(node)
+        else:
+            self._emit(node)
 
     def push(self, op: int, arg: int = 0, pops: int = 0) -> None:
         self.ops.append((op, arg))
@@ -137,7 +179,19 @@ class _Emitter:
         value = self.fold(node)
         if value is not None:
             self.constant(float(value))
-        elif isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
+            return
+        if isinstance(node, ast.Compare):  # a comparison is a condition only (as the numpy evaluators read it)
+            raise _Unsupported("comparison as a value")
+        outer = self._state_context
+        if _composite(node) and self._visit(node):
+            return
+        try:
+            self._emit(node)
+        finally:
+            self._state_context = outer
+
+    def _emit(self, node: ast.AST) -> None:
+        if isinstance(node, ast.Constant) and isinstance(node.value, int | float) and not isinstance(node.value, bool):
             self.constant(float(node.value))
         elif isinstance(node, ast.Name) and node.id in self.names:
             self.constant(self.names[node.id])
@@ -167,12 +221,23 @@ class _Emitter:
 
     def condition(self, node: ast.AST) -> None:
         """A condition: one comparison (a boolean, as numpy's), or a value that is true where it is not 0."""
-        if isinstance(node, ast.Compare) and len(node.ops) == 1 and type(node.ops[0]) in _COMPARE:
-            self.emit(node.left)
-            self.emit(node.comparators[0])
-            self.push(_COMPARE[type(node.ops[0])], pops=2)
+        if isinstance(node, ast.Compare):
+            outer = self._state_context
+            if self._visit(node):
+                return
+            try:
+                self._compare(node)
+            finally:
+                self._state_context = outer
         else:
             self.emit(node)
+
+    def _compare(self, node: ast.Compare) -> None:
+        if len(node.ops) != 1 or type(node.ops[0]) not in _COMPARE:
+            raise _Unsupported("chained comparison")
+        self.emit(node.left)
+        self.emit(node.comparators[0])
+        self.push(_COMPARE[type(node.ops[0])], pops=2)
 
     def call(self, name: str, args: list[ast.expr]) -> None:
         if name in UNARY and len(args) == 1:
@@ -203,6 +268,52 @@ class _Emitter:
             raise _Unsupported(name)
 
 
+#: Most registers a program gets (each is a row of a block of the machine's memory).
+MAX_REGISTERS = 64
+
+
+@dataclass
+class _Visits:
+    node: ast.AST
+    count: int = 0
+    in_state_context: int = 0
+
+    def __post_init__(self) -> None:
+        self.reads_state = _reads_state(self.node)
+        self.size = sum(1 for _ in ast.walk(self.node))
+
+
+def _reads_state(node: ast.AST) -> bool:
+    return any(isinstance(n, ast.Name) and n.id == "x" for n in ast.walk(node))
+
+
+def _composite(node: ast.AST) -> bool:
+    """Whether a sub-expression computes something (a register can save work), not a leaf."""
+    return isinstance(node, ast.BinOp | ast.IfExp | ast.Call | ast.Compare) or (
+        isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub))
+
+
+def _registers(components: list[ast.expr], variables: dict[str, int], constants: dict[str, float]
+               ) -> list[_Visits]:
+    """The sub-expressions to keep in registers, in the order they are defined: those met more than once, and
+    the largest that read no state inside one that does (so they are held over the integration), chosen largest
+    first; the held ones first, then by size (a definition reads only smaller ones)."""
+    chosen: dict[str, _Visits] = {}
+    while len(chosen) < MAX_REGISTERS:
+        em = _Emitter(variables, constants, {k: i for i, k in enumerate(chosen)})
+        for c in components:
+            em.emit(c)
+        for v in chosen.values():
+            em.value(v.node)
+        candidates = [v for v in em.visits.values()
+                      if v.count >= 2 or (not v.reads_state and v.in_state_context)]
+        if not candidates:
+            break
+        best = max(candidates, key=lambda v: v.size)
+        chosen[ast.dump(best.node)] = best
+    return sorted(chosen.values(), key=lambda v: (v.reads_state, v.size))
+
+
 def compile_program(text: str, variables: dict[str, int], constants: dict[str, float] | None = None,
                     out_dim: int | None = None) -> Program | None:
     """The :class:`Program` of an expression that :func:`~.compiler.compile_expression` accepted (its checks are
@@ -214,10 +325,17 @@ def compile_program(text: str, variables: dict[str, int], constants: dict[str, f
     components = body.elts if isinstance(body, ast.List) else [body]
     if out_dim is not None and len(components) != out_dim:
         return None
-    em = _Emitter(variables, dict(constants or {}))
-    ops: list[tuple[int, int]] = []
-    starts = [0]
+    constants = dict(constants or {})
     try:
+        registers = _registers(components, variables, constants)
+        em = _Emitter(variables, constants, {ast.dump(v.node): i for i, v in enumerate(registers)})
+        ops: list[tuple[int, int]] = []
+        starts = [0]
+        for r in registers:
+            em.sp, em.ops = 0, []
+            em.value(r.node)
+            ops += _with_constants(em.ops)
+            starts.append(len(ops))
         for c in components:
             em.sp, em.ops = 0, []
             em.emit(c)
@@ -226,7 +344,8 @@ def compile_program(text: str, variables: dict[str, int], constants: dict[str, f
     except _Unsupported:
         return None
     return Program(np.asarray(ops, dtype=np.int64).reshape(-1, 2), np.asarray(starts, dtype=np.int64),
-                   np.asarray(em.constants, dtype=np.float64), max(1, em.depth))
+                   np.asarray(em.constants, dtype=np.float64), max(1, em.depth), len(registers),
+                   sum(not r.reads_state for r in registers))
 
 
 def _with_constants(ops: list[tuple[int, int]]) -> list[tuple[int, int]]:
@@ -235,7 +354,7 @@ def _with_constants(ops: list[tuple[int, int]]) -> list[tuple[int, int]]:
     for op, arg in ops:
         if op in _SWAPPED and out and out[-1][0] == CONST:
             out[-1] = (op + WITH_CONSTANT, out[-1][1])
-        elif (op in _SWAPPED and len(out) >= 2 and out[-2][0] == CONST and out[-1][0] in (X, U, W)):
+        elif (op in _SWAPPED and len(out) >= 2 and out[-2][0] == CONST and out[-1][0] in (X, U, W, REG)):
             k = out[-2][1]
             out[-2:] = [out[-1], (_SWAPPED[op] + WITH_CONSTANT, k)]
         else:
@@ -411,9 +530,9 @@ def _with_constant(op, a, c, m):  # noqa: PLR0912 - one branch per opcode
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _component(ops, first, last, consts, xs, us, ws, m, stack):  # noqa: PLR0912 - one branch per opcode
-    """Run rows ``first:last`` of ``ops`` on the first ``m`` columns of ``xs``, ``us``, ``ws`` (component-major:
-    one contiguous row per component); the value is ``stack[0, :m]``."""
+def _component(ops, first, last, consts, xs, us, ws, regs, m, stack):  # noqa: PLR0912 - one branch per opcode
+    """Run rows ``first:last`` of ``ops`` on the first ``m`` columns of ``xs``, ``us``, ``ws`` and the registers
+    ``regs`` (component-major: one contiguous row per component); the value is ``stack[0, :m]``."""
     sp = 0
     for r in range(first, last):
         op, arg = ops[r, 0], ops[r, 1]
@@ -433,6 +552,10 @@ def _component(ops, first, last, consts, xs, us, ws, m, stack):  # noqa: PLR0912
         elif op == W:
             for i in range(m):
                 stack[sp, i] = ws[arg, i]
+            sp += 1
+        elif op == REG:
+            for i in range(m):
+                stack[sp, i] = regs[arg, i]
             sp += 1
         elif op == NEG:
             for i in range(m):
@@ -459,18 +582,25 @@ def _component(ops, first, last, consts, xs, us, ws, m, stack):  # noqa: PLR0912
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _rhs(ops, starts, consts, xs, us, ws, m, stack, out):
-    for c in range(starts.size - 1):
-        _component(ops, starts[c], starts[c + 1], consts, xs, us, ws, m, stack)
+def _rhs(ops, starts, consts, first, xs, us, ws, regs, m, stack, out):
+    """The right-hand side at ``xs``: registers ``first ..`` (those that read the state), then the components."""
+    n_regs = regs.shape[0]
+    for k in range(first, n_regs):
+        _component(ops, starts[k], starts[k + 1], consts, xs, us, ws, regs, m, stack)
+        for i in range(m):
+            regs[k, i] = stack[0, i]
+    for c in range(starts.size - 1 - n_regs):
+        _component(ops, starts[n_regs + c], starts[n_regs + c + 1], consts, xs, us, ws, regs, m, stack)
         for i in range(m):
             out[c, i] = stack[0, i]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _rk4(ops, starts, consts, depth, x0, U, W, h, substeps):
+def _rk4(ops, starts, consts, depth, n_regs, held, x0, U, W, h, substeps):
     B, n = x0.shape
     out = np.empty((B, n))
     stack = np.empty((depth, BLOCK))
+    regs = np.empty((n_regs, BLOCK))
     # Component-major blocks: every loop below and in _component runs over contiguous rows.
     us = np.empty((U.shape[1], BLOCK))
     ws = np.empty((W.shape[1], BLOCK))
@@ -490,20 +620,24 @@ def _rk4(ops, starts, consts, depth, x0, U, W, h, substeps):
                 us[d, i] = U[lo + i, d]
             for d in range(ws.shape[0]):
                 ws[d, i] = W[lo + i, d]
+        for k in range(held):  # the registers that read no state: once, held through every stage and sub-step
+            _component(ops, starts[k], starts[k + 1], consts, x, us, ws, regs, m, stack)
+            for i in range(m):
+                regs[k, i] = stack[0, i]
         for _ in range(substeps):  # the steps of pipelines.integrators.rk4, in its order
-            _rhs(ops, starts, consts, x, us, ws, m, stack, k1)
+            _rhs(ops, starts, consts, held, x, us, ws, regs, m, stack, k1)
             for d in range(n):
                 for i in range(m):
                     y[d, i] = x[d, i] + half * k1[d, i]
-            _rhs(ops, starts, consts, y, us, ws, m, stack, k2)
+            _rhs(ops, starts, consts, held, y, us, ws, regs, m, stack, k2)
             for d in range(n):
                 for i in range(m):
                     y[d, i] = x[d, i] + half * k2[d, i]
-            _rhs(ops, starts, consts, y, us, ws, m, stack, k3)
+            _rhs(ops, starts, consts, held, y, us, ws, regs, m, stack, k3)
             for d in range(n):
                 for i in range(m):
                     y[d, i] = x[d, i] + h * k3[d, i]
-            _rhs(ops, starts, consts, y, us, ws, m, stack, k4)
+            _rhs(ops, starts, consts, held, y, us, ws, regs, m, stack, k4)
             for d in range(n):
                 for i in range(m):
                     x[d, i] = x[d, i] + sixth * (k1[d, i] + 2 * (k2[d, i] + k3[d, i]) + k4[d, i])
@@ -517,5 +651,5 @@ def rk4(program: Program, x0: np.ndarray, u: np.ndarray, w: np.ndarray, tau: flo
     """``substeps`` Runge-Kutta 4 steps of ``dx/dt = program(x, u, w)`` over ``tau``, for rows of ``x0`` (B, n),
     ``u`` (B, m) and ``w`` (B, p) (contiguous float64): what :func:`pipelines.integrators.rk4` computes with the
     numpy evaluators, in one compiled pass."""
-    return _rk4(program.ops, program.starts, program.constants, program.depth, x0, u, w, tau / substeps,
-                int(substeps))
+    return _rk4(program.ops, program.starts, program.constants, program.depth, program.registers, program.held,
+                x0, u, w, tau / substeps, int(substeps))
