@@ -156,3 +156,58 @@ def test_a_non_finite_sample_gives_the_black_boxs_error_on_both_paths(dynamics, 
             abstract_cells(sub, 0, sub.state_grid.size, L_x, L_w, "scp", "paper")
         messages.append(str(e.value))
     assert messages[0] == messages[1]
+
+
+def _box_subsystems():
+    """Subsystems the compiled box pass takes: several state coordinates (2-D, 3-D under a matrix of constants,
+    4-D), internal inputs (the platoon's followers), a scalar state with two internal-input axes; cells clipped
+    at the grid's edges (dcdc's grid holds every point whose cell meets the box)."""
+    subs = []
+    for name, override in (("dcdc", {"eta": 0.02}), ("vehicle", {"eta": 1.0}), ("double_integrator", None),
+                           ("platoon", None)):
+        data = load_spec(EXAMPLES / f"{name}.yaml").model_dump(mode="json", exclude_none=True)
+        if override:
+            data["subsystems"][0]["state"].update(override)
+        net = build_network(parse_spec(data), None)
+        subs += [(f"{name}:{g[0].name}", g[0]) for g in net.unique_subsystems().values()]
+    spec = parse_spec({
+        "subsystems": [{"name": "mixer", "replicate": 3, "reads": [0, 1], "state": {"lb": 0, "ub": 4, "eta": 0.5},
+                        "input": {"lb": 0, "ub": 1, "eta": 0.5}, "samples": 27,
+                        "dynamics": "0.5 * x[0] + 0.2 * w[0] - 0.1 * w[1] * w[1] + u[0]",
+                        "lipschitz": {"x": 0.5, "w": [[0.2, 0.8]]}}],
+        "interconnection": {"map": "x", "internal": {"lb": 0, "ub": 4, "eta": 1}, "error": "linear"},
+        "specification": {"kind": "safe", "safe": {"boxes": [{"lb": 0, "ub": 4}]}},
+    })
+    subs.append(("mixer", build_network(spec, None).subsystems[0]))
+    return subs
+
+
+@pytest.mark.parametrize("name,sub", _box_subsystems(), ids=lambda v: v if isinstance(v, str) else "")
+def test_box_block_equals_the_generic_numpy_path(name, sub, monkeypatch):
+    """The compiled pass of the Lipschitz and hull bounds gives the generic path's relation, successor statistics
+    (the SCP's on the statistics sample or on every triple) and slope records, for blocks that split cells."""
+    from pipelines.abstraction.constants import LipschitzMatrix
+
+    lip = sub.spec.lipschitz
+    L_x = LipschitzMatrix.given(lip.x, sub.n, sub.n, "x")
+    L_w = LipschitzMatrix.given(lip.w if sub.p else 0.0, sub.n, sub.p, "w")
+    samples = int(np.prod(gb.subgrid_counts(sub.spec.samples, sub.n + sub.p)))
+    cells = min(sub.state_grid.size, max(20, 6000 * sub.state_grid.size // sub.triples))  # about 6,000 triples
+    start = (sub.state_grid.size - cells) // 2  # the middle of the grid: some triples stay inside it
+    for block in (subsystem.BLOCK_POINTS, 7 * samples):
+        monkeypatch.setattr(subsystem, "BLOCK_POINTS", block)
+        for method in ("lipschitz", "hull"):
+            for full in (None, True):
+                out = []
+                for use in (True, False):
+                    monkeypatch.setattr(subsystem, "_USE_BOX_KERNEL", use)
+                    out.append(subsystem.abstract_chunk(sub, start, start + cells,
+                                                        subsystem.bound_of(sub, L_x, L_w, method, "paper"),
+                                                        full_statistics=full))
+                k, g = out
+                for f in ("lo", "hi", "blocking"):
+                    np.testing.assert_array_equal(getattr(k, f), getattr(g, f), err_msg=f"{name} {method} {f}")
+                assert k.lo.dtype == g.lo.dtype and k.hi.dtype == g.hi.dtype
+                assert k.successors == g.successors, (name, method)
+                assert k.slope_x == g.slope_x and k.slope_w == g.slope_w, (name, method)
+                assert (~k.blocking).any()

@@ -248,6 +248,12 @@ def _grid_arrays(g: UniformGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
 #: statistics (``full_statistics=False``) take the generic path.
 _USE_SCALAR_KERNEL = True
 _NO_W = np.zeros(0)  # the internal-input cells of a subsystem without internal inputs
+#: Whether :func:`_abstract_block` computes the Lipschitz and hull bounds (and the slopes) of a subsystem that is
+#: not scalar in :func:`compiled.box_block` when one of them is the bound; the same bits as the generic numpy path
+#: (the tests switch it off to compare).
+_USE_BOX_KERNEL = True
+_BOX_KERNEL_BOUNDS = (LipschitzBound, HullBound)
+_BOX_KERNEL_NAMES = ("lipschitz", "hull")  # compiled.box_block's order
 
 #: Black-box evaluations (samples x triples) per block of :func:`abstract_cells`: a chunk's triples are
 #: processed in blocks of about this many evaluations, so the temporaries (a few float64 arrays of this length)
@@ -563,7 +569,8 @@ def _abstract_block(
 
     # The bound itself on every triple, then the report's other bounds (the SCP objectives that are not the
     # bound on the statistics sample unless full_statistics): each box is computed per triple, so the same bits
-    # whichever triples are asked for.
+    # whichever triples are asked for. The Lipschitz and hull bounds of a subsystem that is not scalar, with the
+    # slopes, in one compiled pass (compiled.box_block) where one of them is the bound.
     bounds = standard_bounds(bound)
     rows: dict[str, np.ndarray | None] = {b.name: None for b in bounds}
     if not full_statistics:
@@ -571,29 +578,42 @@ def _abstract_block(
         for b in bounds[1:]:
             if isinstance(b, ScpBound):
                 rows[b.name] = statistics_rows((xi * n_u + ui) * n_w + wi, fraction)
-    boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds}
-
-    # Successor cells of every box at once (elementwise, so the same bits as one box at a time).
-    names = list(boxes)
-    sizes = [boxes[k][0].shape[0] for k in names]
-    a, b_ = widen(np.concatenate([boxes[k][0] for k in names]), np.concatenate([boxes[k][1] for k in names]))
-    block_ = np.any((a < np.asarray(xg.lb)) | (b_ > np.asarray(xg.ub)), axis=1)
-    first, last = xg.cells_touching(a, b_)
-    top = np.asarray(xg.shape) - 1
-    first = np.clip(first, 0, top)
-    last = np.clip(last, 0, top)
-    count = np.prod(last - first + 1, axis=1)
+    compiled_pass = not scalar and _USE_BOX_KERNEL and type(bound) in _BOX_KERNEL_BOUNDS
+    in_kernel = _BOX_KERNEL_NAMES if compiled_pass else ()
+    boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds if b.name not in in_kernel}
     counted: dict[str, tuple[int, int]] = {}
-    at = 0
-    for name, size in zip(names, sizes):
-        part = slice(at, at + size)
-        at += size
-        live_ = ~block_[part]
-        counted[name] = (int(count[part][live_].sum()), int(live_.sum()))
-    chosen = slice(0, sizes[0])  # the bound itself comes first
-    blocking = block_[chosen]
-    lo = np.where(blocking[:, None], 0, first[chosen]).astype(np.int32)
-    hi = np.where(blocking[:, None], -1, last[chosen]).astype(np.int32)
+    if compiled_pass:
+        lo, hi, blocking, sums, live, slopes = compiled.box_block(
+            np.ascontiguousarray(V3.reshape(Sx * Sw, B, n)), np.ascontiguousarray(C),
+            np.ascontiguousarray(bound.lipschitz_radius(block)), np.ascontiguousarray(bound.margin(block, 2)),
+            np.asarray(tuple(cx) + tuple(cw), dtype=np.int64), np.ascontiguousarray(np.concatenate([HX, HW], axis=1)),
+            _BOX_KERNEL_NAMES.index(bound.name), *_grid_arrays(xg), FP_RTOL, SNAP_RTOL,
+        )
+        counted = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(_BOX_KERNEL_NAMES)}
+        sx, sw = slopes[:, :, :len(cx)], slopes[:, :, len(cx):]
+
+    # Successor cells of every other box at once (elementwise, so the same bits as one box at a time).
+    if boxes:
+        names = list(boxes)
+        sizes = [boxes[k][0].shape[0] for k in names]
+        a, b_ = widen(np.concatenate([boxes[k][0] for k in names]), np.concatenate([boxes[k][1] for k in names]))
+        block_ = np.any((a < np.asarray(xg.lb)) | (b_ > np.asarray(xg.ub)), axis=1)
+        first, last = xg.cells_touching(a, b_)
+        top = np.asarray(xg.shape) - 1
+        first = np.clip(first, 0, top)
+        last = np.clip(last, 0, top)
+        count = np.prod(last - first + 1, axis=1)
+        at = 0
+        for name, size in zip(names, sizes):
+            part = slice(at, at + size)
+            at += size
+            live_ = ~block_[part]
+            counted[name] = (int(count[part][live_].sum()), int(live_.sum()))
+        if not compiled_pass:
+            chosen = slice(0, sizes[0])  # the bound itself comes first
+            blocking = block_[chosen]
+            lo = np.where(blocking[:, None], 0, first[chosen]).astype(np.int32)
+            hi = np.where(blocking[:, None], -1, last[chosen]).astype(np.int32)
     order = [m for m in compiled.SCALAR_METHODS if m in counted] + [m for m in counted if m not in
                                                                    compiled.SCALAR_METHODS]
     successors = {name: counted[name] for name in order}
@@ -603,7 +623,7 @@ def _abstract_block(
     if scalar:
         sx = _slope(dx, HX[:, 0])[:, None, None]
         sw = _slope(dw, HW[:, 0])[:, None, None] if p else np.zeros((B, 1, 0))
-    else:
+    elif not compiled_pass:
         Vg = V.reshape(tuple(cx) + tuple(cw) + (B, n))
         sx = _axis_slopes(Vg, range(len(cx)), tuple(cx), HX)
         sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), tuple(cw), HW) if p else np.zeros((B, n, 0))

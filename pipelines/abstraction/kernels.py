@@ -1,7 +1,7 @@
-"""Compiled kernels of the per-cell stage's scalar path (numba): :func:`scalar_block`, everything
-``cells._abstract_block`` computes after the black box for a scalar subsystem in one pass, and the kernels
-it is made of (the sample pass, the pair maxima, the closed-form SCP), instead of a few dozen numpy calls and
-their temporaries.
+"""Compiled kernels of the per-cell stage (numba): :func:`scalar_block`, everything ``cells._abstract_block``
+computes after the black box for a scalar subsystem in one pass, and the kernels it is made of (the sample pass,
+the pair maxima, the closed-form SCP); :func:`box_block`, the same for the Lipschitz and hull bounds of any
+subsystem; instead of a few dozen numpy calls and their temporaries.
 
 Every kernel computes exactly the values of the numpy function named in its docstring, which stays the
 reference (the tests compare the two bit for bit on random and degenerate inputs): the kernels use the same
@@ -376,6 +376,118 @@ def scalar_block(
     return lo, hi, blocking, sums, live, slope_x, slope_w
 
 
+@_jit
+def box_block(
+    V: np.ndarray,
+    C: np.ndarray,
+    lip: np.ndarray,
+    rho_h: np.ndarray,
+    counts: np.ndarray,
+    h: np.ndarray,
+    chosen: int,
+    origin: np.ndarray,
+    eta: np.ndarray,
+    k_lo: np.ndarray,
+    shape: np.ndarray,
+    lb: np.ndarray,
+    ub: np.ndarray,
+    fp_rtol: float,
+    snap_rtol: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What :func:`pipelines.abstraction.cells._abstract_block` computes after the black box for the Lipschitz and
+    hull bounds of any subsystem (``n`` state and ``p`` internal-input coordinates), in one read of the samples:
+    the sample hull, both bounds' successor cells (Definition 4.2), blocking flags and statistics, and the slopes
+    along every sub-grid axis for Lipschitz validation. The same values as the generic path (the tests compare).
+
+    Parameters
+    ----------
+    V : ndarray, shape (S, B, n), finite
+        Successor samples, ``S`` the joint sub-grid (row-major over ``counts``: state axes, then internal-input
+        axes).
+    C : ndarray, shape (B, n)
+        Successor of each joint cell's centre.
+    lip, rho_h : ndarray, shape (B, n)
+        Lipschitz radius (Lemma 4.3) and hull margin per component (``GrowthBound.lipschitz_radius``, ``margin``).
+    counts : ndarray of int64, shape (d,)
+        Sub-grid points per axis.
+    h : ndarray, shape (B, d)
+        Sample spacing along each axis.
+    chosen : int
+        0: the Lipschitz bound's successors are returned; 1: the hull's.
+    origin, eta, k_lo, shape, lb, ub, fp_rtol, snap_rtol
+        The state grid and rounding margins (see :func:`_cell_range`).
+
+    Returns
+    -------
+    lo, hi : ndarray of int32, shape (B, n)
+        Successor range of the chosen bound, ``(0, -1)`` where blocking.
+    blocking : ndarray of bool, shape (B,)
+    sums, live : ndarray of int64, shape (2,)
+        Per bound (Lipschitz, hull): successor cells summed over the non-blocking triples, and their number.
+    slopes : ndarray, shape (B, n, d)
+        Largest ``|ΔV_i| / h_a`` between neighbouring samples along each axis ``a`` (0 where ``h_a = 0``).
+    """
+    S, B, n = V.shape
+    d = counts.shape[0]
+    vmin = V[0].copy()
+    vmax = V[0].copy()
+    diff = np.zeros((d, B, n))
+    stride = np.ones(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):
+        stride[a] = stride[a + 1] * counts[a + 1]
+    for s in range(S):
+        row = V[s]
+        for b in range(B):
+            for i in range(n):
+                v = row[b, i]
+                vmin[b, i] = min(vmin[b, i], v)
+                vmax[b, i] = max(vmax[b, i], v)
+        for a in range(d):
+            if (s // stride[a]) % counts[a] == counts[a] - 1:  # the last sample along this axis
+                continue
+            nxt = V[s + stride[a]]
+            da = diff[a]
+            for b in range(B):
+                for i in range(n):
+                    da[b, i] = max(da[b, i], abs(nxt[b, i] - row[b, i]))
+    lo = np.empty((B, n), dtype=np.int32)
+    hi = np.empty((B, n), dtype=np.int32)
+    blocking = np.empty(B, dtype=np.bool_)
+    sums = np.zeros(2, dtype=np.int64)
+    live = np.zeros(2, dtype=np.int64)
+    slopes = np.zeros((B, n, d))
+    first = np.empty(n, dtype=np.int64)
+    last = np.empty(n, dtype=np.int64)
+    for b in range(B):
+        for q in range(2):
+            leaves = False
+            count = np.int64(1)
+            for i in range(n):
+                if q == 0:
+                    box_lo, box_hi = C[b, i] - lip[b, i], C[b, i] + lip[b, i]
+                else:
+                    box_lo, box_hi = vmin[b, i] - rho_h[b, i], vmax[b, i] + rho_h[b, i]
+                f, g, out = _cell_range(box_lo, box_hi, origin[i], eta[i], k_lo[i], shape[i], lb[i], ub[i],
+                                        fp_rtol, snap_rtol)
+                leaves = leaves or out
+                first[i] = f
+                last[i] = g
+                count *= g - f + 1
+            if not leaves:
+                sums[q] += count
+                live[q] += 1
+            if q == chosen:
+                blocking[b] = leaves
+                for i in range(n):
+                    lo[b, i] = 0 if leaves else first[i]
+                    hi[b, i] = -1 if leaves else last[i]
+        for a in range(d):
+            if h[b, a] > 0:
+                for i in range(n):
+                    slopes[b, i, a] = diff[a, b, i] / h[b, a]
+    return lo, hi, blocking, sums, live, slopes
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel for the argument types the per-cell stage passes,
     those of the n-D SCP (:mod:`pipelines.abstraction.scp`) included."""
@@ -390,6 +502,8 @@ def warm_up() -> None:
     scp_parameters_batch_last(E, one, one, 1.0, one, 0.0)
     scp_parameters_batch_last(E[:, [0]], one[[0]], one[[0]], 1.0, one[[0]], 0.0)  # a column subset
     ints = np.zeros(1, dtype=np.int64)
+    box_block(np.zeros((2, 2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), np.full(1, 2, dtype=np.int64),
+              np.ones((2, 1)), 1, one[:1], one[:1], ints, ints, one[:1], one[:1], 0.0, 0.0)
     for w in (one, np.zeros(0)):
         scalar_block(V, one, one, one, w, w, 2.0, 2.0, 1.0, 1.0, 0, one[:1], one[:1], ints, ints, one[:1], one[:1],
                      0.0, 0.0, 0.0, 0.0)
