@@ -175,3 +175,33 @@ def test_progress_of_a_partitioned_fixed_point_does_not_abort_cudd(tmp_path):
                           text=True, timeout=600, cwd=str(EXAMPLES.parent))
     assert done.returncode == 0, done.stderr[-2000:]
     assert "domain 51048559 events 10" in done.stdout, done.stdout
+
+
+def test_building_the_relations_reports_as_it_goes(monkeypatch):
+    """Before its first iteration, BDD synthesis says which relation it builds and, now and then, how far it is
+    (leaves, tree levels); the events are iteration 0 and the results are those of a silent run."""
+    import yaml
+
+    import pipelines.symbolic.tree as tree_module
+    from pipelines.network import build_network
+    from pipelines.synthesis.options import SynthesisOptions
+    from pipelines.synthesis.synthesize import synthesize
+    from workers.job import run_abstraction
+
+    from .conftest import EXAMPLES
+
+    data = yaml.safe_load((EXAMPLES / "dcdc.yaml").read_text())
+    data["subsystems"][0]["state"]["eta"] = 0.01
+    data["options"] = {"audit_transitions": 0}
+    spec = parse_spec(data)
+    ab = run_abstraction(spec, audit=False)
+    monkeypatch.setattr(tree_module, "SAY_EVERY", 0.0)
+    seen = Recorder()
+    cpre, results, _ = synthesize(build_network(spec), ab.relations, ab.interconnection, spec.specification,
+                                  SynthesisOptions(), progress=seen)
+    cpre2, silent, _ = synthesize(build_network(spec), ab.relations, ab.interconnection, spec.specification,
+                                  SynthesisOptions())
+    builds = [m for k, m in seen.events if k == 0 and m.startswith("building the relation of subsystem 0")]
+    assert builds[0].endswith(f"({ab.relations[next(iter(ab.relations))].blocking.size:,} boxes)")
+    assert any("leaves" in m for m in builds) and any("tree level" in m for m in builds)
+    assert results["safe"].domain_states == silent["safe"].domain_states

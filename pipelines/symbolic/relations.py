@@ -21,7 +21,7 @@ import numpy as np
 
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import SubsystemLayout, tree_owners
-from pipelines.symbolic.tree import range_leaves, tree
+from pipelines.symbolic.tree import Say, range_leaves, tree
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -29,7 +29,8 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.spec.regions import AbstractRegion
 
 
-def subsystem_relation(model: SymbolicModel, s: SubsystemLayout, rel: SubsystemRelation) -> tuple[Function, Function]:
+def subsystem_relation(model: SymbolicModel, s: SubsystemLayout, rel: SubsystemRelation, say: Say | None = None
+                       ) -> tuple[Function, Function]:
     """``T_s(x_s, u_s, w_s, x'_s)`` over non-blocking triples and ``NB_s(x_s, u_s, w_s)`` (Def. 4.2).
 
     Parameters
@@ -37,6 +38,8 @@ def subsystem_relation(model: SymbolicModel, s: SubsystemLayout, rel: SubsystemR
     s : SubsystemLayout
     rel : SubsystemRelation
         ``lo``, ``hi`` shape (n_x, n_u, n_w, n); ``blocking`` shape (n_x, n_u, n_w).
+    say : callable, optional
+        Told how the construction goes, now and then (:data:`~.tree.Say`).
     """
     n_x, n_u, n_w = rel.blocking.shape
     w_shape = tuple(model.w_sizes[j] for j in s.reads) or (1,)
@@ -55,9 +58,13 @@ def subsystem_relation(model: SymbolicModel, s: SubsystemLayout, rel: SubsystemR
     values = np.stack(cols, axis=1)
     digits = dg["x"] + dg["u"] + dg["w"]
     blocking = rel.blocking.reshape(N)
-    with model.guard(f"building the relation of subsystem {s.index}"):
-        ids, leaves = range_leaves(model, dg["xn"], rel.lo.reshape(N, -1), rel.hi.reshape(N, -1), blocking)
-        T = tree(model, digits, values, ids, leaves)
+    where = f"building the relation of subsystem {s.index} ({N:,} boxes)"
+    tell = None if say is None else (lambda message: say(f"{where}: {message}"))
+    if say is not None:
+        say(where)
+    with model.guard(where):
+        ids, leaves = range_leaves(model, dg["xn"], rel.lo.reshape(N, -1), rel.hi.reshape(N, -1), blocking, tell)
+        T = tree(model, digits, values, ids, leaves, tell)
         NB = tree(model, digits, values, (~blocking).astype(np.int64), [model.bdd.false, model.bdd.true])
     model.build_seconds[f"T{s.index}"] = time.perf_counter() - t0
     return T, NB
@@ -78,7 +85,7 @@ def renaming(model: SymbolicModel, src: SubsystemLayout, dst: SubsystemLayout) -
 
 
 def subsystem_relations(
-    model: SymbolicModel, relations: Mapping[str, SubsystemRelation], share: str = "rename"
+    model: SymbolicModel, relations: Mapping[str, SubsystemRelation], share: str = "rename", say: Say | None = None,
 ) -> tuple[list[Function], list[Function]]:
     """``T_i`` and ``NB_i`` of every subsystem, in network order.
 
@@ -88,6 +95,8 @@ def subsystem_relations(
     share : {'rename', 'build'}
         Identical subsystems share arrays; ``'rename'`` builds the BDDs of the first member and renames
         them (``let``) for the others, ``'build'`` builds each from the arrays.
+    say : callable, optional
+        Told how the construction goes, now and then (:data:`~.tree.Say`).
     """
     first: dict[str, tuple[SubsystemLayout, Function, Function]] = {}
     T: list[Function] = []
@@ -101,7 +110,7 @@ def subsystem_relations(
                 t, nb = (model.bdd.let(ren, t), model.bdd.let(ren, nb)) if ren else (t, nb)
             model.build_seconds[f"T{s.index}"] = time.perf_counter() - t0
         else:
-            t, nb = subsystem_relation(model, s, relations[s.key])
+            t, nb = subsystem_relation(model, s, relations[s.key], say)
             first.setdefault(s.key, (s, t, nb))
         T.append(t)
         NB.append(nb)

@@ -11,7 +11,8 @@ of distinct subtrees, not to the number of cells.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -19,6 +20,24 @@ from pipelines.symbolic.model import Function, SymbolicModel
 
 #: The Shannon-tree keys are int64: at most this many bits per key; :func:`tree` splits wider relations by digit.
 MAX_TREE_BITS = 62
+#: ``say(message)``: what a long construction reports as it goes (at most every :data:`SAY_EVERY` seconds).
+Say = Callable[[str], None]
+SAY_EVERY = 1.0
+
+
+class _Every:
+    """``say``, at most every :data:`SAY_EVERY` seconds: :meth:`due` says whether to make a message now."""
+
+    def __init__(self, say: Say | None) -> None:
+        self.enabled = say is not None
+        self.say: Say = say or (lambda _: None)
+        self.last = time.monotonic()
+
+    def due(self) -> bool:
+        if not self.enabled or time.monotonic() - self.last < SAY_EVERY:
+            return False
+        self.last = time.monotonic()
+        return True
 
 
 def factorize(keys: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
@@ -72,6 +91,7 @@ def tree(
     values: np.ndarray,
     leaf_ids: np.ndarray,
     leaves: Sequence[Function],
+    say: Say | None = None,
 ) -> Function:
     """``∨_r (digits = values[r]) ∧ leaves[leaf_ids[r]]`` as a Shannon tree built bottom-up in bulk.
 
@@ -86,6 +106,8 @@ def tree(
         Index into ``leaves`` per cell.
     leaves : sequence of Function
         Leaf functions (over variables other than the tree's bits).
+    say : callable, optional
+        Told the level being built, now and then (:data:`Say`).
 
     Notes
     -----
@@ -103,7 +125,7 @@ def tree(
         which = which.reshape(-1)
         order = np.argsort(which, kind="stable")
         bounds = np.searchsorted(which[order], np.arange(codes.size + 1))
-        subtrees = [tree(model, digits[1:], values[order[a:b], 1:], leaf_ids[order[a:b]], leaves)
+        subtrees = [tree(model, digits[1:], values[order[a:b], 1:], leaf_ids[order[a:b]], leaves, say)
                     for a, b in zip(bounds[:-1], bounds[1:])]
         return tree(model, digits[:1], codes.reshape(-1, 1), np.arange(codes.size, dtype=np.int64), subtrees)
     funcs: list[Function] = [model.bdd.false]
@@ -152,7 +174,10 @@ def tree(
         if np.any(keys[1:] == keys[:-1]):
             raise ValueError("tree(): repeated cell in values")
     ite = model.bdd.ite
+    tell = _Every(say)
     for level in range(B - 1, -1, -1):
+        if tell.due():
+            tell.say(f"tree level {B - level} of {B}: {keys.size:,} subtrees")
         var = model.var(names[level])
         parent = keys >> 1
         first = np.ones(parent.size, dtype=bool)
@@ -176,7 +201,8 @@ def tree(
 
 
 def range_leaves(
-    model: SymbolicModel, out_digits: Sequence[str], lo: np.ndarray, hi: np.ndarray, empty: np.ndarray | None = None
+    model: SymbolicModel, out_digits: Sequence[str], lo: np.ndarray, hi: np.ndarray, empty: np.ndarray | None = None,
+    say: Say | None = None,
 ) -> tuple[np.ndarray, list[Function]]:
     """Leaf ids and leaf functions for per-cell output ranges (grouping equal ranges).
 
@@ -187,6 +213,8 @@ def range_leaves(
         Inclusive range per output digit; a row with ``lo > hi`` in any digit is empty.
     empty : ndarray of bool, shape (N,), optional
         Rows forced empty (blocking triples).
+    say : callable, optional
+        Told how many leaves are built, now and then (:data:`Say`).
 
     Returns
     -------
@@ -208,7 +236,10 @@ def range_leaves(
     rows = np.concatenate([lo[live], hi[live]], axis=1)
     uniq, inverse = unique_rows(rows)
     k = len(out_digits)
-    for row in uniq.tolist():
+    tell = _Every(say)
+    for q, row in enumerate(uniq.tolist()):
+        if tell.due():
+            tell.say(f"leaves {q:,} of {len(uniq):,} distinct successor boxes")
         f = model.bdd.true
         for d, digit in enumerate(out_digits):
             f &= model.interval(digit, row[d], row[k + d])

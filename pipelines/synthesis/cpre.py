@@ -46,6 +46,7 @@ from pipelines.errors import CompabsError
 from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import default_order
 from pipelines.symbolic.relations import interconnection_parts, subsystem_relations
+from pipelines.symbolic.tree import Say
 from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 from pipelines.synthesis.schedule import Chain, schedule
 from pipelines.synthesis.symmetry import InvariantSets, Symmetry, find_symmetry
@@ -312,6 +313,7 @@ class ControllablePredecessor:
         order: str | None = None,
         max_memory: int | None = None,
         share: str = "rename",
+        say: Say | None = None,
         **options: Unpack[Options],
     ) -> ControllablePredecessor:
         """Encode an abstraction (its network, subsystem relations and interconnection) and prepare its CPre.
@@ -319,13 +321,14 @@ class ControllablePredecessor:
         ``order`` defaults to :func:`~.symbolic.order.default_order` (``interleaved`` where each internal
         variable has one reader, ``shared_top`` otherwise: the orders docs/method.md §6 found best for the tanks and
         consensus); ``max_memory`` is CUDD's (:class:`~.symbolic.model.SymbolicModel`), ``share`` how identical
-        subsystems share their relations (:func:`~.symbolic.relations.subsystem_relations`); ``options`` are the
+        subsystems share their relations (:func:`~.symbolic.relations.subsystem_relations`), ``say`` is told how
+        building them goes (:data:`~.symbolic.tree.Say`); ``options`` are the
         constructor's (:class:`Options`).
         """
         if order is None:
             order = default_order(network.subsystems)
         model = SymbolicModel.from_network(network, interconnection, order=order, max_memory=max_memory)
-        T, NB = subsystem_relations(model, relations, share=share)
+        T, NB = subsystem_relations(model, relations, share=share, say=say)
         parts = interconnection_parts(model, interconnection.nodes)
         return cls(model, T, NB, parts, **options)
 

@@ -89,7 +89,8 @@ def synthesize(
                                                 method=o.method, max_memory=o.max_memory, chain_order=o.chain_order,
                                                 processes=o.processes, partitioned=partitioned,
                                                 auto_parts=o.auto_parts, parallel_after=o.parallel_after,
-                                                symmetry=o.symmetry)
+                                                symmetry=o.symmetry,
+                                                say=None if progress is None else (lambda message: progress(0, message)))
     build = time.perf_counter() - t0
     m = cpre.model
     t0 = time.perf_counter()
