@@ -420,3 +420,38 @@ def test_a_closed_loop_of_many_sub_steps_is_refused_naming_them():
     with pytest.raises(CostError) as err:
         check(data, Caps())
     assert err.value.cap_name == "max_closed_loop_steps" and "4 x substeps" in err.value.message
+
+
+# ====================================================================================== per-entry estimates (issue 46)
+def estimated(example: str, pairs: int = 200) -> dict[str, Any]:
+    """An example whose L_x is a matrix, estimated from data instead (Algorithm 4 per entry)."""
+    data = yaml.safe_load((EXAMPLES / example).read_text())
+    data["subsystems"][0]["lipschitz"] = {"x": "estimate", "batches": 40, "pairs": pairs}
+    return data
+
+
+def test_a_matrix_estimate_counts_a_round_per_coordinate_and_is_refused_with_its_fix():
+    """A 4-D state's matrix is estimated in 1 + 4 rounds of 40 x pairs x 16 inputs: at 1,000 pairs one round
+    (640,000) is within the server's cap and the five rounds (3.2 M) are not; the fix it names passes."""
+    assert knob_values(estimated("double_integrator.yaml"))["max_lipschitz_pairs"] == 40 * 200 * 16 * 5
+    with pytest.raises(CostError) as err:
+        check(estimated("double_integrator.yaml", 1000), Caps())
+    e = err.value
+    assert (e.cap_name, e.value, e.cap) == ("max_lipschitz_pairs", 40 * 1000 * 16 * 5, 2_000_000)
+    assert "40 x 1000 x 16 = 640000 pairs at once" in e.message
+    assert "in 5 rounds (the norm, then each of the 4 coordinates of x for the 4 x 4 entries) = 3200000 pairs" in e.message
+    assert ("lower subsystems[0].lipschitz.pairs to at most 625 with 40 batches (the defaults are 40 x 200), or give "
+            "L_x as a number or a matrix") in e.message
+    check(estimated("double_integrator.yaml", 625), Caps())
+    with pytest.raises(CostError, match="max_lipschitz_pairs"):
+        check(estimated("double_integrator.yaml", 626), Caps())
+
+
+def test_a_matrix_estimate_of_an_ode_counts_its_sub_steps_in_every_round():
+    """The vehicle: 3 coordinates (1 + 3 rounds), 49 inputs, 10 RK4 sub-steps (40 evaluations per step)."""
+    values = knob_values(estimated("vehicle.yaml", 10))
+    assert values["max_lipschitz_pairs"] == 40 * 10 * 49 * 4 * 40
+    with pytest.raises(CostError) as err:
+        check(estimated("vehicle.yaml"), Caps())
+    assert "in 4 rounds" in err.value.message and "x 40 evaluations per step (4 x subsystems[0].substeps)" in \
+        err.value.message

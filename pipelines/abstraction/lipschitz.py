@@ -115,6 +115,13 @@ def estimate_lipschitz(
     return LipschitzEstimate(max(location, max_slope) * safety_factor, location, max_slope, batches, pairs)
 
 
+def estimation_rounds(n: int, d: int) -> int:
+    """Rounds of pairs that estimating ``L`` draws for ``n`` components over ``d`` coordinates, each of ``batches x
+    pairs x input points`` pairs: one in the infinity norm (:func:`estimate_lipschitz`) and, with more than one
+    entry, one more per coordinate (:func:`estimate_entries`). The cost model counts them (:mod:`pipelines.spec.costs`)."""
+    return 1 if n * d == 1 else 1 + d
+
+
 def estimate_entries(
     sub: Subsystem,
     argument: str,
@@ -248,7 +255,7 @@ def resolve_constant(sub: Subsystem, arg: Literal["x", "w"], rng: np.random.Gene
         est = estimate_lipschitz(sub, arg, rng, lip.batches, lip.pairs, lip.delta, lip.safety_factor)
         info: dict = {"location": est.location, "max_slope": est.max_slope, "safety_factor": lip.safety_factor,
                       "batches": est.batches, "pairs": est.pairs}
-        if n * d == 1:
+        if estimation_rounds(n, d) == 1:
             value = LipschitzMatrix.scalar(est.value, n, d)
         else:
             ent = estimate_entries(sub, arg, rng, lip.batches, lip.pairs, lip.delta, lip.safety_factor)

@@ -25,8 +25,10 @@ The knobs, each with its cap (:class:`Caps` field; ``COMPABS_<NAME>`` for the se
     receives them all at once.
 ``max_lipschitz_pairs``
     Pairs Algorithm 4 draws for one estimated constant (``lipschitz.x`` or ``.w: estimate``) of one distinct
-    subsystem, each weighted by the evaluations of one step: ``batches x pairs x input points x evaluations per
-    step``; the pairs are held in memory at once (~90 bytes a pair for a scalar system).
+    subsystem, each weighted by the evaluations of one step: ``batches x pairs x input points x rounds x
+    evaluations per step``, one round for a scalar and ``1 + d`` for a matrix of ``d`` coordinates (the norm, then
+    each coordinate's entries: :func:`~pipelines.abstraction.lipschitz.estimation_rounds`); a round's pairs are
+    held in memory at once (~90 bytes a pair for a scalar system).
 ``max_sample_values``
     The largest array of sampled composed states of the interconnection stage: ``max(samples, holdout) x n``
     (``n`` the composed state dimension).
@@ -64,6 +66,7 @@ from dataclasses import dataclass, fields, replace
 from functools import partial
 from typing import Any
 
+from pipelines.abstraction.lipschitz import estimation_rounds
 from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS, default_chunk_cells
 from pipelines.errors import SpecError
 from pipelines.network import Network, Subsystem, replicate_count
@@ -283,18 +286,22 @@ def _lipschitz_costs(spec: JobSpec, groups: list[Subsystem]) -> list[Cost]:
             n_u = sub.input_grid.size
             steps = sub.spec.rhs_evaluations
             pairs = lip.batches * lip.pairs * n_u
-            value = pairs * steps
+            rounds = estimation_rounds(sub.n, grid.dim)
+            value = pairs * rounds * steps
             width = 3 * grid.dim + (other.dim if other is not None else 0) + sub.m + 3 * sub.n + 3
             most = (lip.batches, lip.pairs)
             field = f"subsystems[{i}].lipschitz"
+            # A matrix is estimated entry by entry: one more round of the same pairs per coordinate.
+            per_entry = (f", in {rounds} rounds (the norm, then each of the {grid.dim} coordinates of {arg} for the "
+                         f"{sub.n} x {grid.dim} entries) = {pairs * rounds} pairs" if rounds > 1 else "")
             ode = (f" x {steps} evaluations per step (4 x subsystems[{i}].substeps) = {value}"
                    if sub.spec.ode is not None else "")
             costs.append(Cost(
                 "max_lipschitz_pairs", f"{field}.batches × {field}.pairs", value,
                 f"{field}.batches × {field}.pairs: estimating L_{arg} of subsystem '{sub.name}' draws batches x "
                 f"pairs x input points = {most[0]} x {most[1]} x {n_u} = {pairs} pairs at once "
-                f"({_mb(pairs * width)}){ode}",
-                partial(_lipschitz_fix, field, arg, lip.batches, n_u * steps),
+                f"({_mb(pairs * width)}){per_entry}{ode}",
+                partial(_lipschitz_fix, field, arg, lip.batches, n_u * rounds * steps, matrix=rounds > 1),
             ))
     return costs
 
@@ -410,12 +417,13 @@ def _tasks_fix(cells: int, groups: int, cap: int) -> str:
     return f"set options.chunk_cells to at least {need} (fewer, larger tasks), or coarsen the state grids"
 
 
-def _lipschitz_fix(field: str, arg: str, batches: int, n_u: int, cap: int) -> str:
+def _lipschitz_fix(field: str, arg: str, batches: int, n_u: int, cap: int, matrix: bool = False) -> str:
+    given = f"give L_{arg} as a number or a matrix" if matrix else f"give L_{arg} as a number"
     most = cap // (batches * n_u)
     if most >= 2:
-        return (f"lower {field}.pairs to at most {most} with {batches} batches (the defaults are 40 x 200), or give "
-                f"L_{arg} as a number")
-    return f"lower {field}.batches and {field}.pairs (the defaults are 40 x 200), or give L_{arg} as a number"
+        return (f"lower {field}.pairs to at most {most} with {batches} batches (the defaults are 40 x 200), or "
+                f"{given}")
+    return f"lower {field}.batches and {field}.pairs (the defaults are 40 x 200), or {given}"
 
 
 def _samples_fix(which: str, n: int, cap: int) -> str:
