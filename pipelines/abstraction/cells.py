@@ -488,30 +488,40 @@ def _abstract_block(
     box broadcasts (:class:`~pipelines.blackbox.BlackBox`: an expression reads them as views, a
     ``module:function`` gets them copied out to ``(S_x S_w B, d)``).
     """
-    xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
-    n, p = sub.n, sub.p
-    u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, n)
-    n_u, n_w = u_pts.shape[0], w_lo.shape[0]
-    cx, cw = counts[:n], counts[n:]
-    Sx, Sw = off_x.shape[0], ws.shape[0]
-    t = np.arange(t0, t1)
-    ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
-    xi = cells[ci]  # the state cells' flat indices
-    B = t.size
-    shape = (Sx, Sw, B)
+    tr = _sample(sub, cells, x_lo, x_hi, t0, t1)
+    scalar = sub.n == 1 and len(tr.counts_w) <= 1
+    if scalar and full_statistics and _USE_SCALAR_KERNEL and type(bound) in _KERNEL_BOUNDS:
+        return _scalar_kernel_block(sub, tr, bound)
+    return _generic_block(sub, tr, bound, full_statistics, scalar)
 
-    xl, xh = x_lo[ci], x_hi[ci]  # (B, n)
-    xs = xl[None] + off_x[:, None, :] * (xh - xl)[None]  # (Sx, B, n)
-    # Each input once per triple and sample axis it varies along; the black box broadcasts them to (Sx, Sw, B).
-    X = xs[:, None]  # (Sx, 1, B, n)
-    U = u_pts[ui]  # (B, m)
-    W = np.take(ws, wi, axis=1)  # (Sw, B, p), row-major (ws[:, wi] is not): so is V (ufuncs follow inputs)
 
-    def record(s: np.ndarray) -> SlopeRecord:
+@dataclass(frozen=True)
+class _Triples:
+    """The triples of a block (flat, in order), their clipped cells and their successor samples: what every path
+    of :func:`_abstract_block` reads."""
+
+    xi: np.ndarray  # (B,) flat state cell, input and internal cell of each triple
+    ui: np.ndarray
+    wi: np.ndarray
+    xl: np.ndarray  # (B, n) clipped state cell
+    xh: np.ndarray
+    wl: np.ndarray  # (B, p) clipped internal-input cell
+    wh: np.ndarray
+    V: np.ndarray  # (S_x, S_w, B, n) successors of the samples
+    C: np.ndarray  # (B, n) successor of each joint cell's centre
+    counts_x: tuple[int, ...]  # sub-grid points per state axis, per internal-input axis
+    counts_w: tuple[int, ...]
+
+    @property
+    def size(self) -> int:
+        return int(self.xi.size)
+
+    def record(self, s: np.ndarray) -> SlopeRecord:
         """The first largest slope of the block, overall and per entry; ``s`` of shape (B, n, d)."""
+        xi, ui, wi = self.xi, self.ui, self.wi
         if s.shape[2] == 0:  # no such argument: slope 0 at the first triple, no entries
             return SlopeRecord(0.0, int(xi[0]), int(ui[0]), int(wi[0]))
-        overall = s.reshape(B, -1).max(axis=1)
+        overall = s.reshape(s.shape[0], -1).max(axis=1)
         k = int(np.argmax(overall))  # the first largest slope, as over the whole chunk
         first = np.argmax(s, axis=0)  # (n, d)
         entries = tuple(
@@ -521,111 +531,140 @@ def _abstract_block(
         return SlopeRecord(float(overall[k]), int(xi[k]), int(ui[k]), int(wi[k]), entries,
                            (s.shape[1], s.shape[2]))
 
+
+def _sample(sub: Subsystem, cells: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray, t0: int, t1: int) -> _Triples:
+    """The black box on the samples and the centre of each of the triples ``t0 .. t1-1`` (the layout is in
+    :func:`_abstract_block`'s notes); a non-finite value names its sample and cell."""
+    ug, wg = sub.input_grid, sub.internal_grid
+    u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, sub.n)
+    n_u, n_w = u_pts.shape[0], w_lo.shape[0]
+    Sx, Sw = off_x.shape[0], ws.shape[0]
+    t = np.arange(t0, t1)
+    ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
+    xi = cells[ci]  # the state cells' flat indices
+    shape = (Sx, Sw, t.size)
+
+    xl, xh = x_lo[ci], x_hi[ci]  # (B, n)
+    xs = xl[None] + off_x[:, None, :] * (xh - xl)[None]  # (Sx, B, n)
+    # Each input once per triple and sample axis it varies along; the black box broadcasts them to (Sx, Sw, B).
+    X = xs[:, None]  # (Sx, 1, B, n)
+    U = u_pts[ui]  # (B, m)
+    W = np.take(ws, wi, axis=1)  # (Sw, B, p), row-major (ws[:, wi] is not): so is V (ufuncs follow inputs)
+
     def where_triple(b: int) -> str:
         return f"state cell {int(xi[b])}, input {int(ui[b])}, internal cell {int(wi[b])}"
 
     def where_sample(row: int) -> str:
         return where_triple(int(np.unravel_index(row, shape)[2]))
 
-    V = sub.dynamics(X, U, W, describe=where_sample)  # (Sx, Sw, B, n)
-
-    # Centre of the clipped joint cell: Lemma 4.3 and the SCP bound distances from it.
-    wl, wh = w_lo[wi], w_hi[wi]  # (B, p)
-    XC, WC = (xl + xh) / 2, (wl + wh) / 2
-    RX, RW = (xh - xl) / 2, (wh - wl) / 2
-
     def where_centre(row: int) -> str:
         return "centre of " + where_triple(row)
 
-    C = sub.dynamics(XC, u_pts[ui], WC, describe=where_centre)  # (B, n)
+    V = sub.dynamics(X, U, W, describe=where_sample)  # (Sx, Sw, B, n)
+    # Centre of the clipped joint cell: Lemma 4.3 and the SCP bound distances from it.
+    wl, wh = w_lo[wi], w_hi[wi]  # (B, p)
+    C = sub.dynamics((xl + xh) / 2, U, (wl + wh) / 2, describe=where_centre)  # (B, n)
+    return _Triples(xi, ui, wi, xl, xh, wl, wh, V.reshape(shape + (sub.n,)), C, tuple(counts[:sub.n]),
+                    tuple(counts[sub.n:]))
 
-    scalar = n == 1 and len(cw) <= 1
-    if scalar and full_statistics and _USE_SCALAR_KERNEL and type(bound) in _KERNEL_BOUNDS:
-        # The compiled pass of the standard bounds (kernels.scalar_block), under the constants of a scalar map:
-        # the smaller of entry and norm, which bound the same slope there.
-        L_x = bound.L_x.effective()
-        L_w = bound.L_w.effective() if p else 0.0
-        lo, hi, blocking, sums, live, sx, sw = compiled.scalar_block(
-            V.reshape(Sx, Sw, B), C[:, 0], xl[:, 0], xh[:, 0], wl[:, 0] if p else _NO_W, wh[:, 0] if p else _NO_W,
-            float(cx[0]), float(cw[0]) if p else 1.0, L_x, L_w, compiled.SCALAR_METHODS.index(bound.name),
-            *_grid_arrays(xg), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL, SCP_SKIP_RTOL,
-        )
-        successors: dict[str, tuple[int, int]] = {
-            name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)
-        }
-        return _Block(lo[:, None], hi[:, None], blocking, successors, record(sx[:, None, None]),
-                      record(sw[:, None, None] if p else np.zeros((B, 1, 0))))
 
-    # The generic path: numpy and the growth bound objects (the reference of compiled.scalar_block).
+def _scalar_kernel_block(sub: Subsystem, tr: _Triples, bound: GrowthBound) -> _Block:
+    """The compiled pass of the standard bounds of a scalar subsystem (:func:`compiled.scalar_block`), under the
+    constants of a scalar map: the smaller of entry and norm, which bound the same slope there."""
+    p, B = sub.p, tr.size
+    L_x = bound.L_x.effective()
+    L_w = bound.L_w.effective() if p else 0.0
+    Sx, Sw = tr.V.shape[:2]
+    lo, hi, blocking, sums, live, sx, sw = compiled.scalar_block(
+        tr.V.reshape(Sx, Sw, B), tr.C[:, 0], tr.xl[:, 0], tr.xh[:, 0], tr.wl[:, 0] if p else _NO_W,
+        tr.wh[:, 0] if p else _NO_W, float(tr.counts_x[0]), float(tr.counts_w[0]) if p else 1.0, L_x, L_w,
+        compiled.SCALAR_METHODS.index(bound.name), *_grid_arrays(sub.state_grid), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL,
+        SCP_SKIP_RTOL,
+    )
+    successors = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)}
+    return _Block(lo[:, None], hi[:, None], blocking, successors, tr.record(sx[:, None, None]),
+                  tr.record(sw[:, None, None] if p else np.zeros((B, 1, 0))))
+
+
+def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, full_statistics: bool, scalar: bool) -> _Block:
+    """The growth bound objects on the block (the reference of the compiled passes): the bound itself on every
+    triple, then the report's other bounds (the SCP objectives that are not the bound on the statistics sample
+    unless ``full_statistics``). Each box is computed per triple, so the same bits whichever triples are asked for.
+    The Lipschitz and hull bounds of a subsystem that is not scalar, with the slopes, in one compiled pass
+    (:func:`compiled.box_block`) where one of them is the bound."""
+    xg, n, p, B = sub.state_grid, sub.n, sub.p, tr.size
+    cx, cw = tr.counts_x, tr.counts_w
+    RX, RW = (tr.xh - tr.xl) / 2, (tr.wh - tr.wl) / 2
     HX = 2 * RX / np.asarray(cx, dtype=float) if n else RX
     HW = 2 * RW / np.asarray(cw, dtype=float) if p else RW
-
-    V3 = V.reshape(Sx, Sw, B, n)
     extremes = None
     if scalar:
-        vmax_w, vmin_w, dx, dw = _scalar_sample_pass(V3[..., 0])
+        vmax_w, vmin_w, dx, dw = _scalar_sample_pass(tr.V[..., 0])
         extremes = (vmax_w, vmin_w)
-    block = SampleBlock(V3, C, RX, RW, HX, HW, tuple(cx), extremes)
+    block = SampleBlock(tr.V, tr.C, RX, RW, HX, HW, cx, extremes)
 
-    # The bound itself on every triple, then the report's other bounds (the SCP objectives that are not the
-    # bound on the statistics sample unless full_statistics): each box is computed per triple, so the same bits
-    # whichever triples are asked for. The Lipschitz and hull bounds of a subsystem that is not scalar, with the
-    # slopes, in one compiled pass (compiled.box_block) where one of them is the bound.
     bounds = standard_bounds(bound)
     rows: dict[str, np.ndarray | None] = {b.name: None for b in bounds}
     if not full_statistics:
         fraction = statistics_fraction(sub, *_cost_names(bound))
+        n_u, n_w = sub.input_grid.size, sub.n_w_cells
         for b in bounds[1:]:
             if isinstance(b, ScpBound):
-                rows[b.name] = statistics_rows((xi * n_u + ui) * n_w + wi, fraction)
+                rows[b.name] = statistics_rows((tr.xi * n_u + tr.ui) * n_w + tr.wi, fraction)
     compiled_pass = not scalar and _USE_BOX_KERNEL and type(bound) in _BOX_KERNEL_BOUNDS
     in_kernel = _BOX_KERNEL_NAMES if compiled_pass else ()
     boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds if b.name not in in_kernel}
-    counted: dict[str, tuple[int, int]] = {}
+    counted = _count_boxes(xg, boxes)
     if compiled_pass:
         lo, hi, blocking, sums, live, slopes = compiled.box_block(
-            np.ascontiguousarray(V3.reshape(Sx * Sw, B, n)), np.ascontiguousarray(C),
+            np.ascontiguousarray(tr.V.reshape(-1, B, n)), np.ascontiguousarray(tr.C),
             np.ascontiguousarray(bound.lipschitz_radius(block)), np.ascontiguousarray(bound.margin(block, 2)),
-            np.asarray(tuple(cx) + tuple(cw), dtype=np.int64), np.ascontiguousarray(np.concatenate([HX, HW], axis=1)),
+            np.asarray(cx + cw, dtype=np.int64), np.ascontiguousarray(np.concatenate([HX, HW], axis=1)),
             _BOX_KERNEL_NAMES.index(bound.name), *_grid_arrays(xg), FP_RTOL, SNAP_RTOL,
         )
-        counted = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(_BOX_KERNEL_NAMES)}
+        counted.update({name: (int(sums[q]), int(live[q])) for q, name in enumerate(_BOX_KERNEL_NAMES)})
         sx, sw = slopes[:, :, :len(cx)], slopes[:, :, len(cx):]
-
-    # Successor cells of every other box at once (elementwise, so the same bits as one box at a time).
-    if boxes:
-        names = list(boxes)
-        sizes = [boxes[k][0].shape[0] for k in names]
-        a, b_ = widen(np.concatenate([boxes[k][0] for k in names]), np.concatenate([boxes[k][1] for k in names]))
-        block_ = np.any((a < np.asarray(xg.lb)) | (b_ > np.asarray(xg.ub)), axis=1)
-        first, last = xg.cells_touching(a, b_)
-        top = np.asarray(xg.shape) - 1
-        first = np.clip(first, 0, top)
-        last = np.clip(last, 0, top)
-        count = np.prod(last - first + 1, axis=1)
-        at = 0
-        for name, size in zip(names, sizes):
-            part = slice(at, at + size)
-            at += size
-            live_ = ~block_[part]
-            counted[name] = (int(count[part][live_].sum()), int(live_.sum()))
-        if not compiled_pass:
-            chosen = slice(0, sizes[0])  # the bound itself comes first
-            blocking = block_[chosen]
-            lo = np.where(blocking[:, None], 0, first[chosen]).astype(np.int32)
-            hi = np.where(blocking[:, None], -1, last[chosen]).astype(np.int32)
+    else:
+        first, last, blocked = _cells_of(xg, *boxes[bound.name])
+        lo = np.where(blocked[:, None], 0, first).astype(np.int32)
+        hi = np.where(blocked[:, None], -1, last).astype(np.int32)
+        blocking = blocked
+        # Slopes for Lipschitz validation (docs/method.md §3), per entry: neighbours along x axes (w fixed) and w
+        # axes (x fixed), each component on its own.
+        if scalar:
+            sx = _slope(dx, HX[:, 0])[:, None, None]
+            sw = _slope(dw, HW[:, 0])[:, None, None] if p else np.zeros((B, 1, 0))
+        else:
+            Vg = tr.V.reshape(cx + cw + (B, n))
+            sx = _axis_slopes(Vg, range(len(cx)), cx, HX)
+            sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), cw, HW) if p else np.zeros((B, n, 0))
     order = [m for m in compiled.SCALAR_METHODS if m in counted] + [m for m in counted if m not in
                                                                    compiled.SCALAR_METHODS]
-    successors = {name: counted[name] for name in order}
+    return _Block(lo, hi, blocking, {name: counted[name] for name in order}, tr.record(sx), tr.record(sw))
 
-    # Slopes for Lipschitz validation (docs/method.md §3), per entry: neighbours along x axes (w fixed) and w axes
-    # (x fixed), each component on its own.
-    if scalar:
-        sx = _slope(dx, HX[:, 0])[:, None, None]
-        sw = _slope(dw, HW[:, 0])[:, None, None] if p else np.zeros((B, 1, 0))
-    elif not compiled_pass:
-        Vg = V.reshape(tuple(cx) + tuple(cw) + (B, n))
-        sx = _axis_slopes(Vg, range(len(cx)), tuple(cx), HX)
-        sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), tuple(cw), HW) if p else np.zeros((B, n, 0))
 
-    return _Block(lo, hi, blocking, successors, record(sx), record(sw))
+def _cells_of(xg: UniformGrid, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Successor cells of boxes (Definition 4.2): ``first``, ``last`` clipped to the grid, and whether the widened
+    box leaves the state box (blocking)."""
+    a, b = widen(lo, hi)
+    leaves = np.any((a < np.asarray(xg.lb)) | (b > np.asarray(xg.ub)), axis=1)
+    first, last = xg.cells_touching(a, b)
+    top = np.asarray(xg.shape) - 1
+    return np.clip(first, 0, top), np.clip(last, 0, top), leaves
+
+
+def _count_boxes(xg: UniformGrid, boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[int, int]]:
+    """Per bound: successor cells summed over its non-blocking boxes, and their number (all boxes at once:
+    elementwise, so the same bits as one box at a time)."""
+    if not boxes:
+        return {}
+    names = list(boxes)
+    sizes = np.cumsum([0] + [boxes[k][0].shape[0] for k in names])
+    first, last, leaves = _cells_of(xg, np.concatenate([boxes[k][0] for k in names]),
+                                    np.concatenate([boxes[k][1] for k in names]))
+    count = np.prod(last - first + 1, axis=1)
+    out = {}
+    for name, a, b in zip(names, sizes[:-1], sizes[1:]):
+        live = ~leaves[a:b]
+        out[name] = (int(count[a:b][live].sum()), int(live.sum()))
+    return out
