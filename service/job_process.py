@@ -8,7 +8,9 @@ cancelled, the audit's child stopped) and the process exits with :data:`~service
 supervisor records why it stopped the job (cancelled, over its time limit, the API stopping).
 
 It dies with its parent, the API (``PR_SET_PDEATHSIG``): a job whose API is gone is re-queued by the next API, so
-it must not run on beside it.
+it must not run on beside it. Should the machine run out of memory before the supervisor sees a job over its memory
+limit, the kernel kills a job process, never the API: each job process, and every process it starts, has the
+largest ``oom_score_adj``.
 """
 
 from __future__ import annotations
@@ -47,6 +49,19 @@ def _die_with_parent(parent: int) -> None:
         threading.Thread(target=watch, name="parent-watch", daemon=True).start()
     if os.getppid() != parent:  # the parent died before the request above took effect
         os._exit(EXIT_ORPHANED)
+
+
+#: The OOM killer's bias for a job's processes (inherited by its children): the largest, the first to go.
+OOM_SCORE_ADJ = 1000
+
+
+def _first_to_go_when_out_of_memory() -> None:
+    # Raising one's own score needs no privilege; where /proc has no such file (not Linux) nothing is changed.
+    try:
+        with open("/proc/self/oom_score_adj", "w") as fh:
+            fh.write(str(OOM_SCORE_ADJ))
+    except OSError:
+        pass
 
 
 #: Exit status of a job process whose API was already gone when it started.
@@ -130,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     payload = json.loads(sys.stdin.read())
     _die_with_parent(int(payload["parent"]))
+    _first_to_go_when_out_of_memory()
     signal.signal(signal.SIGTERM, _on_term)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C at the API's terminal is the API's to handle
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

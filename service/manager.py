@@ -4,13 +4,20 @@ Submission validates everything that can be checked without running, as ``compab
 parses, the spec validates, every expression compiles against the whitelist (``build_network``), the initial
 states have the system's dimension, the regions are non-empty and the caps hold. Only then is the job stored as ``queued``, so bad input never reaches a worker.
 
-Running: a :class:`JobManager` starts up to ``max_running`` jobs, oldest first, each in its own process tree
+Running: a :class:`JobManager` starts up to ``max_running`` jobs, each in its own process tree
 (:mod:`service.supervisor`, :mod:`service.job_process`) watched by a thread of the API that only waits: the job
 process writes its progress and its outcome to the job store, and the API reads them from there. DELETE stops the
 job's process group (``SIGTERM``, ``SIGKILL`` after ``stop_grace`` seconds) and with it its Dask tasks (a client
 that goes away releases them; a worker still running one after :data:`TASK_GRACE` seconds is restarted). Every job
 has a wall-time limit (``options.time_limit``, else ``default_time_limit``, at most ``max_time_limit``): a job
-past it is stopped the same way and marked failed, with the reason.
+past it is stopped the same way and marked failed, with the reason. Every job has a memory limit too
+(``options.memory_limit``, else ``default_memory_limit``, at most ``max_memory_limit``, in MiB) on its whole process
+tree (:meth:`~service.supervisor.JobProcess.memory_over`): a job over it is killed at once and marked failed with
+the limit and the use measured.
+
+The queue is fair between tokens (:func:`fair_order`): the next job to start is taken round-robin over the
+tokens that have queued jobs, oldest first within a token, so one user's fifty jobs do not hold another's one
+behind them all. ``GET /jobs/{id}`` shows a queued job's place in that order.
 
 Restart: jobs the store shows as ``running`` when an API starts were interrupted (the process died or was
 stopped mid-job). :meth:`JobManager.recover` kills a job process that outlived its API, then puts the jobs back
@@ -22,11 +29,14 @@ or cancelled) instead: a job is never left ``running`` without a process running
 
 from __future__ import annotations
 
+import heapq
 import json
 import logging
 import threading
 import time
 import uuid
+from collections import deque
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,7 +48,7 @@ from pipelines.spec.model import JobSpec, parse_spec
 from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, UnsupportedMediaType
 from service.models import job_json
 from service.settings import Settings
-from service.store import ACTIVE, JobRecord, JobStatus, JobStore
+from service.store import ACTIVE, JobRecord, JobStatus, JobStore, QueuedJob
 from service.supervisor import EXIT_STOPPED, JobProcess, describe_exit, end_job, kill_orphans
 
 log = logging.getLogger("compabs.service")
@@ -130,6 +140,12 @@ def validate_spec(spec: JobSpec, settings: Settings) -> None:
                           f"options.time_limit: the job asks for {limit:g} s of wall time, and this server's cap "
                           f"max_time_limit is {settings.max_time_limit:g} s: ask for at most that, or leave it out "
                           f"(the default is {settings.default_time_limit:g} s)")
+    memory = spec.options.memory_limit
+    if memory is not None and memory > settings.max_memory_limit:
+        raise CapExceeded("max_memory_limit", settings.max_memory_limit,
+                          f"options.memory_limit: the job asks for {memory} MiB of memory, and this server's cap "
+                          f"max_memory_limit is {settings.max_memory_limit} MiB: ask for at most that, or leave it "
+                          f"out (the default is {settings.default_memory_limit} MiB)")
 
 
 # ============================================================================================ running
@@ -139,15 +155,22 @@ POLL = 0.2
 #: Seconds a stopped cluster job's tasks may go on running on the workers before those workers are restarted.
 TASK_GRACE = 5.0
 
-#: Why the API stopped a running job: DELETE, its time limit, the API stopping (the job is resumed later).
-CANCEL, TIME_LIMIT, INTERRUPT = "cancel", "time_limit", "interrupt"
+#: Why the API stopped a running job: DELETE, its time limit, its memory limit, the API stopping (the job is
+#: resumed later).
+CANCEL, TIME_LIMIT, MEMORY_LIMIT, INTERRUPT = "cancel", "time_limit", "memory_limit", "interrupt"
+#: Bytes in a MiB, the unit of the memory limits.
+MIB = 1 << 20
 
 
 @dataclass
 class _Running:
-    """A running job: its supervisor thread, its process once started, and the API's stop request."""
+    """A running job: its limits, its owner, its supervisor thread, its process once started, and the API's stop
+    request (``memory_used``: the bytes measured when it went over its memory limit)."""
 
     time_limit: float
+    memory_limit: int
+    owner: str = ""
+    memory_used: int = 0
     thread: threading.Thread | None = None
     process: JobProcess | None = None
     stop: threading.Event = field(default_factory=threading.Event)
@@ -165,6 +188,55 @@ def time_limit(spec_json: str, settings: Settings) -> float:
     given = (json.loads(spec_json).get("options") or {}).get("time_limit")
     limit = float(given) if given else settings.default_time_limit
     return min(limit, settings.max_time_limit)
+
+
+def memory_limit(spec_json: str, settings: Settings) -> int:
+    """A job's memory limit in MiB: ``options.memory_limit``, else the server's ``default_memory_limit``; at most
+    ``max_memory_limit`` (a larger one is refused at submission)."""
+    given = (json.loads(spec_json).get("options") or {}).get("memory_limit")
+    limit = int(given) if given else settings.default_memory_limit
+    return min(limit, settings.max_memory_limit)
+
+
+def fair_order(queued: Sequence[QueuedJob], running: Mapping[str, int] | None = None,
+               last_start: Mapping[str, int] | None = None) -> list[QueuedJob]:
+    """The order in which queued jobs start: round-robin over their owners (tokens), oldest first within one.
+
+    Parameters
+    ----------
+    queued : sequence of QueuedJob
+        Oldest first.
+    running : mapping
+        Jobs running now per owner.
+    last_start : mapping
+        Per owner, a number that grows with each start (the owner's latest); an owner without one has started
+        nothing yet.
+
+    The next job is the oldest of the owner with the fewest jobs running, then the one who started a job
+    longest ago (or never), then the one whose oldest queued job is the oldest: with equal running counts, that
+    is round-robin. The rest of the order is what repeated picks would give if no running job ended.
+    """
+    running, last = dict(running or {}), dict(last_start or {})
+    by_owner: dict[str, deque[QueuedJob]] = {}
+    for job in queued:
+        by_owner.setdefault(job.owner, deque()).append(job)
+
+    def key(owner: str) -> tuple[int, int, Any, str, str]:
+        head = by_owner[owner][0]
+        return (running.get(owner, 0), last.get(owner, -1), head.created_at, head.id, owner)
+
+    heap = [key(owner) for owner in by_owner]
+    heapq.heapify(heap)
+    tick = max(last.values(), default=0)
+    order = []
+    while heap:
+        owner = heapq.heappop(heap)[-1]
+        order.append(by_owner[owner].popleft())
+        tick += 1
+        running[owner], last[owner] = running.get(owner, 0) + 1, tick
+        if by_owner[owner]:
+            heapq.heappush(heap, key(owner))
+    return order
 
 
 class JobManager:
@@ -191,6 +263,9 @@ class JobManager:
         self.cluster = cluster or {}
         self._lock = threading.RLock()
         self._running: dict[str, _Running] = {}
+        #: Per owner, the tick of its latest start (fair_order's last_start).
+        self._last_start: dict[str, int] = {}
+        self._ticks = 0
         self._stopping = False
         self._env: dict[str, str] = {}
         if client is not None:
@@ -209,8 +284,8 @@ class JobManager:
         if active >= self.settings.max_concurrent_jobs:
             raise QueueFull(active, self.settings.max_concurrent_jobs)
 
-    def submit(self, body: bytes, content_type: str | None, name: str | None = None) -> JobRecord:
-        """Validate a submitted spec and queue it.
+    def submit(self, body: bytes, content_type: str | None, name: str | None = None, owner: str = "") -> JobRecord:
+        """Validate a submitted spec and queue it as a job of ``owner`` (:func:`service.settings.token_owner`).
 
         Raises
         ------
@@ -233,7 +308,7 @@ class JobManager:
             if self._stopping:
                 raise NotReady("the server is shutting down; submit the job again when it is back")
             self.check_capacity()  # again under the lock: two submissions must not both take the last place
-            rec = self.store.create(job_id, name or spec.name, spec.model_dump_json())
+            rec = self.store.create(job_id, name or spec.name, spec.model_dump_json(), owner=owner)
         self._kick()
         return rec
 
@@ -320,21 +395,37 @@ class JobManager:
             entry = self._running.get(job_id)
             return None if entry is None else entry.process
 
+    def _queue(self) -> list[QueuedJob]:
+        """The queued jobs in the order they will start (:func:`fair_order`)."""
+        with self._lock:  # a consistent picture of what runs; the store is read outside the lock
+            running: dict[str, int] = {}
+            for e in self._running.values():
+                running[e.owner] = running.get(e.owner, 0) + 1
+            ids, last_start = set(self._running), dict(self._last_start)
+        return fair_order([q for q in self.store.queue() if q.id not in ids], running, last_start)
+
+    def queue_positions(self) -> dict[str, int]:
+        """Each queued job's place in the queue: 1 starts next (if no running job ends first, the rest follow in
+        this order; a job submitted later by a token with fewer jobs may pass ahead)."""
+        return {q.id: i for i, q in enumerate(self._queue(), start=1)}
+
     def _kick(self) -> None:
-        """Start queued jobs, oldest first, while fewer than ``max_running`` run."""
+        """Start queued jobs in their fair order (:func:`fair_order`) while fewer than ``max_running`` run."""
         with self._lock:
             while not self._stopping and len(self._running) < self.settings.max_running:
-                queued = [r for r in self.store.list(limit=len(self._running) + 1, statuses=(JobStatus.QUEUED,))
-                          if r.id not in self._running]
-                if not queued:
+                queue = self._queue()
+                if not queue:
                     return
-                rec = queued[0]
-                started = self.store.set_status(
-                    rec.id, JobStatus.RUNNING, started=True, attempts_delta=1, dask_dashboard=self.cluster.get("dashboard"),
+                rec = self.store.set_status(
+                    queue[0].id, JobStatus.RUNNING, started=True, attempts_delta=1,
+                    dask_dashboard=self.cluster.get("dashboard"),
                 )
-                if started is None or started.status != JobStatus.RUNNING:
+                if rec is None or rec.status != JobStatus.RUNNING:
                     continue
-                entry = _Running(time_limit(rec.spec, self.settings))
+                self._ticks += 1
+                self._last_start[rec.owner] = self._ticks
+                entry = _Running(time_limit(rec.spec, self.settings), memory_limit(rec.spec, self.settings) * MIB,
+                                 rec.owner)
                 # The supervisor thread starts the process itself: a job process dies with the thread that started
                 # it (PR_SET_PDEATHSIG), so that must be the thread that lives as long as the job.
                 entry.thread = threading.Thread(target=self._supervise, args=(rec.id, entry),
@@ -352,7 +443,7 @@ class JobManager:
             with self._lock:
                 self._running.pop(job_id, None)
             self._kick()
-        if entry.reason in (CANCEL, TIME_LIMIT) and self.client is not None and not self._stopping:
+        if entry.reason in (CANCEL, TIME_LIMIT, MEMORY_LIMIT) and self.client is not None and not self._stopping:
             from workers.cluster import stop_released_tasks
 
             restarted = stop_released_tasks(self.client, TASK_GRACE)
@@ -376,6 +467,11 @@ class JobManager:
                 self.store.refresh_seq(job_id)  # the job process's events, for the event streams
                 if code is None and proc.elapsed() > entry.time_limit:
                     entry.request(TIME_LIMIT)
+                used = proc.memory_over(entry.memory_limit) if code is None and not entry.stop.is_set() else None
+                if used is not None:
+                    entry.memory_used = used
+                    entry.request(MEMORY_LIMIT)
+                    code = proc.kill()  # no grace: a process over its memory would only grow meanwhile
                 if code is None and entry.stop.is_set():
                     code = proc.stop(self.settings.stop_grace)
             proc.finish()
@@ -401,6 +497,15 @@ class JobManager:
                     f"(options.time_limit; this server's default is {self.settings.default_time_limit:g} s, its cap "
                     f"max_time_limit {self.settings.max_time_limit:g} s). Its finished chunks are kept: submit it "
                     "again with a larger options.time_limit, or make it smaller.")
+        elif entry.reason == MEMORY_LIMIT:
+            stage = next(reversed(rec.stages), None) if rec.stages else None
+            where = f" during stage '{stage}'" if stage else ""
+            end_job(self.store, self.settings, job_id, JobStatus.FAILED,
+                    error=f"the job's processes used {entry.memory_used / MIB:.0f} MiB of memory{where}, over its "
+                    f"memory limit of {entry.memory_limit // MIB} MiB, and were stopped (options.memory_limit; this "
+                    f"server's default is {self.settings.default_memory_limit} MiB, its cap max_memory_limit "
+                    f"{self.settings.max_memory_limit} MiB). Submit it again with a larger options.memory_limit, or "
+                    "make it smaller.")
         else:
             how = describe_exit(code if code is not None else -1)
             tail = proc.log_tail() if proc is not None else ""

@@ -58,9 +58,14 @@ class Job(BaseModel):
     dask_dashboard: str | None = Field(default=None, description="the Dask dashboard of the cluster running it")
     figures: list[str] = Field(default_factory=list, description="figure names (GET /jobs/{id}/figures/{name}) once succeeded")
     summary: JobSummary | None = None
+    queue_position: int | None = Field(
+        default=None, ge=1,
+        description="a queued job's place in the queue, 1 = starts next (the queue is fair between tokens, so a "
+        "job of a token with fewer jobs may pass ahead); null otherwise, and in status events",
+    )
 
     @classmethod
-    def of(cls, rec: JobRecord) -> Job:
+    def of(cls, rec: JobRecord, queue_position: int | None = None) -> Job:
         order = {s: i for i, s in enumerate(STAGES)}
         stages = []
         for name in sorted(rec.stages, key=lambda s: (order.get(s, len(order)), s)):
@@ -74,6 +79,7 @@ class Job(BaseModel):
             finished_at=rec.finished_at, error=rec.error, stages=stages, dask_dashboard=rec.dask_dashboard,
             figures=list(rec.figures) if rec.status == JobStatus.SUCCEEDED else [],
             summary=JobSummary.model_validate(rec.summary) if rec.summary else None,
+            queue_position=queue_position if rec.status == JobStatus.QUEUED else None,
         )
 
 

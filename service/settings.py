@@ -17,6 +17,16 @@ Caps (each refusal names the cap and its value, so a user knows what to change o
     A job's wall-time limit is ``options.time_limit``, else ``default_time_limit``; a spec asking for more than
     ``max_time_limit`` is refused (422). A job past its limit, or cancelled, gets ``SIGTERM`` and, ``stop_grace``
     seconds later, ``SIGKILL`` (its whole process group), and is marked failed (cancelled) with the reason.
+``default_memory_limit`` (4096 MiB), ``max_memory_limit`` (16384 MiB)
+    A job's memory limit is ``options.memory_limit``, else ``default_memory_limit``; a spec asking for more than
+    ``max_memory_limit`` is refused (422). The limit holds for the job's whole process tree (the job process and
+    every process it starts), measured as the sum of their proportional set sizes (shared pages split among the
+    processes sharing them); a job over it is killed at once (``SIGKILL``: it would only grow in a grace period)
+    and marked failed with the limit and the use measured (:mod:`service.supervisor`).
+``token``, ``tokens``
+    ``token`` is the operator's; ``tokens`` (``COMPABS_TOKENS``, comma-separated) are further tokens, one per user,
+    each accepted like ``token``. The queue is fair between tokens: the next job to start is taken round-robin
+    over the tokens with queued jobs, oldest first within a token (:func:`service.manager.fair_order`).
 
 ``max_streams`` (64), ``max_streams_per_client`` (8), ``stream_idle_timeout`` (120 s)
     Open ``GET /jobs/{id}/events`` streams in all and per client address (a 429 beyond, :mod:`service.streams`);
@@ -59,12 +69,13 @@ most); :func:`local_caps` is that with each ``COMPABS_MAX_*`` variable that is s
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipelines.errors import SpecError
 from pipelines.spec.costs import CAP_NAMES, Caps
@@ -84,6 +95,11 @@ class Settings(BaseModel):
         default=None, repr=False,
         description="bearer token every route but /health requires (Authorization: Bearer <token>, or ?token=); "
         "None: no authentication (bind to 127.0.0.1 only)",
+    )
+    tokens: list[str] = Field(
+        default_factory=list, repr=False,
+        description="further bearer tokens, one per user, each accepted like token (which must be set too); the "
+        "queue is fair between tokens",
     )
     data_dir: Path = Field(default=Path("compabs-data"), description="jobs' directories are DATA/jobs/<id>/")
     db_url: str | None = Field(default=None, description="SQLAlchemy URL of the job store (default sqlite:///DATA/jobs.sqlite)")
@@ -136,6 +152,15 @@ class Settings(BaseModel):
         default=4 * 3600.0, gt=0, le=1e7,
         description="largest options.time_limit a job may ask for, seconds (a larger one is refused with a 422)",
     )
+    default_memory_limit: int = Field(
+        default=4096, ge=64, le=1 << 24,
+        description="memory limit of a job that sets no options.memory_limit, MiB, over its whole process tree; a "
+        "job over its limit is killed and marked failed",
+    )
+    max_memory_limit: int = Field(
+        default=16384, ge=64, le=1 << 24,
+        description="largest options.memory_limit a job may ask for, MiB (a larger one is refused with a 422)",
+    )
     stop_grace: float = Field(
         default=3.0, gt=0, le=600,
         description="seconds a stopped job's processes get to end on SIGTERM before they are killed (SIGKILL)",
@@ -155,7 +180,7 @@ class Settings(BaseModel):
     host: str = Field(default="127.0.0.1", description="address to bind; 127.0.0.1 unless told otherwise")
     port: int = Field(default=8000, ge=0, le=65535)
 
-    @field_validator("allowed_modules", mode="before")
+    @field_validator("allowed_modules", "tokens", mode="before")
     @classmethod
     def _split(cls, v: Any) -> Any:
         if isinstance(v, str):
@@ -167,6 +192,20 @@ class Settings(BaseModel):
     def _empty_is_none(cls, v: Any) -> Any:
         # An exported-but-empty variable (COMPABS_TOKEN=) must not mean "the token is the empty string".
         return None if isinstance(v, str) and not v.strip() else v
+
+    @model_validator(mode="after")
+    def _tokens_need_token(self) -> Settings:
+        if self.tokens and self.token is None:
+            # Without it, a server with only user tokens would look unauthenticated to serve's bind check.
+            raise ValueError("tokens are set but token is not: set token (COMPABS_TOKEN) too, the operator's")
+        if any(not t for t in self.tokens):
+            raise ValueError("tokens: an empty token would accept an empty credential")
+        return self
+
+    @property
+    def accepted_tokens(self) -> list[str]:
+        """Every bearer token this server accepts (none: no authentication)."""
+        return [t for t in (self.token, *self.tokens) if t is not None]
 
     @property
     def database_url(self) -> str:
@@ -204,11 +243,20 @@ class Settings(BaseModel):
         except ValidationError as err:
             problems = []
             for e in err.errors():
-                name = str(e["loc"][0]) if e["loc"] else "?"
+                name = str(e["loc"][0]) if e["loc"] else "settings"
                 source = f"{ENV_PREFIX}{name.upper()}" if name in values and name not in overrides else name
-                shown = "" if name == "token" else f" (got {e.get('input')!r})"  # never echo a secret
+                # Never echo a secret: not a token, nor the whole input a check of several fields is given.
+                shown = "" if name in ("token", "tokens", "settings") else f" (got {e.get('input')!r})"
                 problems.append(f"{source}: {e['msg']}{shown}")
             raise ValueError("invalid service settings: " + "; ".join(problems)) from None
+
+
+def token_owner(token: str | None) -> str:
+    """Who submitted a job, as the job store keeps it: a hash of the token (the token itself is never stored);
+    ``""`` on a server without tokens."""
+    if token is None:
+        return ""
+    return hashlib.sha256(b"compabs-owner\0" + token.encode()).hexdigest()[:16]
 
 
 def local_caps(environ: Mapping[str, str] | None = None) -> Caps:

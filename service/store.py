@@ -9,7 +9,8 @@ Tables
 ``jobs``
     One row per job: id, name, status, the validated spec (JSON), timestamps, error, the per-stage latest
     progress (``stages``, so a job's JSON is one row), the report's summary and figure names, the cancel
-    request, the number of starts (``attempts``) and ``last_seq``, the number of its last event.
+    request, the number of starts (``attempts``) and ``last_seq``, the number of its last event; ``owner``, which
+    token submitted it (:func:`service.settings.token_owner`: a hash, never the token), for the fair queue.
 ``events``
     ``(job_id, seq)``: ``seq`` counts 1, 2, 3, ... per job and is the SSE event id; ``kind`` is ``progress``
     (data ``{stage, done, total, message}``) or ``status`` (data: the job's JSON at that moment).
@@ -32,7 +33,21 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, overload
 
-from sqlalchemy import JSON, Boolean, DateTime, ForeignKey, Integer, String, Text, create_engine, event, func, select
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    create_engine,
+    event,
+    func,
+    inspect,
+    select,
+    text,
+)
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 from sqlalchemy.pool import StaticPool
@@ -108,6 +123,7 @@ class JobRow(Base):
     summary: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     figures: Mapped[list] = mapped_column(JSON, default=list)
     last_seq: Mapped[int] = mapped_column(Integer, default=0)
+    owner: Mapped[str] = mapped_column(String(64), default="", server_default="")
 
 
 class EventRow(Base):
@@ -139,6 +155,7 @@ class JobRecord:
     summary: dict[str, Any] | None = None
     figures: list[str] = field(default_factory=list)
     last_seq: int = 0
+    owner: str = ""
 
     @property
     def terminal(self) -> bool:
@@ -151,8 +168,17 @@ class JobRecord:
             started_at=_utc(row.started_at), finished_at=_utc(row.finished_at), error=row.error,
             cancel_requested=bool(row.cancel_requested), attempts=row.attempts or 0, dask_dashboard=row.dask_dashboard,
             stages=dict(row.stages or {}), summary=row.summary, figures=list(row.figures or []),
-            last_seq=row.last_seq or 0,
+            last_seq=row.last_seq or 0, owner=row.owner or "",
         )
+
+
+@dataclass(frozen=True)
+class QueuedJob:
+    """What the queue needs of a queued job (its spec stays in the database)."""
+
+    id: str
+    owner: str
+    created_at: datetime
 
 
 @dataclass(frozen=True)
@@ -228,6 +254,15 @@ class JobStore:
             event.listen(self.engine, "begin", _sqlite_begin)
         self._writer: Engine = self.engine.execution_options(**{_WRITE: True})
         Base.metadata.create_all(self._writer)
+        self._add_missing_columns()
+
+    def _add_missing_columns(self) -> None:
+        # A store written before a column existed keeps its jobs: the column is added with its default
+        # (create_all creates missing tables only).
+        present = {c["name"] for c in inspect(self._writer).get_columns("jobs")}
+        if "owner" not in present:
+            with self._writer.begin() as conn:
+                conn.execute(text("ALTER TABLE jobs ADD COLUMN owner VARCHAR(64) NOT NULL DEFAULT ''"))
 
     def close(self) -> None:
         self.engine.dispose()
@@ -260,6 +295,13 @@ class JobStore:
             else:
                 q = q.order_by(JobRow.created_at.desc(), JobRow.id.desc())
             return [JobRecord.of(r) for r in s.scalars(q.limit(limit))]
+
+    def queue(self) -> builtins.list[QueuedJob]:
+        """The queued jobs, oldest first, without their specs."""
+        with Session(self.engine) as s:
+            q = (select(JobRow.id, JobRow.owner, JobRow.created_at).where(JobRow.status == JobStatus.QUEUED.value)
+                 .order_by(JobRow.created_at, JobRow.id))
+            return [QueuedJob(i, o or "", _utc(c)) for i, o, c in s.execute(q)]
 
     def count(self, statuses: Iterable[JobStatus]) -> int:
         with Session(self.engine) as s:
@@ -313,10 +355,10 @@ class JobStore:
         self._seq[job_id] = rec.last_seq
         return rec
 
-    def create(self, job_id: str, name: str, spec_json: str) -> JobRecord:
-        """A new queued job and its first status event."""
+    def create(self, job_id: str, name: str, spec_json: str, owner: str = "") -> JobRecord:
+        """A new queued job of ``owner`` (:func:`service.settings.token_owner`) and its first status event."""
         row = JobRow(id=job_id, name=name, status=JobStatus.QUEUED.value, spec=spec_json, created_at=utcnow(), stages={},
-                     figures=[], attempts=0, cancel_requested=False, last_seq=0)
+                     figures=[], attempts=0, cancel_requested=False, last_seq=0, owner=owner)
         rec = self._write(job_id, lambda s, r: "status", new=row)
         assert rec is not None  # inserted, never missing
         return rec

@@ -13,6 +13,17 @@ whatever is left after ``grace`` seconds (a process inside one long CUDD call do
 file (``DATA/run/<id>.pid``) so that an API started after a crash kills a job process that outlived it before the
 job is resumed (:func:`kill_orphans`).
 
+Memory (:meth:`JobProcess.memory_over`): the supervisor sums the resident memory of the job's process group at
+each look, and, only when that sum is over the job's limit, the proportional set sizes (``/proc/PID/smaps_rollup``:
+a page shared by several processes, the interpreter's libraries say, counted once in all); over the limit by that
+measure, the group is killed. Resident sizes alone would count each helper's copy of the shared libraries (tens of
+MB a process) again. A per-process ``RLIMIT_AS`` is not used: it bounds address space, not memory (a job process
+maps gigabytes it never touches: thread stacks, malloc arenas, CUDD's and numba's reservations), it bounds each
+process and not the tree, and where it bites, inside CUDD or numpy, it turns into a failed allocation that may
+crash the process with no reason recorded. The kernel's OOM killer remains the backstop for a burst faster than
+the supervisor's look: the job process raises its own ``oom_score_adj`` (:mod:`service.job_process`), so a job,
+never the API, is what the kernel kills.
+
 Its output (Dask's, a black box's prints, a traceback) goes to ``DATA/logs/<id>.log``.
 """
 
@@ -28,6 +39,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import psutil
 
 from service.settings import Settings
 from service.store import JobStatus, JobStore
@@ -68,6 +81,43 @@ def _signal_group(pgid: int, sig: int) -> bool:
         return True
     except (ProcessLookupError, PermissionError):
         return False
+
+
+def group_members(pgid: int) -> list[psutil.Process]:
+    """The processes of the process group ``pgid`` now: a job's processes, whatever their parents (a helper whose
+    parent ended is still the job's)."""
+    members = []
+    for proc in psutil.process_iter():
+        try:
+            if os.getpgid(proc.pid) == pgid:
+                members.append(proc)
+        except (ProcessLookupError, PermissionError):
+            continue
+    return members
+
+
+def _sum_memory(processes: list[psutil.Process], proportional: bool) -> int:
+    total = 0
+    for proc in processes:
+        try:
+            total += proc.memory_full_info().pss if proportional else proc.memory_info().rss
+        except (psutil.NoSuchProcess, psutil.ZombieProcess):
+            continue
+        except (psutil.AccessDenied, AttributeError):  # no smaps here: resident size, an upper bound
+            with contextlib.suppress(psutil.Error):
+                total += proc.memory_info().rss
+    return total
+
+
+def group_memory_over(pgid: int, limit: int) -> int | None:
+    """The memory in bytes the process group ``pgid`` uses if that is over ``limit`` bytes, else ``None``: the
+    resident sizes' sum first (cheap, an upper bound), and only when that is over ``limit`` the proportional set
+    sizes' sum, which is the use measured (module docstring)."""
+    members = group_members(pgid)
+    if _sum_memory(members, proportional=False) <= limit:
+        return None
+    used = _sum_memory(members, proportional=True)
+    return used if used > limit else None
 
 
 def kill_orphans(run_dir: Path) -> list[int]:
@@ -118,7 +168,7 @@ class JobProcess:
         child_env["PYTHONPATH"] = os.pathsep.join([PACKAGE_ROOT, *filter(None, [child_env.get("PYTHONPATH")])])
         child_env["PYTHONUNBUFFERED"] = "1"
         payload = {
-            "settings": settings.model_dump(mode="json", exclude={"token"}),
+            "settings": settings.model_dump(mode="json", exclude={"token", "tokens"}),
             "scheduler": scheduler,
             "parent": os.getpid(),
         }
@@ -148,6 +198,20 @@ class JobProcess:
             return self.popen.wait(timeout)
         except subprocess.TimeoutExpired:
             return None
+
+    def memory_over(self, limit: int) -> int | None:
+        """The memory in bytes the job's process group uses now if that is over ``limit`` bytes, else ``None``
+        (:func:`group_memory_over`); ``None`` too when it cannot be read this time (it is read again at the next
+        look, and a supervisor that raised would leave the job unwatched)."""
+        try:
+            return group_memory_over(self.pid, limit)
+        except (psutil.Error, OSError):
+            return None
+
+    def kill(self) -> int:
+        """``SIGKILL`` to the whole process group at once; returns the job process's exit status."""
+        _signal_group(self.pid, signal.SIGKILL)
+        return self.popen.wait()
 
     def stop(self, grace: float) -> int:
         """Stop the whole process group: ``SIGTERM``, then ``SIGKILL`` after ``grace`` seconds. Returns the job

@@ -338,6 +338,12 @@ class OptionsSpec(_Model):
         description="seconds of wall time the job may run under `compabs serve` before it is stopped and marked "
         "failed (null: the server's default_time_limit; at most its max_time_limit). Not part of the spec's hash",
     )
+    memory_limit: int | None = Field(
+        default=None, ge=64, le=1 << 24,
+        description="MiB of memory the job's processes may use together under `compabs serve` before it is stopped "
+        "and marked failed (null: the server's default_memory_limit; at most its max_memory_limit). Not part of "
+        "the spec's hash",
+    )
     synthesis_processes: int | Literal["auto"] = Field(
         default="auto",
         description="processes for the synthesis fixed points, this one included (the state space is split among "
@@ -584,7 +590,8 @@ def spec_hash(spec: JobSpec) -> str:
     # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
     # timed out must resume.
     # synthesis_quotient and synthesis_refine change the synthesis only: the stored abstraction is reused.
-    timing_only = {"options": {"task_timeout", "time_limit", "synthesis_processes", "synthesis_on", "synthesis_parallel_after",
+    timing_only = {"options": {"task_timeout", "time_limit", "memory_limit", "synthesis_processes", "synthesis_on",
+                               "synthesis_parallel_after",
                                "synthesis_quotient", "synthesis_refine", "synthesis_backend"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]

@@ -18,6 +18,7 @@ from fastapi.security import APIKeyQuery, HTTPAuthorizationCredentials, HTTPBear
 
 from service.manager import JobManager
 from service.models import ErrorDetail
+from service.settings import token_owner
 from service.store import JobRecord
 
 _bearer = HTTPBearer(auto_error=False, description="the server's token (COMPABS_TOKEN)")
@@ -35,13 +36,18 @@ def require_token(
     bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)],
     query: Annotated[str | None, Security(_query)],
 ) -> None:
-    """401 unless the request carries the server's token (when one is set)."""
-    token = request.app.state.settings.token
-    if token is None:
+    """401 unless the request carries one of the server's tokens (when one is set); ``request.state.owner`` names
+    the token it carries (:func:`~service.settings.token_owner`), for the fair queue."""
+    tokens = request.app.state.settings.accepted_tokens
+    request.state.owner = token_owner(None)
+    if not tokens:
         return
     given = bearer.credentials if bearer is not None else query
-    # compare_digest: the time taken must not tell how much of a guess was right.
-    if given is None or not secrets.compare_digest(given.encode(), token.encode()):
+    # compare_digest, against every token: the time taken must not tell how much of a guess was right, or which.
+    matches = [given is not None and secrets.compare_digest(given.encode(), t.encode()) for t in tokens]
+    if any(matches):
+        request.state.owner = token_owner(given)
+    else:
         what = "a wrong token" if given is not None else "no token"
         raise HTTPException(
             401,

@@ -78,8 +78,10 @@ async def submit_job(
     """Validate a spec (expressions compiled, regions resolved, caps checked) and queue it as a job."""
     await run_in_threadpool(manager.check_capacity)  # a full server answers before reading the body
     body = await request.body()
-    rec = await run_in_threadpool(manager.submit, body, request.headers.get("content-type"), name)
-    return Job.of(rec)
+    rec = await run_in_threadpool(manager.submit, body, request.headers.get("content-type"), name,
+                                  request.state.owner)
+    places = await run_in_threadpool(manager.queue_positions)
+    return Job.of(rec, places.get(rec.id))
 
 
 @router.get("", response_model=JobList)
@@ -88,13 +90,15 @@ def list_jobs(
     limit: Annotated[int, Query(ge=1, le=1000, description="at most this many, newest first")] = 100,
 ) -> JobList:
     """Jobs, newest first."""
-    return JobList(jobs=[Job.of(r) for r in manager.store.list(limit=limit)])
+    records = manager.store.list(limit=limit)
+    places = manager.queue_positions() if any(r.status == JobStatus.QUEUED for r in records) else {}
+    return JobList(jobs=[Job.of(r, places.get(r.id)) for r in records])
 
 
 @router.get("/{job_id}", response_model=Job, responses=_NOT_FOUND)
-def get_job(rec: FoundJob) -> Job:
-    """A job: status, per-stage progress, summary and figures once done."""
-    return Job.of(rec)
+def get_job(rec: FoundJob, manager: Manager) -> Job:
+    """A job: status, its place in the queue while queued, per-stage progress, summary and figures once done."""
+    return Job.of(rec, manager.queue_positions().get(rec.id) if rec.status == JobStatus.QUEUED else None)
 
 
 @router.delete("/{job_id}", response_model=Job, responses=_NOT_FOUND)
