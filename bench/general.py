@@ -1,11 +1,13 @@
 """The ``general`` case (issue 22; only when named, never under ``--quick``): the field's standard benchmarks, side by
 side with SCOTS.
 
-For each example (``examples/dcdc.yaml``, ``examples/vehicle.yaml``, ``examples/rooms.yaml``): the job end to end in
-one process (:func:`bench.end_to_end.child_end_to_end`: :func:`workers.job.run_job`, the audit beside synthesis,
-synthesis, closed loop, files), its abstract states, transitions and winning domain, and the per-cell stage against
-the floor (the black box alone on the same samples, :func:`bench.floor.child_floor`), printed beside SCOTS's figures
-(:data:`SCOTS`). The children are named, not imported: :func:`bench.harness.run_child` runs them.
+For each example (``examples/dcdc.yaml``, ``examples/vehicle.yaml``, ``examples/double_integrator.yaml``,
+``examples/rooms.yaml``): the job end to end in one process (:func:`bench.end_to_end.child_end_to_end`:
+:func:`workers.job.run_job`, the audit beside synthesis, synthesis, closed loop, files), its abstract states,
+transitions and winning domain, and the per-cell stage against the floor (the black box alone on the same samples,
+:func:`bench.floor.child_floor`), printed beside SCOTS's figures (:data:`SCOTS`) and, for a linear example, beside
+the exact-image-box reference (:mod:`bench.reference`: the tightest interval abstraction, its game solved
+explicitly). The children are named, not imported: :func:`bench.harness.run_child` runs them.
 """
 
 from __future__ import annotations
@@ -40,11 +42,18 @@ SCOTS: dict[str, dict[str, Any]] = {
     },
     "rooms": None,  # a compositional benchmark: no SCOTS run of it
 }
+#: The examples in the order the case runs them.
+GENERAL_EXAMPLES = ("dcdc", "vehicle", "double_integrator", "rooms")
+#: The linear examples, compared with their exact-image-box reference (:func:`child_reference`).
+LINEAR_EXAMPLES = ("double_integrator",)
 #: The examples whose subsystems are n-dimensional (2-D and 3-D): issue 22's per-cell target is about them.
 N_D_EXAMPLES = ("dcdc", "vehicle")
 #: Issue 22's targets ("Done when") for the general case.
 GENERAL_TARGETS = {"dcdc_seconds": 60.0, "dcdc_domain_vs_scots": 0.95, "audit_transitions": 10**6, "floor": 3.0,
                    "closed_loop_runs": 100}
+#: Issue 46's targets for a linear example against its exact-image-box reference: domain at least, transitions at
+#: most, these shares of the reference's.
+REFERENCE_TARGETS = {"domain_states": 0.9, "transitions": 1.2}
 
 
 def transitions_of(subsystems: list[dict]) -> int:
@@ -116,7 +125,17 @@ def child_backends(p: dict, emit: Emit) -> None:
         "domains": {k: r.domain_states for k, r in bdd_results.items()}, "same_domains": same}})
 
 
-CHILDREN = {"backends": child_backends}
+def child_reference(p: dict, emit: Emit) -> None:
+    """A linear example's exact-image-box reference (:func:`bench.reference.exact_reference`): its relation's
+    transitions and its game's domain, solved explicitly."""
+    from bench.reference import exact_reference
+    from pipelines.spec.model import load_spec
+
+    emit({"type": "stage", "stage": "reference"})
+    emit({"type": "row", "row": exact_reference(load_spec(p["spec"], p.get("set")))})
+
+
+CHILDREN = {"backends": child_backends, "reference": child_reference}
 
 
 def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_child,
@@ -132,7 +151,7 @@ def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_chi
 
         worker_environ = default_environ
     rows: list[dict] = []
-    for name in ("dcdc", "vehicle", "rooms"):
+    for name in GENERAL_EXAMPLES:
         spec = examples / f"{name}.yaml"
         child = run_child("end_to_end", {"spec": str(spec)}, args.point_timeout, args.mem_limit_gb * 1024)
         rec = case_record(f"general {name}", child, spec=spec.name)
@@ -149,6 +168,12 @@ def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_chi
                              env=worker_environ())
             rec["backends"] = {"status": both["status"], "error": both["error"],
                                "rows": {e["row"]["backend"]: e["row"] for e in both["events"] if e["type"] == "row"}}
+        if name in LINEAR_EXAMPLES:
+            ref = run_child("reference", {"spec": str(spec)}, args.point_timeout, args.mem_limit_gb * 1024)
+            row: dict[str, Any] = next((e["row"] for e in ref["events"] if e["type"] == "row"), {})
+            rec["reference"] = {"status": ref["status"], "error": ref["error"], "row": row}
+            rec["vs_reference"] = {"domain_states": harness.ratio(rec["domain_states"], row.get("domain_states")),
+                                   "transitions": harness.ratio(rec["transitions"], row.get("transitions"))}
         scots = SCOTS.get(name)
         rec["scots"] = scots
         if scots:
@@ -177,7 +202,8 @@ def run(args: Any) -> dict:
 
 def lines(c: dict) -> list[str]:
     """The case's lines in the table: a heading and :func:`general_lines`."""
-    return ["  general: the field's benchmarks beside SCOTS (examples/dcdc, vehicle, rooms)", *general_lines(c)]
+    return ["  general: the field's benchmarks beside SCOTS (examples/dcdc, vehicle, double_integrator, rooms)",
+            *general_lines(c)]
 
 
 def targets(c: dict, put: harness.Put) -> None:
@@ -187,7 +213,8 @@ def targets(c: dict, put: harness.Put) -> None:
 
 def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
     """The general case's table: ours beside SCOTS's per example."""
-    out = [f"  {'example':<9}{'states':>11}{'transitions':>13}{'domain':>11}{'end-to-end s':>14}{'per-cell s':>12}"
+    w = max([9, *(len(r["case"].split()[-1]) + 1 for r in c["runs"])])  # the first column fits every name
+    out = [f"  {'example':<{w}}{'states':>11}{'transitions':>13}{'domain':>11}{'end-to-end s':>14}{'per-cell s':>12}"
            f"{'/floor':>8}{'ns/rhs':>8}{'audit':>10}{'viol.':>6}{'runs':>6}{'viol.':>6}   SCOTS (states, transitions, domain, s)"]
     for r in c["runs"]:
         d = r["details"]
@@ -195,13 +222,13 @@ def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
         s = r.get("scots") or {}
         scots = (f"{fmt(s.get('states'))}, {fmt(s.get('transitions'))}, {fmt(s.get('domain_states'))}, "
                  f"{fmt(s.get('abstraction_seconds'))}" if s else "-")
-        out.append(f"  {r['case'].split()[-1]:<9}{fmt(r['abstract_states']):>11}{fmt(r['transitions']):>13}"
+        out.append(f"  {r['case'].split()[-1]:<{w}}{fmt(r['abstract_states']):>11}{fmt(r['transitions']):>13}"
                    f"{fmt(r['domain_states']):>11}{fmt(r['total_wall']):>14}"
                    f"{fmt(r['stages'].get('subsystems', {}).get('wall')):>12}{fmt(r['floor']['ratio']):>8}"
                    f"{fmt(r['floor'].get('ns_per_rhs')):>8}"
                    f"{fmt(audit.get('transitions_checked')):>10}{fmt(audit.get('violations')):>6}"
                    f"{fmt(loop.get('runs')):>6}{fmt(loop.get('violations')):>6}   {scots}")
-    out.append(f"  {'synthesis':<9}{'explicit: build s':>19}{'fixed pt s':>12}{'BDD: build s':>14}{'relations s':>13}"
+    out.append(f"  {'synthesis':<{w}}{'explicit: build s':>19}{'fixed pt s':>12}{'BDD: build s':>14}{'relations s':>13}"
                f"{'fixed pt s':>12}{'BDD trans/s':>13}{'same domain':>13}   SCOTS synthesis s")
     for r in c["runs"]:
         both = (r.get("backends") or {}).get("rows") or {}
@@ -209,11 +236,20 @@ def general_lines(c: dict, fmt: Callable[..., str] = harness.fmt) -> list[str]:
             continue
         e, b = both.get("explicit") or {}, both.get("bdd") or {}
         same = b.get("same_domains") or {}
-        out.append(f"  {r['case'].split()[-1]:<9}{fmt(e.get('build_seconds')):>19}{fmt(e.get('fixed_point_seconds')):>12}"
+        out.append(f"  {r['case'].split()[-1]:<{w}}{fmt(e.get('build_seconds')):>19}{fmt(e.get('fixed_point_seconds')):>12}"
                    f"{fmt(b.get('build_seconds')):>14}{fmt(b.get('relation_seconds')):>13}"
                    f"{fmt(b.get('fixed_point_seconds')):>12}{fmt(b.get('transitions_per_second')):>13}"
                    f"{('yes' if same and all(same.values()) else 'NO' if same else '-'):>13}"
                    f"   {fmt((r.get('scots') or {}).get('synthesis_seconds'))}")
+    refs = [r for r in c["runs"] if r.get("reference")]
+    if refs:
+        out.append(f"  {'reference':<{w}}{'exact image boxes: transitions':>32}{'domain':>11}{'ours / ref.: transitions':>26}"
+                   f"{'domain':>9}")
+    for r in refs:
+        row, vs = r["reference"].get("row") or {}, r.get("vs_reference") or {}
+        out.append(f"  {r['case'].split()[-1]:<{w}}{fmt(row.get('transitions')):>32}{fmt(row.get('domain_states')):>11}"
+                   f"{fmt(vs.get('transitions')):>26}{fmt(vs.get('domain_states')):>9}"
+                   + (f"   {r['reference']['error']}" if r["reference"].get("error") else ""))
     return out
 
 
@@ -237,6 +273,15 @@ def general_targets(c: dict, put: harness.Put) -> None:
         loop = ve["details"].get("closed_loop") or {}
         put("vehicle closed-loop runs (violations)", loop.get("runs"), ">= 100, 0 violations",
             (loop.get("runs") or 0) >= GENERAL_TARGETS["closed_loop_runs"] and loop.get("violations") == 0)
+    for name in LINEAR_EXAMPLES:
+        vs = (runs.get(name) or {}).get("vs_reference")
+        if vs is None:
+            continue
+        share, more = vs.get("domain_states"), vs.get("transitions")
+        put(f"{name} domain / exact-image reference", share, f">= {REFERENCE_TARGETS['domain_states']}",
+            share is not None and share >= REFERENCE_TARGETS["domain_states"])
+        put(f"{name} transitions / exact-image reference", more, f"<= {REFERENCE_TARGETS['transitions']}",
+            more is not None and more <= REFERENCE_TARGETS["transitions"])
     worst = c.get("ratio")
     put("per-cell / floor (worst of the 2-D, 3-D)", worst, f"<= {GENERAL_TARGETS['floor']}",
         worst is not None and worst <= GENERAL_TARGETS["floor"])
