@@ -11,12 +11,13 @@ The relation is stored as per-dimension successor index ranges ``[lo, hi]`` and 
 shape ``(n_x, n_u, n_w[, n])`` indexed by the flat cell indices of the three grids. Work is split in chunks
 of state cells; :func:`abstract_chunk` computes one chunk and is what a distributed runner maps.
 
-Successor statistics (the report's ``mean_successors``) are exact for ``lipschitz``, ``hull`` and the SCP
-objective that builds the relation. An SCP objective that does not build it is counted on every triple of a
-scalar subsystem (the closed-form SCP costs little there) and, for ``dim(x) > 1``, on a fixed sample of the
-triples (:func:`statistics_sample`, at most one in eight and small enough that it never costs more than the
-chosen growth bound: :func:`~pipelines.abstraction.cost.statistics_fraction`), so its mean is an estimate and
-its ``non_blocking`` count the sample's.
+Successor statistics (the report's ``mean_successors``) are exact for the bound that builds the relation and for
+``hull``, and for ``lipschitz`` unless the hull builds it. The others are counted on every triple of a scalar
+subsystem (the closed-form SCP costs little there) and, for ``dim(x) > 1``, on a fixed sample of the triples
+(:func:`statistics_sample`, at most one in eight and small enough that it never costs more than the chosen growth
+bound: :func:`~pipelines.abstraction.cost.statistics_fraction`), so their means are estimates and their
+``non_blocking`` counts the sample's: the SCP objectives that do not build the relation, and the Lipschitz bound
+when the hull does (which reads no centre: the black box is evaluated at the centres of the sample only).
 """
 
 from __future__ import annotations
@@ -488,11 +489,20 @@ def _abstract_block(
     box broadcasts (:class:`~pipelines.blackbox.BlackBox`: an expression reads them as views, a
     ``module:function`` gets them copied out to ``(S_x S_w B, d)``).
     """
-    tr = _sample(sub, cells, x_lo, x_hi, t0, t1)
-    scalar = sub.n == 1 and len(tr.counts_w) <= 1
+    n_u, n_w = sub.input_grid.size, sub.n_w_cells
+    t = np.arange(t0, t1)
+    ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
+    xi = cells[ci]  # the state cells' flat indices
+    scalar = sub.n == 1 and sub.p <= 1
+    # The statistics of the bounds that do not build the relation, on a fixed sample of the triples; the hull
+    # reads no centre, so centres are evaluated only where the statistics need them.
+    sample = None if full_statistics else statistics_rows((xi * n_u + ui) * n_w + wi,
+                                                          statistics_fraction(sub, *_cost_names(bound)))
+    centres = sample if sample is not None and type(bound) is HullBound else None
+    tr = _sample(sub, ci, xi, ui, wi, x_lo, x_hi, centres)
     if scalar and full_statistics and _USE_SCALAR_KERNEL and type(bound) in _KERNEL_BOUNDS:
         return _scalar_kernel_block(sub, tr, bound)
-    return _generic_block(sub, tr, bound, full_statistics, scalar)
+    return _generic_block(sub, tr, bound, sample, centres is None, scalar)
 
 
 @dataclass(frozen=True)
@@ -532,17 +542,16 @@ class _Triples:
                            (s.shape[1], s.shape[2]))
 
 
-def _sample(sub: Subsystem, cells: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray, t0: int, t1: int) -> _Triples:
-    """The black box on the samples and the centre of each of the triples ``t0 .. t1-1`` (the layout is in
-    :func:`_abstract_block`'s notes); a non-finite value names its sample and cell."""
-    ug, wg = sub.input_grid, sub.internal_grid
-    u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(ug, wg, sub.spec.samples, sub.n)
-    n_u, n_w = u_pts.shape[0], w_lo.shape[0]
+def _sample(sub: Subsystem, ci: np.ndarray, xi: np.ndarray, ui: np.ndarray, wi: np.ndarray, x_lo: np.ndarray,
+            x_hi: np.ndarray, centres: np.ndarray | None) -> _Triples:
+    """The black box on the samples of the triples (``ci``: their cells' positions in ``x_lo``, ``x_hi``; ``xi``,
+    ``ui``, ``wi``: their flat state cell, input and internal cell; the layout is in :func:`_abstract_block`'s
+    notes) and on the centres of the triples ``centres`` (positions; ``None``: all; NaN elsewhere); a non-finite
+    value names its sample and cell."""
+    u_pts, w_lo, w_hi, counts, off_x, ws = _chunk_invariants(sub.input_grid, sub.internal_grid, sub.spec.samples,
+                                                             sub.n)
     Sx, Sw = off_x.shape[0], ws.shape[0]
-    t = np.arange(t0, t1)
-    ci, ui, wi = t // (n_u * n_w), (t // n_w) % n_u, t % n_w  # each triple's state cell, input, internal cell
-    xi = cells[ci]  # the state cells' flat indices
-    shape = (Sx, Sw, t.size)
+    shape = (Sx, Sw, xi.size)
 
     xl, xh = x_lo[ci], x_hi[ci]  # (B, n)
     xs = xl[None] + off_x[:, None, :] * (xh - xl)[None]  # (Sx, B, n)
@@ -557,13 +566,16 @@ def _sample(sub: Subsystem, cells: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarra
     def where_sample(row: int) -> str:
         return where_triple(int(np.unravel_index(row, shape)[2]))
 
-    def where_centre(row: int) -> str:
-        return "centre of " + where_triple(row)
-
     V = sub.dynamics(X, U, W, describe=where_sample)  # (Sx, Sw, B, n)
     # Centre of the clipped joint cell: Lemma 4.3 and the SCP bound distances from it.
     wl, wh = w_lo[wi], w_hi[wi]  # (B, p)
-    C = sub.dynamics((xl + xh) / 2, U, (wl + wh) / 2, describe=where_centre)  # (B, n)
+    at = slice(None) if centres is None else centres
+
+    def where_centre(row: int) -> str:
+        return "centre of " + where_triple(int(np.arange(xi.size)[at][row]))
+
+    C = np.full(xl.shape, np.nan)
+    C[at] = sub.dynamics((xl[at] + xh[at]) / 2, U[at], (wl[at] + wh[at]) / 2, describe=where_centre)  # (B, n)
     return _Triples(xi, ui, wi, xl, xh, wl, wh, V.reshape(shape + (sub.n,)), C, tuple(counts[:sub.n]),
                     tuple(counts[sub.n:]))
 
@@ -586,12 +598,14 @@ def _scalar_kernel_block(sub: Subsystem, tr: _Triples, bound: GrowthBound) -> _B
                   tr.record(sw[:, None, None] if p else np.zeros((B, 1, 0))))
 
 
-def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, full_statistics: bool, scalar: bool) -> _Block:
+def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, sample: np.ndarray | None, all_centres: bool,
+                   scalar: bool) -> _Block:
     """The growth bound objects on the block (the reference of the compiled passes): the bound itself on every
-    triple, then the report's other bounds (the SCP objectives that are not the bound on the statistics sample
-    unless ``full_statistics``). Each box is computed per triple, so the same bits whichever triples are asked for.
-    The Lipschitz and hull bounds of a subsystem that is not scalar, with the slopes, in one compiled pass
-    (:func:`compiled.box_block`) where one of them is the bound."""
+    triple, then the report's other bounds: on the triples ``sample`` (``None``: all) the SCP objectives that are
+    not the bound, and the Lipschitz bound where the centres are not ``all_centres``. Each box is computed per
+    triple, so the same bits whichever triples are asked for. The Lipschitz and hull bounds of a subsystem that is
+    not scalar, with the slopes, in one compiled pass (:func:`compiled.box_block`) where one of them is the
+    bound."""
     xg, n, p, B = sub.state_grid, sub.n, sub.p, tr.size
     cx, cw = tr.counts_x, tr.counts_w
     RX, RW = (tr.xh - tr.xl) / 2, (tr.wh - tr.wl) / 2
@@ -605,14 +619,13 @@ def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, full_statis
 
     bounds = standard_bounds(bound)
     rows: dict[str, np.ndarray | None] = {b.name: None for b in bounds}
-    if not full_statistics:
-        fraction = statistics_fraction(sub, *_cost_names(bound))
-        n_u, n_w = sub.input_grid.size, sub.n_w_cells
-        for b in bounds[1:]:
-            if isinstance(b, ScpBound):
-                rows[b.name] = statistics_rows((tr.xi * n_u + tr.ui) * n_w + tr.wi, fraction)
+    for b in bounds[1:]:
+        if isinstance(b, ScpBound) or (isinstance(b, LipschitzBound) and not all_centres):
+            rows[b.name] = sample
     compiled_pass = not scalar and _USE_BOX_KERNEL and type(bound) in _BOX_KERNEL_BOUNDS
-    in_kernel = _BOX_KERNEL_NAMES if compiled_pass else ()
+    in_kernel: tuple[str, ...] = ()
+    if compiled_pass:  # the Lipschitz bound in the pass only where every centre is there
+        in_kernel = _BOX_KERNEL_NAMES if all_centres else ("hull",)
     boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds if b.name not in in_kernel}
     counted = _count_boxes(xg, boxes)
     if compiled_pass:
@@ -620,9 +633,11 @@ def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, full_statis
             np.ascontiguousarray(tr.V.reshape(-1, B, n)), np.ascontiguousarray(tr.C),
             np.ascontiguousarray(bound.lipschitz_radius(block)), np.ascontiguousarray(bound.margin(block, 2)),
             np.asarray(cx + cw, dtype=np.int64), np.ascontiguousarray(np.concatenate([HX, HW], axis=1)),
-            _BOX_KERNEL_NAMES.index(bound.name), *_grid_arrays(xg), FP_RTOL, SNAP_RTOL,
+            _BOX_KERNEL_NAMES.index(bound.name), _BOX_KERNEL_NAMES.index(in_kernel[0]), *_grid_arrays(xg), FP_RTOL,
+            SNAP_RTOL,
         )
-        counted.update({name: (int(sums[q]), int(live[q])) for q, name in enumerate(_BOX_KERNEL_NAMES)})
+        counted.update({name: (int(sums[q]), int(live[q])) for q, name in enumerate(_BOX_KERNEL_NAMES)
+                        if name in in_kernel})
         sx, sw = slopes[:, :, :len(cx)], slopes[:, :, len(cx):]
     else:
         first, last, blocked = _cells_of(xg, *boxes[bound.name])

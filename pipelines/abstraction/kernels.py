@@ -385,6 +385,7 @@ def box_block(
     counts: np.ndarray,
     h: np.ndarray,
     chosen: int,
+    first_bound: int,
     origin: np.ndarray,
     eta: np.ndarray,
     k_lo: np.ndarray,
@@ -405,7 +406,7 @@ def box_block(
         Successor samples, ``S`` the joint sub-grid (row-major over ``counts``: state axes, then internal-input
         axes).
     C : ndarray, shape (B, n)
-        Successor of each joint cell's centre.
+        Successor of each joint cell's centre (not read when ``first_bound`` is 1).
     lip, rho_h : ndarray, shape (B, n)
         Lipschitz radius (Lemma 4.3) and hull margin per component (``GrowthBound.lipschitz_radius``, ``margin``).
     counts : ndarray of int64, shape (d,)
@@ -414,6 +415,8 @@ def box_block(
         Sample spacing along each axis.
     chosen : int
         0: the Lipschitz bound's successors are returned; 1: the hull's.
+    first_bound : int
+        0: both bounds; 1: the hull only (the Lipschitz bound's statistics are left 0).
     origin, eta, k_lo, shape, lb, ub, fp_rtol, snap_rtol
         The state grid and rounding margins (see :func:`_cell_range`).
 
@@ -459,7 +462,7 @@ def box_block(
     first = np.empty(n, dtype=np.int64)
     last = np.empty(n, dtype=np.int64)
     for b in range(B):
-        for q in range(2):
+        for q in range(first_bound, 2):
             leaves = False
             count = np.int64(1)
             for i in range(n):
@@ -503,7 +506,7 @@ def warm_up() -> None:
     scp_parameters_batch_last(E[:, [0]], one[[0]], one[[0]], 1.0, one[[0]], 0.0)  # a column subset
     ints = np.zeros(1, dtype=np.int64)
     box_block(np.zeros((2, 2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), np.full(1, 2, dtype=np.int64),
-              np.ones((2, 1)), 1, one[:1], one[:1], ints, ints, one[:1], one[:1], 0.0, 0.0)
+              np.ones((2, 1)), 1, 0, one[:1], one[:1], ints, ints, one[:1], one[:1], 0.0, 0.0)
     for w in (one, np.zeros(0)):
         scalar_block(V, one, one, one, w, w, 2.0, 2.0, 1.0, 1.0, 0, one[:1], one[:1], ints, ints, one[:1], one[:1],
                      0.0, 0.0, 0.0, 0.0)
