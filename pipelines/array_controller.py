@@ -8,8 +8,9 @@ which the cell entered the attractor). It answers every query of :class:`~.contr
 turns it into the same controller as a BDD (:func:`~.export.emit.as_bdd`) and determinizes that.
 
 On disk (docs/storage.md): ``NAME.json``, the header (``format`` :data:`ARRAY_FORMAT`, the grids, the job's
-meta, the SHA-256 of the arrays' file), and ``NAME.npz``, the arrays (``domain`` and ``admissible`` bit-packed,
-``layer``), read without pickles. A file whose checksum or shapes disagree with its header is refused.
+meta, its integrity record: the SHA-256 of the arrays' file and the job's spec hash,
+:mod:`.controller_integrity`), and ``NAME.npz``, the arrays (``admissible`` bit-packed, ``layer``), read without
+pickles. A file whose checksum, spec hash or shapes disagree with its header is refused.
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from pipelines.controller_integrity import ControllerIntegrityError, read_header, seal, verify_header
 from pipelines.errors import CompabsError
 from pipelines.export.table import quantize
 from pipelines.grid import UniformGrid
-from pipelines.symbolic.files import file_sha256
 
 #: ``format`` of an array controller's header.
 ARRAY_FORMAT = "compabs-array-controller/1"
@@ -185,7 +186,8 @@ class ArrayController:
 
     # ------------------------------------------------------------------ files
     def save(self, directory: str | os.PathLike[str], name: str) -> tuple[Path, ...]:
-        """Write ``NAME.npz`` and its header ``NAME.json``; returns the paths (arrays first)."""
+        """Write ``NAME.npz`` and its header ``NAME.json`` (with its integrity record,
+        :func:`~.controller_integrity.seal`); returns the paths (arrays first)."""
         base = Path(directory) / name
         arrays, head = base.with_name(base.name + ".npz"), base.with_name(base.name + ".json")
         parts: dict[str, np.ndarray] = {"admissible": np.packbits(self._admissible, axis=1)}
@@ -199,41 +201,41 @@ class ArrayController:
             "roots": [arrays.name],
             "shape": list(self._admissible.shape),
             "layered": self._layer is not None,
-            "sha256": file_sha256(arrays),
         }
-        head.write_text(json.dumps(header, indent=1))
+        head.write_text(json.dumps(seal(header, head.parent, [arrays.name]), indent=1))
         return arrays, head
 
     @classmethod
-    def load(cls, directory: str | os.PathLike[str], name: str) -> ArrayController:
-        """Read a controller written by :meth:`save`, checking the arrays against the header."""
+    def load(cls, directory: str | os.PathLike[str], name: str, job_hash: str | None = None) -> ArrayController:
+        """Read a controller written by :meth:`save`, its header's integrity record verified first (with
+        ``job_hash``, the job's spec hash too: :func:`~.controller_integrity.verify_header`)."""
         base = Path(directory) / name
         head_path = base.with_name(base.name + ".json")
+        header = read_header(head_path, "array controller header")
+        if header.get("format") != ARRAY_FORMAT:
+            raise ControllerIntegrityError(f"{head_path}: format {header.get('format')!r}, expected {ARRAY_FORMAT!r}")
         try:
-            header = json.loads(head_path.read_text())
-            arrays = head_path.with_name(header["roots"][0])
+            (root,) = header["roots"]
+            arrays = head_path.with_name(root)
             shape = tuple(int(k) for k in header["shape"])
             meta = dict(header["meta"])
-        except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
-            raise CompabsError(f"{head_path}: not a readable array controller header ({exc})") from None
-        if header.get("format") != ARRAY_FORMAT:
-            raise CompabsError(f"{head_path}: format {header.get('format')!r}, expected {ARRAY_FORMAT!r}")
-        try:
-            digest = file_sha256(arrays)
-        except OSError as exc:
-            raise CompabsError(f"{arrays}: cannot read the controller's arrays ({exc.strerror or exc})") from None
-        if digest != header.get("sha256"):
-            raise CompabsError(f"{arrays}: its checksum differs from the one in {head_path.name} (a damaged or "
-                               "replaced file); synthesize the controller again")
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ControllerIntegrityError(f"{head_path}: not a readable array controller header "
+                                           f"({type(exc).__name__}: {exc})") from None
+        verify_header(header, head_path, [root], job_hash)
         try:
             with np.load(arrays, allow_pickle=False) as data:
                 admissible = np.unpackbits(data["admissible"], axis=1, count=shape[1]).astype(bool)
                 layer = data["layer"] if header.get("layered") else None
-        except (OSError, ValueError, KeyError) as exc:
-            raise CompabsError(f"{arrays}: not readable as an array controller ({exc})") from None
+        except (OSError, ValueError, KeyError, IndexError) as exc:
+            raise ControllerIntegrityError(f"{arrays}: not readable as an array controller ({exc})") from None
         if admissible.shape != shape:
-            raise CompabsError(f"{arrays}: arrays of shape {admissible.shape}, the header says {shape}")
-        return cls(admissible, layer, meta)
+            raise ControllerIntegrityError(f"{arrays}: arrays of shape {admissible.shape}, the header says {shape}")
+        try:
+            return cls(admissible, layer, meta)
+        except (KeyError, TypeError, ValueError, CompabsError) as exc:
+            raise ControllerIntegrityError(f"{head_path}: not a readable array controller header "
+                                           f"({type(exc).__name__}: {exc})") from None
 
 
 def is_array_controller(header_path: str | os.PathLike[str]) -> bool:

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipelines.array_controller import ArrayController, is_array_controller
+from pipelines.controller_integrity import ControllerIntegrityError, job_spec_hash
 from pipelines.errors import CompabsError
 from pipelines.export.table import EXPORT_FORMAT, BDDTable, ExportedController, load_export, node_table, quantize
 from pipelines.grid import UniformGrid
@@ -322,12 +323,22 @@ class LayeredController(Controller):
 
 
 def load_controller(
-    directory: str | os.PathLike[str], name: str = CONTROLLER_FILE
+    directory: str | os.PathLike[str], name: str = CONTROLLER_FILE, job_hash: str | None = None
 ) -> Controller | ArrayController | ExportedController:
     """Load a controller written by ``compabs run`` (``DIR/controller.json`` with ``DIR/controller.dddmp``, or
     with ``DIR/controller.npz`` for an explicit game's :class:`~.array_controller.ArrayController`), or a
     determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
-    ``inputs(x)`` (:class:`~.export.table.ExportedController`)."""
+    ``inputs(x)`` (:class:`~.export.table.ExportedController`).
+
+    Every file is verified before use (:mod:`.controller_integrity`): the checksums and the spec hash its header
+    records, and that spec hash against ``job_hash`` (default: the spec hash of ``DIR/spec.json`` when the
+    controller lies in a job directory, so a controller copied from another job is refused).
+
+    Raises
+    ------
+    ControllerIntegrityError
+        A file missing, damaged, replaced, malformed, without an integrity record, or of another job.
+    """
     path = Path(directory)
     if path.is_file():
         if _is_export(path):
@@ -337,16 +348,25 @@ def load_controller(
     head = base.with_name(base.name + ".json")
     if not head.exists():
         raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
+    if job_hash is None:
+        job_hash = job_spec_hash(directory)
     if is_array_controller(head):
-        return ArrayController.load(directory, name)
-    model, roots, meta = load_all(base)
-    if meta.get("form") != "layered":
-        (bdd,) = roots
-        return Controller(model, bdd, meta)
-    n_chain, n_layers = len(meta["chain_next_bits"]), int(meta["layers"])
-    admissible, chain, layers = roots[0], roots[1:1 + n_chain], roots[1 + n_chain:1 + n_chain + n_layers]
-    M = roots[1 + n_chain + n_layers] if meta["shared"] else None
-    return LayeredController(model, admissible, list(zip(chain, meta["chain_next_bits"])), M, layers, meta["stay"], meta)
+        return ArrayController.load(directory, name, job_hash)
+    model, roots, meta = load_all(base, job_hash=job_hash)
+    try:
+        if meta.get("form") != "layered":
+            (bdd,) = roots
+            return Controller(model, bdd, meta)
+        n_chain, n_layers, shared = len(meta["chain_next_bits"]), int(meta["layers"]), bool(meta["shared"])
+        if len(roots) != 1 + n_chain + n_layers + shared or n_layers < 1:
+            raise ValueError(f"{len(roots)} BDD files for {n_chain} relations, {n_layers} layers")
+        admissible, chain, layers = roots[0], roots[1:1 + n_chain], roots[1 + n_chain:1 + n_chain + n_layers]
+        M = roots[1 + n_chain + n_layers] if shared else None
+        bits = [[str(b) for b in group] for group in meta["chain_next_bits"]]
+        return LayeredController(model, admissible, list(zip(chain, bits)), M, layers, meta["stay"], meta)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise ControllerIntegrityError(f"{head}: not a readable controller header ({type(exc).__name__}: {exc})"
+                                       ) from None
 
 
 def _is_export(path: Path) -> bool:

@@ -5,7 +5,9 @@
 * ``control DIR --x 1,2``: the admissible inputs at a concrete state, and the determinized one. Outside the
   controller's domain (or the state box) it says so and exits 1.
 
-Every failure is one ``error:`` line and exit status 2 (:func:`service.cli.main`).
+Every failure is one ``error:`` line and exit status 2 (:func:`service.cli.main`); a controller file that fails
+its checksums or belongs to another spec is refused before it is read
+(:class:`~pipelines.controller_integrity.ControllerIntegrityError`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.errors import SpecError
+from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
 from workers import jobdir
 
@@ -51,7 +53,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     from pipelines.export.emit import export_controller, write_csv, write_json
 
     ctrl = load_controller(args.dir, _name(args))
-    assert isinstance(ctrl, Controller | ArrayController)
+    if not isinstance(ctrl, Controller | ArrayController):
+        raise CompabsError(f"{args.dir} is an exported controller; export reads a job's --out directory")
     form = args.form if args.format != "csv" else "bdd"  # a CSV lists cells: no need for a tree
     export = export_controller(ctrl, form=form, rule=args.rule)
     default = Path(args.dir) / f"{_name(args)}_export"
@@ -95,7 +98,9 @@ def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobd
     from pipelines.export.table import RULES, ExportError
 
     ctrl = load_controller(directory, name)
-    assert isinstance(ctrl, Controller | ArrayController)
+    if not isinstance(ctrl, Controller | ArrayController):
+        raise CompabsError(f"{directory} is an exported controller; for its input at a state use 'compabs import "
+                           f"{directory} --x ...'")
     x = parse_state(x_text, ctrl.state_grid.dim)
     if isinstance(ctrl, ArrayController):
         # An array controller's inputs are its determinization's candidates; a progress controller's all lead

@@ -21,10 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.controller import load_controller
+from pipelines.array_controller import ArrayController
+from pipelines.controller import Controller, load_controller
 from pipelines.errors import CompabsError
 from pipelines.spec.costs import Caps, CostError, audit_evaluations
-from pipelines.spec.model import parse_spec, spec_hash
+from pipelines.spec.model import spec_hash
 from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.verification.audit import audit_abstraction
 from pipelines.verification.closed_loop import run_closed_loop
@@ -34,13 +35,20 @@ from workers import jobdir
 AuditProgress = Callable[[str, int, int], None]
 
 
-def _closed_loop(arts: jobdir.JobArtifacts, runs: int, rng: np.random.Generator) -> dict[str, Any]:
+def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | None:
+    """The job's stored controller (``None`` without one), verified against its checksums and the job's spec hash
+    before any file of it is read (:func:`pipelines.controller.load_controller`)."""
+    if not arts.has_controller:
+        return None
+    controller = load_controller(arts.directory, jobdir.CONTROLLER, job_hash=spec_hash(arts.spec))
+    if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - load_controller reads a job's
+        raise CompabsError(f"{arts.directory}/{jobdir.CONTROLLER}.json is not a synthesized controller")
+    return controller
+
+
+def _closed_loop(arts: jobdir.JobArtifacts, controller: Controller | ArrayController, runs: int,
+                 rng: np.random.Generator) -> dict[str, Any]:
     """Closed-loop runs of the concrete system under the job's stored controller."""
-    controller = load_controller(arts.directory, jobdir.CONTROLLER)
-    ctrl_spec = controller.meta.get("spec")
-    if ctrl_spec is not None and spec_hash(parse_spec(ctrl_spec)) != spec_hash(arts.spec):
-        raise CompabsError(f"{arts.directory}/{jobdir.CONTROLLER}.json was synthesized for another spec than "
-                           f"{jobdir.SPEC}")
     spec, network = arts.spec, arts.network
     checked = closed_loop_regions(spec, network, spec_regions(spec, network))
     steps = (arts.report.get("closed_loop") or {}).get("steps") or spec.options.closed_loop_steps or 60
@@ -119,10 +127,13 @@ def audit_job(
     Raises
     ------
     CompabsError
-        A missing or damaged file (:class:`workers.jobdir.ArtifactError`), or a spec that no longer builds.
+        A missing or damaged file (:class:`workers.jobdir.ArtifactError`; for a controller file, damaged,
+        replaced or of another spec: :class:`~pipelines.controller_integrity.ControllerIntegrityError`), or a
+        spec that no longer builds.
     """
     report = progress or (lambda *_: None)
     arts = jobdir.load_job(directory, allowed_modules)
+    controller = _controller(arts)  # a damaged or foreign controller is refused before the long part
     if transitions is None:
         transitions = arts.spec.options.audit_transitions or 1_000_000
     if transitions < 0:
@@ -163,7 +174,7 @@ def audit_job(
             "first_violation": store["first_damaged"], "chunks_checked": store["chunks_checked"],
             "damaged_chunks": store["damaged"], "seconds": 0.0,
         }
-    closed = _closed_loop(arts, runs, rng) if arts.has_controller else None
+    closed = _closed_loop(arts, controller, runs, rng) if controller is not None else None
     report("closed loop", len(groups) + 3, len(groups) + 3)
     result = {
         "directory": str(arts.directory),

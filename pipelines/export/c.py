@@ -6,19 +6,28 @@ otherwise (``u`` untouched). It allocates nothing and needs only ``<math.h>`` an
 the same order, the same relative snapping, the box's edges included), so it picks the cell the tool picks; the
 constants are written as hexadecimal floating literals, exact. The controller is the export's table: the BDD
 (one walk per root, at most one step per state bit) or the decision tree.
+
+Nothing but numbers and checked identifiers is written: no text of the controller's header or spec (names,
+descriptions) reaches the source, so an edited header cannot put code into it.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
 from pipelines.export.emit import Export, int_type
+from pipelines.export.table import FORMS, RULES, ExportError
 from pipelines.grid import SNAP_RTOL
 
 PER_LINE = 16
+#: What a word from the controller's header must be to be written into a C comment.
+IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")
+#: What the export's base name must be (it is written in ``#include "NAME.h"``).
+FILE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
 
 
 def _array(name: str, values: np.ndarray | list | tuple, ctype: str | None = None) -> str:
@@ -121,18 +130,34 @@ int compabs_control(const double *x, double *u)
 """
 
 
+def _identifier(value: object) -> str:
+    """``value`` if it is a C identifier (what a controller's kind and fixed point are), else ``unnamed``: text
+    from a controller header never reaches the C source unchecked (a comment's ``*/`` would end it)."""
+    return value if isinstance(value, str) and IDENTIFIER.fullmatch(value) else "unnamed"
+
+
 def c_sources(export: Export, name: str = "compabs_controller") -> tuple[str, str]:
-    """The header and the source of the C export (``name.h``, ``name.c``)."""
+    """The header and the source of the C export (``name.h``, ``name.c``).
+
+    Written from numbers and identifiers only: the grids and tables as numeric literals, the controller's kind
+    and fixed point when they are identifiers, ``name`` (a file name, in ``#include``) only as letters, digits,
+    ``_``, ``-`` and ``.``.
+    """
+    if not FILE_NAME.fullmatch(name):
+        raise ExportError(f"the C export's base name {name[:80]!r} is not letters, digits, '_', '-' and '.' (it is "
+                          "written in an #include line): give another --out")
+    if export.rule not in RULES or export.form not in FORMS:
+        raise ExportError(f"unknown rule {export.rule!r} or form {export.form!r}")
     g = export.state_grid
     n, m = g.dim, sum(ig.dim for ig in export.input_grids)
     guard = "".join(ch if ch.isalnum() else "_" for ch in name).upper() + "_H"
-    s = export.sizes
+    s = {k: None if v is None else int(v) for k, v in export.sizes.items() if k != "form"}
     tree = ("no tree (not built: the grid is above the exact tree's cell limit, --form bdd was asked, or it "
             "could not beat the BDD)" if s["tree_nodes"] is None
             else f"tree {s['tree_nodes']} nodes ({s['tree_bytes']} bytes)")
-    about = (f"compabs controller export: {export.meta.get('kind')} ({export.meta.get('fixed_point')}), rule "
-             f"{export.rule}, form {export.form}; {s['domain_states']} domain cells, BDD {s['bdd_nodes']} nodes "
-             f"({s['bdd_bytes']} bytes), {tree}.")
+    about = (f"compabs controller export: {_identifier(export.meta.get('kind'))} "
+             f"({_identifier(export.meta.get('fixed_point'))}), rule {export.rule}, form {export.form}; "
+             f"{s['domain_states']} domain cells, BDD {s['bdd_nodes']} nodes ({s['bdd_bytes']} bytes), {tree}.")
     header = (f"/* {about} */\n#ifndef {guard}\n#define {guard}\n\n#define COMPABS_STATE_DIM {n}\n"
               f"#define COMPABS_INPUT_DIM {m}\n\n"
               "/* Writes the chosen input u[0 .. COMPABS_INPUT_DIM-1] and returns 1 when x[0 .. COMPABS_STATE_DIM-1]\n"

@@ -17,6 +17,7 @@ import numpy as np
 
 from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
+from pipelines.controller_integrity import seal_export
 from pipelines.export.determinize import bdd_table, determinize
 from pipelines.export.table import (
     CSV_MAX_ROWS,
@@ -263,8 +264,10 @@ def export_controller(ctrl: Controller | ArrayController, form: str = "auto", ru
 
 
 def write_json(export: Export, path: str | os.PathLike[str]) -> Path:
+    """The export as JSON with its integrity record (:func:`~pipelines.controller_integrity.seal_export`), which
+    :func:`~.table.load_export` verifies."""
     out = Path(path)
-    out.write_text(json.dumps(export.to_json(), separators=(",", ":")))
+    out.write_text(json.dumps(seal_export(export.to_json()), separators=(",", ":")))
     return out
 
 

@@ -374,9 +374,18 @@ class ExportedController:
 
 
 def load_export(path: str | os.PathLike[str]) -> ExportedController:
-    """Read a JSON export (``compabs export --format json``) back."""
+    """Read a JSON export (``compabs export --format json``) back, its integrity record verified first
+    (:func:`~pipelines.controller_integrity.verify_export`: its checksum and its spec's hash)."""
+    from pipelines.controller_integrity import verify_export
+
     try:
-        data = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
+        data = json.loads(Path(path).read_bytes())
+    except ValueError as exc:
         raise ExportError(f"{path} is not JSON ({exc})") from None
-    return ExportedController(data)
+    if not isinstance(data, dict) or data.get("format") != EXPORT_FORMAT:
+        return ExportedController(data)  # refused there, naming the format
+    verify_export(data, path)
+    try:
+        return ExportedController(data)
+    except ExportError as exc:
+        raise ExportError(f"{path}: {exc}") from None

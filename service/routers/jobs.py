@@ -14,6 +14,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
+from pipelines.controller_integrity import ControllerIntegrityError
+from pipelines.spec.model import parse_spec
 from service.manager import JobManager
 from service.models import ErrorDetail, Job, JobList, ProgressEvent
 from service.routers.common import AUTH_RESPONSES, FoundJob, Manager, require_token
@@ -198,15 +200,25 @@ def get_figure(name: str, rec: FoundJob, manager: Manager) -> FileResponse:
 
 @router.get(
     "/{job_id}/controller",
-    responses={**_NOT_FOUND, **_NOT_DONE, 200: {"content": {"application/zip": {}},
-                                                "description": "controller.json and the DDDMP files it lists"}},
+    responses={**_NOT_FOUND, 200: {"content": {"application/zip": {}},
+                                   "description": "controller.json and the DDDMP files it lists"},
+               409: {"model": ErrorDetail, "description": "the job has not succeeded, or its stored controller files "
+                     "fail their checksums or belong to another spec (the file and what differs named)"}},
 )
 def get_controller(rec: FoundJob, manager: Manager) -> FileResponse:
-    """The controller as a zip of ``controller.json`` (grids, variable order, spec) and the DDDMP files it lists
-    (``controller.dddmp``; a layered controller has ``controller.1.dddmp``, ... too);
-    ``pipelines.load_controller(DIR)`` loads the unzipped directory."""
+    """The controller as a zip of ``controller.json`` (grids, variable order, spec, integrity record) and the
+    files it lists (``controller.dddmp``; a layered controller has ``controller.1.dddmp``, ... too; an array
+    controller ``controller.npz``); ``pipelines.load_controller(DIR)`` loads the unzipped directory.
+
+    The files are verified first, against their checksums and against the spec this job was submitted with
+    (:func:`workers.jobdir.controller_archive`): a damaged or replaced controller is refused, never served."""
     _succeeded(rec)
-    archive = jobdir.controller_archive(_job_dir(manager, rec))
+    job_dir = _job_dir(manager, rec)
+    try:
+        archive = jobdir.controller_archive(job_dir, parse_spec(json.loads(rec.spec)))
+    except ControllerIntegrityError as exc:
+        # Named relative to the job: the server's data directory is not the client's business.
+        raise HTTPException(409, detail=str(exc).replace(str(job_dir), f"job {rec.id}")) from None
     if archive is None:
         spec = json.loads(rec.spec)
         why = "options.synthesis is false" if not spec.get("options", {}).get("synthesis", True) else \
