@@ -23,7 +23,7 @@ import numpy as np
 
 from pipelines.blackbox import BlackBox, as_rows
 from pipelines.errors import SpecError
-from pipelines.expressions import program
+from pipelines.expressions import machine
 from pipelines.expressions.program import compile_program
 
 __all__ = ["SampledFlow", "rk4"]
@@ -130,7 +130,7 @@ class SampledFlow(BlackBox):
             rows = [np.ascontiguousarray(a, dtype=float) for a in as_rows(arrays, shape)]
             x0, u, w = (*rows, *(np.zeros((B, 0)),) * (3 - len(rows)))[:3]
             with np.errstate(all="ignore"):
-                return program.rk4(self._program, x0, u, w, self._tau, self._substeps).reshape(shape + (x0.shape[1],))
+                return machine.rk4(self._program, x0, u, w, self._tau, self._substeps).reshape(shape + (x0.shape[1],))
         x, held = arrays[0], arrays[1:]
         # x changes over the sub-steps: materialise it to the batch shape once. u and w are held: broadcast views
         # (an expression evaluates on them as they are), materialised once for a module:function, which gets rows.

@@ -14,7 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipelines.abstraction import cost
-from pipelines.abstraction.cells import CellTask, abstract_cells, statistics_sample
+from pipelines.abstraction.block import statistics_sample
+from pipelines.abstraction.cells import CellTask, abstract_cells
 from pipelines.abstraction.cost import STATISTICS_SAMPLE, statistics_fraction, triple_cost
 from pipelines.abstraction.relation import assemble, chunk_ranges
 from pipelines.network import build_network

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import pipelines.abstraction.block as block_module
 import pipelines.abstraction.cells as subsystem
 import pipelines.abstraction.growth_bound as gb
 import pipelines.abstraction.kernels as compiled
@@ -32,8 +33,8 @@ def test_sample_pass_pair_maxima_and_hull_equal_numpy(shape, kind, monkeypatch):
     V = _samples(shape, rng, kind)
     got = compiled.scalar_sample_pass(V)
     for small in (0, 1 << 40):  # both paths of the numpy pass
-        monkeypatch.setattr(subsystem, "SMALL_PASS", small)
-        want = subsystem._scalar_sample_pass(V)
+        monkeypatch.setattr(block_module, "SMALL_PASS", small)
+        want = block_module._scalar_sample_pass(V)
         for g, w in zip(got, want):
             np.testing.assert_array_equal(g, w)
     vmax, vmin = got[0], got[1]
@@ -107,7 +108,7 @@ def test_scalar_block_equals_the_generic_numpy_path(name, sub, monkeypatch):
         for method, objective in (("scp", "paper"), ("scp", "radius"), ("lipschitz", "paper"), ("hull", "paper")):
             out = []
             for use in (True, False):
-                monkeypatch.setattr(subsystem, "_USE_SCALAR_KERNEL", use)
+                monkeypatch.setattr(block_module, "_USE_SCALAR_KERNEL", use)
                 out.append([abstract_cells(sub, a, b, L_x, L_w, method, objective)
                             for a, b in chunk_ranges(sub, None)[:2]])
             for k, g in zip(out[0], out[1]):
@@ -129,7 +130,7 @@ def test_scalar_block_flags_a_box_that_leaves_the_grid_as_blocking(monkeypatch):
     })
     sub = build_network(spec, None).subsystems[0]
     res = abstract_cells(sub, 0, sub.state_grid.size, 1.0, 0.0, "scp", "paper")
-    monkeypatch.setattr(subsystem, "_USE_SCALAR_KERNEL", False)
+    monkeypatch.setattr(block_module, "_USE_SCALAR_KERNEL", False)
     ref = abstract_cells(sub, 0, sub.state_grid.size, 1.0, 0.0, "scp", "paper")
     assert res.blocking[-1, -1, 0] and res.blocking.any() and not res.blocking.all()
     assert (res.lo[res.blocking] == 0).all() and (res.hi[res.blocking] == -1).all()
@@ -151,7 +152,7 @@ def test_a_non_finite_sample_gives_the_black_boxs_error_on_both_paths(dynamics, 
     L_x, L_w = _constants(sub)
     messages = []
     for use in (True, False):
-        monkeypatch.setattr(subsystem, "_USE_SCALAR_KERNEL", use)
+        monkeypatch.setattr(block_module, "_USE_SCALAR_KERNEL", use)
         with pytest.raises(BlackBoxError, match=r"\(not finite\) at x=.* \(state cell \d+, input \d, internal") as e:
             abstract_cells(sub, 0, sub.state_grid.size, L_x, L_w, "scp", "paper")
         messages.append(str(e.value))
@@ -200,7 +201,7 @@ def test_box_block_equals_the_generic_numpy_path(name, sub, monkeypatch):
             for full in (None, True):
                 out = []
                 for use in (True, False):
-                    monkeypatch.setattr(subsystem, "_USE_BOX_KERNEL", use)
+                    monkeypatch.setattr(block_module, "_USE_BOX_KERNEL", use)
                     out.append(subsystem.abstract_chunk(sub, start, start + cells,
                                                         subsystem.bound_of(sub, L_x, L_w, method, "paper"),
                                                         full_statistics=full))

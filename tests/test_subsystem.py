@@ -6,7 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipelines.abstraction.cells import STATISTICS_SAMPLE, abstract_cells, statistics_sample
+from pipelines.abstraction.block import STATISTICS_SAMPLE, statistics_sample
+from pipelines.abstraction.cells import abstract_cells
 from pipelines.abstraction.growth_bound import subgrid_counts
 from pipelines.abstraction.relation import SubsystemRelation, assemble, chunk_ranges
 from pipelines.network import build_network

@@ -32,7 +32,7 @@ LP_WORK = 1.3
 SCALAR_PAIR_WORK = 0.05
 #: Share of the chosen bound's work the sampled statistics may take (below 1: the estimates above are rough).
 STATISTICS_BUDGET = 0.5
-#: Upper share of triples the sampled statistics use (``cells.STATISTICS_SAMPLE``, which imports it).
+#: Upper share of triples the sampled statistics use (``block.STATISTICS_SAMPLE``, which imports it).
 STATISTICS_SAMPLE = 1 / 8
 
 
@@ -53,7 +53,7 @@ def _work(sub: Subsystem) -> tuple[float, float, float, bool]:
 
 def statistics_fraction(sub: Subsystem, method: str, objective: str) -> float:
     """Share of the triples on which the SCP objective(s) that do not build the relation are counted when the
-    statistics are sampled (``cells.statistics_sample``).
+    statistics are sampled (``block.statistics_sample``).
 
     :data:`STATISTICS_SAMPLE` for a scalar state (its SCP is a closed form); for ``dim(x) > 1`` at most
     that, and small enough that the sampled SCP work is at most :data:`STATISTICS_BUDGET` of the chosen bound's

@@ -1,4 +1,4 @@
-"""Compiled kernels of the per-cell stage (numba): :func:`scalar_block`, everything ``cells._abstract_block``
+"""Compiled kernels of the per-cell stage (numba): :func:`scalar_block`, everything ``block.abstract_block``
 computes after the black box for a scalar subsystem in one pass, and the kernels it is made of (the sample pass,
 the pair maxima, the closed-form SCP); :func:`box_block`, the same for the Lipschitz and hull bounds of any
 subsystem; instead of a few dozen numpy calls and their temporaries.
@@ -30,7 +30,7 @@ _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 @_jit
 def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`pipelines.abstraction.cells._scalar_sample_pass` in one read of the samples.
+    """:func:`pipelines.abstraction.block._scalar_sample_pass` in one read of the samples.
 
     Parameters
     ----------
@@ -76,7 +76,7 @@ def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 @_jit
 def hull_and_bound(vmax: np.ndarray, vmin: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The sample hull and the quick lower bound of the SCP radius that :func:`pipelines.abstraction.cells._abstract_block`
+    """The sample hull and the quick lower bound of the SCP radius that :func:`pipelines.abstraction.block.abstract_block`
     tries before the pair maxima, from the per-state-sample extremes.
 
     Parameters
@@ -201,7 +201,7 @@ def _cell_range(
     lo: float, hi: float, origin: float, eta: float, k_lo: int, size: int, lb: float, ub: float, fp_rtol: float,
     snap_rtol: float,
 ) -> tuple[int, int, bool]:
-    """Successor cells of the box ``[lo, hi]`` along one state axis (Definition 4.2), as ``_abstract_block``
+    """Successor cells of the box ``[lo, hi]`` along one state axis (Definition 4.2), as ``abstract_block``
     computes them: :func:`pipelines.abstraction.growth_bound.widen`, :meth:`pipelines.grid.UniformGrid.cells_touching`
     (``fp_rtol = FP_RTOL``, ``snap_rtol = SNAP_RTOL``), clipped to the ``size`` cells of the grid.
 
@@ -232,7 +232,7 @@ def _margins(
     L_x: float, L_w: float,
 ) -> tuple[float, float, float, float, float, float]:
     """Triple ``b``'s state half-width, sample spacings along x and w (0 without w), Lipschitz radius, hull
-    margin and SCP margin, as ``_abstract_block``, ``growth_bound.lipschitz_radius``, ``hull_margin`` and
+    margin and SCP margin, as ``abstract_block``, ``growth_bound.lipschitz_radius``, ``hull_margin`` and
     ``scp_rho`` compute them."""
     rx = (xh[b] - xl[b]) / 2
     hx = 2 * rx / cx
@@ -249,7 +249,7 @@ def _margins(
     return rx, hx, hw, lip, rho_h, rho
 
 
-#: Order of the growth bounds in :func:`scalar_block`'s successor statistics (that of ``_abstract_block``).
+#: Order of the growth bounds in :func:`scalar_block`'s successor statistics (that of ``abstract_block``).
 SCALAR_METHODS = ("lipschitz", "hull", "scp", "scp_radius")
 
 
@@ -277,7 +277,7 @@ def scalar_block(
     tie_rtol: float,
     skip_rtol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Everything :func:`pipelines.abstraction.cells._abstract_block` computes after the black box, for a scalar state
+    """Everything :func:`pipelines.abstraction.block.abstract_block` computes after the black box, for a scalar state
     with at most one internal-input sub-grid axis, in one pass per triple: the four growth bounds (Lemma 4.3,
     the sample hull, the SCP of Theorem 4.4 under both objectives), their successor cells (Definition 4.2) and
     blocking flags, the successor statistics and the slopes for Lipschitz validation. The same values as that
@@ -328,7 +328,7 @@ def scalar_block(
     live = np.zeros(4, dtype=np.int64)
     slope_x = np.zeros(B)
     slope_w = np.zeros(B)
-    # Which triples may need the SCP: the first test of _abstract_block (max(E_0, E_half), the same bound).
+    # Which triples may need the SCP: the first test of block.abstract_block (max(E_0, E_half), the same bound).
     need = np.zeros(B, dtype=np.bool_)
     for b in range(B):
         _, _, _, lip_b, _, rho_b = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
@@ -344,7 +344,7 @@ def scalar_block(
         box_hi[0] = c + lip_b
         box_lo[1] = hull_lo[b] - rho_h
         box_hi[1] = hull_hi[b] + rho_h
-        # The SCP only where it can beat the Lipschitz radius (the second test of _abstract_block).
+        # The SCP only where it can beat the Lipschitz radius (the second test of block.abstract_block).
         cannot = not need[b]
         e = E[:, b] if need[b] else vmax[:0, 0]
         if not cannot:
@@ -395,7 +395,7 @@ def box_block(
     fp_rtol: float,
     snap_rtol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """What :func:`pipelines.abstraction.cells._abstract_block` computes after the black box for the Lipschitz and
+    """What :func:`pipelines.abstraction.block.abstract_block` computes after the black box for the Lipschitz and
     hull bounds of any subsystem (``n`` state and ``p`` internal-input coordinates), in one read of the samples:
     the sample hull, both bounds' successor cells (Definition 4.2), blocking flags and statistics, and the slopes
     along every sub-grid axis for Lipschitz validation. The same values as the generic path (the tests compare).

@@ -285,7 +285,7 @@ def describe_cell(sub: Subsystem, rec: SlopeRecord) -> str:
 def steepest_pair(sub: Subsystem, arg: str, rec: SlopeRecord, component: int | None = None,
                   coordinate: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """The pair of neighbouring samples of a triple that shows its largest slope, sampled again as the per-cell
-    stage samples it (:func:`pipelines.abstraction.cells.triple_samples`).
+    stage samples it (:func:`pipelines.abstraction.block.triple_samples`).
 
     Parameters
     ----------
@@ -302,7 +302,7 @@ def steepest_pair(sub: Subsystem, arg: str, rec: SlopeRecord, component: int | N
         The two samples.
     slope : float
     """
-    from pipelines.abstraction.cells import triple_samples
+    from pipelines.abstraction.block import triple_samples
 
     X, W, u, counts = triple_samples(sub, rec.x_cell, rec.u_index, rec.w_cell)  # (*counts, n), (*counts, p)
     N = X[..., 0].size
