@@ -31,12 +31,10 @@ which is topological) ``node{k}_lo`` and ``node{k}_hi``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
 import uuid
-import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,13 +43,6 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from pipelines.abstraction.relation import SubsystemRelation
-from pipelines.controller_integrity import (
-    INTEGRITY,
-    ControllerIntegrityError,
-    job_spec_hash,
-    read_header,
-    verify_header,
-)
 from pipelines.errors import CompabsError, SpecError
 from pipelines.grid import UniformGrid
 from pipelines.interconnection import InterconnectionAbstraction, NodeRelation
@@ -252,89 +243,6 @@ def write_example_run(out_dir: str | os.PathLike[str], runs: dict[str, Any]) -> 
 
 def has_controller(out_dir: str | os.PathLike[str]) -> bool:
     return (Path(out_dir) / f"{CONTROLLER}.json").exists()
-
-
-def controller_files(out_dir: str | os.PathLike[str]) -> list[Path]:
-    """The controller's files: the payload files its header lists (a layered controller has several DDDMP
-    files, an array controller one ``.npz``), then the header ``controller.json`` itself.
-
-    Raises
-    ------
-    ControllerIntegrityError
-        The header cannot be read or lists no payload files.
-    """
-    out = Path(out_dir)
-    head = out / f"{CONTROLLER}.json"
-    roots: Any = [f"{CONTROLLER}.dddmp"]
-    if head.exists():
-        roots = read_header(head).get("roots")
-        if not isinstance(roots, list) or not roots or not all(isinstance(r, str) and Path(r).name == r for r in roots):
-            raise ControllerIntegrityError(f"{head}: not a readable controller header (its 'roots' do not list its "
-                                           "files); run the job again")
-    return [out / name for name in (*roots, head.name)]
-
-
-def verify_controller(out_dir: str | os.PathLike[str], spec: JobSpec | None = None) -> list[Path]:
-    """The controller's files (:func:`controller_files`), each verified against the header's integrity record,
-    and the header against the job's spec (``spec``, default ``spec.json``): what a download may serve.
-
-    Raises
-    ------
-    ControllerIntegrityError
-        Naming the file and what differs (:func:`pipelines.controller_integrity.verify_header`).
-    """
-    files = controller_files(out_dir)
-    head = files[-1]
-    job_hash = spec_hash(spec) if spec is not None else job_spec_hash(out_dir)
-    verify_header(read_header(head), head, [f.name for f in files[:-1]], job_hash)
-    return files
-
-
-def _archive_matches(archive: Path, files: list[Path]) -> bool:
-    """Whether a made archive holds exactly ``files`` (verified), byte for byte: its header is the one on disk
-    and every payload member has the checksum that header records (zip's CRC is checked on reading too)."""
-    record = read_header(files[-1])[INTEGRITY]["files"]
-    try:
-        with zipfile.ZipFile(archive) as z:
-            if sorted(z.namelist()) != sorted(f.name for f in files):
-                return False
-            if z.read(files[-1].name) != files[-1].read_bytes():
-                return False
-            for f in files[:-1]:
-                h = hashlib.sha256()
-                with z.open(f.name) as member:
-                    for block in iter(lambda: member.read(1 << 20), b""):
-                        h.update(block)
-                if h.hexdigest() != record[f.name]:
-                    return False
-    except (OSError, zipfile.BadZipFile, KeyError):
-        return False
-    return True
-
-
-def controller_archive(out_dir: str | os.PathLike[str], spec: JobSpec | None = None) -> Path | None:
-    """The controller's files as one zip in the job directory (made once: a controller can be gigabytes), or
-    ``None`` if the job has no controller; the unzipped files load with :func:`pipelines.controller.load_controller`.
-
-    The files are verified first (:func:`verify_controller`), and a zip made before is served only if it holds
-    them byte for byte (else it is made again).
-
-    Raises
-    ------
-    ControllerIntegrityError
-        A controller file is damaged, replaced or of another job: nothing is served.
-    """
-    if not has_controller(out_dir):
-        return None
-    files = verify_controller(out_dir, spec)  # a payload file missing is named there
-    archive = Path(out_dir) / f"{CONTROLLER}.zip"
-    if not archive.is_file() or not _archive_matches(archive, files):
-        tmp = archive.with_name(f"{archive.name}.{uuid.uuid4().hex[:8]}.partial")
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
-            for f in files:
-                z.write(f, f.name)
-        tmp.replace(archive)  # atomic: two concurrent downloads never see half an archive
-    return archive
 
 
 def report_path(out_dir: str | os.PathLike[str]) -> Path:

@@ -21,6 +21,7 @@ from service.models import ErrorDetail, Job, JobList, ProgressEvent
 from service.routers.common import AUTH_RESPONSES, FoundJob, Manager, require_token
 from service.store import TERMINAL, JobRecord, JobStatus
 from workers import jobdir
+from workers.controller_files import controller_archive
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)
 
@@ -211,11 +212,11 @@ def get_controller(rec: FoundJob, manager: Manager) -> FileResponse:
     controller ``controller.npz``); ``pipelines.load_controller(DIR)`` loads the unzipped directory.
 
     The files are verified first, against their checksums and against the spec this job was submitted with
-    (:func:`workers.jobdir.controller_archive`): a damaged or replaced controller is refused, never served."""
+    (:func:`workers.controller_files.controller_archive`): a damaged or replaced controller is refused, never served."""
     _succeeded(rec)
     job_dir = _job_dir(manager, rec)
     try:
-        archive = jobdir.controller_archive(job_dir, parse_spec(json.loads(rec.spec)))
+        archive = controller_archive(job_dir, parse_spec(json.loads(rec.spec)))
     except ControllerIntegrityError as exc:
         # Named relative to the job: the server's data directory is not the client's business.
         raise HTTPException(409, detail=str(exc).replace(str(job_dir), f"job {rec.id}")) from None
