@@ -223,7 +223,9 @@ def run_abstraction(
 
 
 #: Black-box evaluations of the per-cell stage below which a job that would start an embedded cluster runs in
-#: process instead (``in_process=None``): a few seconds on one core, less than starting and stopping two workers.
+#: process, on threads, instead (``in_process=None``): up to about 10 s of work on two cores, where starting and
+#: stopping two workers (3-4 s) costs more than threads lose to the interpreter's lock (dcdc: 7.3 s end to end in
+#: process, 11.3 s on the cluster; the vehicle, at 1.4e9, about the same either way).
 IN_PROCESS_EVALUATIONS = 1_000_000_000
 #: Composed abstract states above which a job keeps the cluster anyway (its synthesis may run parts there).
 IN_PROCESS_STATES = 10_000_000
