@@ -16,6 +16,7 @@ import pytest
 
 from pipelines.spec.model import load_spec
 from pipelines.spec.regions import abstract_region
+from pipelines.symbolic.files import file_sha256
 from pipelines.symbolic.relations import region
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.fixed_points import safe
@@ -110,6 +111,25 @@ def test_a_damaged_checkpoint_is_named_and_the_run_starts_afresh(tanks, fresh, s
     again = run_synthesis(tanks, tmp_path, runs=5)
     assert "resumed_at_iteration" not in _result(again)
     assert any("does not match the SHA-256" in w and "started afresh" in w for w in again["warnings"])
+    assert _result(again)["domain_states"] == _result(fresh)["domain_states"]
+
+
+def test_a_forged_checkpoint_never_reaches_cudd(tanks, fresh, stopped, tmp_path, every_iterate):
+    """A node line changed and the checksum recomputed (a forger's move): the file's structure is checked before
+    CUDD reads it, the iterate refused by name and the run started afresh."""
+    head = _stopped_run(stopped, tmp_path)
+    stored = tmp_path / jobdir.CHECKPOINTS / "reach_safe-safe.dddmp"
+    lines = stored.read_text().split("\n")
+    k = lines.index(".nodes") + 2
+    ident, name, var, then, other = lines[k].split()
+    lines[k] = f"{ident} {name} {var} {ident} {other}"  # a node that is its own child
+    stored.write_text("\n".join(lines))
+    head["sha256"] = file_sha256(stored)
+    (tmp_path / jobdir.CHECKPOINTS / "reach_safe-safe.json").write_text(json.dumps(head))
+
+    again = run_synthesis(tanks, tmp_path, runs=5)
+    assert "resumed_at_iteration" not in _result(again)
+    assert any("not a DDDMP file" in w and "started afresh" in w for w in again["warnings"]), again["warnings"]
     assert _result(again)["domain_states"] == _result(fresh)["domain_states"]
 
 

@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.symbolic.files import file_sha256
+from pipelines.errors import CompabsError
+from pipelines.symbolic.files import check_dddmp, file_sha256
 from pipelines.symbolic.model import Function, SymbolicModel
 
 FORMAT = "compabs-checkpoint/1"
@@ -138,6 +139,10 @@ class DirectoryCheckpoints:
         if file_sha256(bdd_path) != head.get("sha256"):
             return self._refuse(f"{bdd_path} does not match the SHA-256 its checkpoint records (damaged or "
                                 f"replaced); the fixed point started afresh")
+        try:  # its structure before CUDD reads it: a file forged with its checksum recomputed must not crash us
+            check_dddmp(bdd_path, model.variables)
+        except CompabsError as exc:
+            return self._refuse(f"{exc}; the fixed point started afresh")
         try:
             with model.guard(f"loading {bdd_path}"):
                 (Z,) = model.bdd.load(str(bdd_path))
