@@ -22,58 +22,10 @@ from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
 from pipelines.verification.audit import audit_subsystem
 
+from .strategies import systems
+
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 GROWTH = [("lipschitz", "paper"), ("scp", "paper"), ("scp", "radius"), ("hull", "paper")]
-
-
-def _expr(n, m, p, centre, A, Bm, Cm, nl, s):
-    rows = []
-    for i in range(n):
-        terms = [str(centre[i])] + [f"{A[i][j]} * (x[{j}] - {centre[j]})" for j in range(n)]
-        pert = [f"{Bm[i][j]} * u[{j}]" for j in range(m)] + [f"{Cm[i][j]} * w[{j}]" for j in range(p)]
-        a, c, k = nl[i]
-        pert.append(f"{a} * sin({c} * x[{(i + 1) % n}])")
-        if p:
-            pert.append(f"{k} * tanh(w[{i % p}])")
-        rows.append(" + ".join(terms) + f" + {s} * (" + " + ".join(pert) + ")")
-    return "[" + ", ".join(rows) + "]"
-
-
-@st.composite
-def systems(draw, n):
-    """``x' = c + A (x - c) + s (B u + C w + a sin(c' x) + k tanh(w))`` on a box around ``c`` with ``||A|| <= 0.6``
-    and perturbations scaled to the cells (``s``), so that most triples are not blocking; constants in closed
-    form (infinity norm: row sums of the Jacobian's bounds)."""
-    m = draw(st.integers(1, 2))
-    p = draw(st.integers(0, 2))
-    small = st.floats(-1.0, 1.0, allow_nan=False).map(lambda v: round(v, 3))
-    A = [[round(draw(small) * 0.6 / n, 3) for _ in range(n)] for _ in range(n)]
-    Bm = [[draw(small) for _ in range(m)] for _ in range(n)]
-    Cm = [[draw(small) for _ in range(p)] for _ in range(n)]
-    nonlinear = draw(st.booleans())
-    nl = [(draw(small) if nonlinear else 0.0, draw(st.floats(0.2, 2.5).map(lambda v: round(v, 3))),
-           draw(small) if nonlinear else 0.0) for _ in range(n)]
-    per = draw(st.lists(st.integers(2, 5), min_size=n, max_size=n))  # cells per dimension (about)
-    eta = [round(draw(st.floats(0.2, 1.5)), 3) for _ in range(n)]
-    centre = [round(draw(st.floats(-3, 3)), 2) for _ in range(n)]
-    half = [round(eta[i] * per[i] * draw(st.floats(0.3, 0.5)), 3) for i in range(n)]
-    s = round(0.1 * min(eta), 4)
-    L_x = max(sum(abs(v) for v in A[i]) + s * abs(nl[i][0] * nl[i][1]) for i in range(n))
-    L_w = max(s * (sum(abs(v) for v in Cm[i]) + abs(nl[i][2])) for i in range(n)) if p else 0.0
-    spec = {
-        "name": "s", "state": {"lb": [centre[i] - half[i] for i in range(n)],
-                               "ub": [centre[i] + half[i] for i in range(n)], "eta": eta},
-        "input": {"lb": [-0.5] * m, "ub": [0.5] * m, "eta": [draw(st.sampled_from([0.5, 1.0]))] * m},
-        "dynamics": _expr(n, m, p, centre, A, Bm, Cm, nl, s),
-        # a margin on the closed-form constants, as a spec would give them
-        "lipschitz": {"x": round(L_x * 1.01 + 1e-3, 6), "w": round(L_w * 1.01 + 1e-3, 6)},
-        "samples": draw(st.sampled_from([4, 9, 16, 25, 36] if n == 2 else [8, 12, 27])),
-    }
-    internal = [{"lb": -1.0, "ub": round(draw(st.floats(-0.5, 1.5)), 2),
-                 "eta": round(draw(st.floats(0.3, 1.0)), 2)} for _ in range(max(p, 1))]
-    if p:
-        spec["reads"] = list(range(p))
-    return spec, internal
 
 
 def _subsystem(spec, internal):

@@ -30,84 +30,10 @@ from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
 from pipelines.verification.audit import audit_subsystem
 
+from .strategies import anisotropic
+
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 BOUNDS = [("lipschitz", "paper"), ("hull", "paper"), ("scp", "paper"), ("scp", "radius")]
-r3 = st.floats(-1.0, 1.0, allow_nan=False).map(lambda v: round(v, 3))
-
-
-def _fmt(v: float) -> str:
-    return repr(round(float(v), 6))
-
-
-@st.composite
-def anisotropic(draw, n: int):
-    """``(subsystem spec, internal grids, entries of L_x, entries of L_w)`` of an anisotropic n-D map.
-
-    kinds: ``rotation`` (a rotation by a state-dependent angle, scaled), ``shear`` (``x_i += k x_j`` with a large
-    ``k``), ``heading`` (the last coordinate is a heading that moves every other coordinate by ``a cos``/``a sin``
-    and is moved by nothing but the input)."""
-    kind = draw(st.sampled_from(["rotation", "shear", "heading"]))
-    p = draw(st.integers(0, 1))
-    eta = [round(draw(st.floats(0.2, 0.6)), 3) for _ in range(n)]
-    per = [draw(st.integers(3, 5 if n <= 3 else 3)) for _ in range(n)]
-    half = [round(eta[i] * per[i] / 2, 4) for i in range(n)]
-    rows: list[str] = []
-    Lx = np.zeros((n, n))
-    if kind == "rotation":
-        s = round(draw(st.floats(0.3, 0.9)), 3)
-        t = round(draw(st.floats(0.1, 1.4)), 3)  # angle of the rotation of the first two coordinates
-        c, si = np.cos(t), np.sin(t)
-        rows.append(f"{s} * ({_fmt(c)} * x[0] - {_fmt(si)} * x[1])")
-        rows.append(f"{s} * ({_fmt(si)} * x[0] + {_fmt(c)} * x[1])")
-        Lx[0, :2] = s * abs(c), s * abs(si)
-        Lx[1, :2] = s * abs(si), s * abs(c)
-        for i in range(2, n):
-            rows.append(f"0.5 * x[{i}] + 0.2 * sin(x[{i - 1}])")
-            Lx[i, i], Lx[i, i - 1] = 0.5, 0.2
-    elif kind == "shear":
-        k = round(draw(st.floats(1.5, 4.0)), 3) * draw(st.sampled_from([-1, 1]))
-        j = draw(st.integers(1, n - 1))
-        for i in range(n):
-            if i == 0:
-                rows.append(f"x[0] + {k} * x[{j}]")
-                Lx[0, 0], Lx[0, j] = 1.0, abs(k)
-            else:
-                rows.append(f"x[{i}]")
-                Lx[i, i] = 1.0
-    else:
-        a = round(draw(st.floats(0.5, 3.0)), 3)
-        h = n - 1
-        for i in range(h):
-            trig = "cos" if i % 2 == 0 else "sin"
-            rows.append(f"x[{i}] + {a} * {trig}(x[{h}])")
-            Lx[i, i], Lx[i, h] = 1.0, a
-        rows.append(f"x[{h}]")
-        Lx[h, h] = 1.0
-    Lw = np.zeros((n, p))
-    if p:
-        q = round(draw(st.floats(0.1, 1.0)), 3)
-        i = draw(st.integers(0, n - 1))
-        rows[i] += f" + {q} * tanh(w[0])"
-        Lw[i, 0] = q
-    m = draw(st.integers(1, 2))
-    bu = [draw(r3) for _ in range(m)]
-    for i in range(n):
-        rows[i] += f" + {round(0.2 * min(eta), 4)} * u[{i % m}] * {bu[i % m]}"
-    spec = {
-        "name": "s", "replicate": 1,
-        "state": {"lb": [-v for v in half], "ub": half, "eta": eta},
-        "input": {"lb": [-1] * m, "ub": [1] * m, "eta": [1] * m},
-        "dynamics": "[" + ", ".join(rows) + "]",
-        # a margin on the closed-form entries, as a spec would give them
-        "lipschitz": {"x": np.round(Lx * 1.01 + 1e-3, 6).tolist(), "w": np.round(Lw * 1.01 + 1e-3, 6).tolist()},
-        "samples": draw(st.sampled_from([2**n, 3**n] if n <= 3 else [16])),
-    }
-    if p:
-        spec["reads"] = [0]
-    internal = {"lb": -1.0, "ub": 1.0, "eta": round(draw(st.floats(0.4, 1.0)), 2)}
-    return spec, internal, kind
-
-
 def _subsystem(spec: dict, internal: dict):
     """The subsystem of ``spec`` (its interconnection map is never sampled here: only the grids matter)."""
     n = len(spec["state"]["lb"])

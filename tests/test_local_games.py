@@ -15,12 +15,11 @@ from pipelines.synthesis import local_games
 from pipelines.synthesis.fixed_points import reach_and_stay, safe
 from pipelines.synthesis.local_games import invariant_bound, local_game, local_groups
 
+from .strategies import drifting_relation, random_node
 from .test_synthesis import (
     Explicit,
     Net,
     build,
-    random_node,
-    random_relation,
     random_set,
     states_vector,
 )
@@ -52,7 +51,7 @@ def coupled_net(rng: np.random.Generator, shared: bool) -> Net:
         key = f"k{i}"
         layouts.append(SubsystemLayout(i, (shape[i],), n_u[i], reads[i], key, i))
         n_w = math.prod(w_sizes[j] for j in reads[i]) if reads[i] else 1
-        relations[key] = random_relation(rng, shape[i], n_u[i], n_w, 0.03)
+        relations[key] = drifting_relation(rng, shape[i], n_u[i], n_w, 0.03)
     return Net(layouts, relations, w_sizes, nodes, shape, n_u)
 
 

@@ -18,35 +18,9 @@ from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
 from pipelines.verification.audit import audit_interconnection, audit_subsystem
 
+from .strategies import scalar_systems
+
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
-coef = st.floats(-1.5, 1.5, allow_nan=False).map(lambda v: round(v, 3))
-
-
-@st.composite
-def scalar_systems(draw):
-    """f(x, u, w) = a x + b sin(c x) + d w + k tanh(w) + u on random grids; L_x = |a| + |b c|, L_w = |d| + |k|."""
-    a, b, d, k = draw(coef), draw(coef), draw(coef), draw(coef)
-    c = draw(st.floats(0.1, 3.0).map(lambda v: round(v, 3)))
-    lb = round(draw(st.floats(-5, 5)), 2)
-    width = round(draw(st.floats(0.5, 12)), 2)
-    eta = round(draw(st.floats(0.2, 3.0)), 3)
-    wlb = round(draw(st.floats(-3, 3)), 2)
-    wwidth = round(draw(st.floats(0.0, 6)), 2)
-    weta = round(draw(st.floats(0.2, 3.0)), 3)
-    uub = round(draw(st.floats(0.0, 2.0)), 2)
-    return {
-        "dynamics": f"{a} * x[0] + {b} * sin({c} * x[0]) + {d} * w[0] + {k} * tanh(w[0]) + u[0]",
-        "L_x": abs(a) + abs(b * c),
-        "L_w": abs(d) + abs(k),
-        "state": {"lb": lb, "ub": lb + width, "eta": eta},
-        "internal": {"lb": wlb, "ub": wlb + wwidth, "eta": weta},
-        "input": {"lb": -uub, "ub": uub, "eta": max(uub, 0.5)},
-        "samples": draw(st.integers(1, 60)),
-        "method": draw(st.sampled_from(["lipschitz", "scp", "hull"])),
-        "objective": draw(st.sampled_from(["paper", "radius"])),
-    }
-
-
 def _network(sysd, map_="[x[0]]", error="linear", internal=None, n=1, lipschitz=None, sigma=4):
     spec = parse_spec({
         "subsystems": [{

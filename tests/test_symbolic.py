@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 
 from pipelines.abstraction.relation import SubsystemRelation
-from pipelines.grid import UniformGrid
-from pipelines.interconnection import NodeRelation
 from pipelines.spec.regions import AbstractRegion
 from pipelines.symbolic.counting import count, count_states, enumerate_cells, inputs_at, sample
 from pipelines.symbolic.files import dump, load
@@ -28,13 +26,10 @@ from pipelines.symbolic.relations import (
 )
 from pipelines.symbolic.tree import factorize, unique_rows
 
+from .strategies import random_node, random_relation
+
 
 # ------------------------------------------------------------------------------------------- helpers
-def grid(k: int) -> UniformGrid:
-    """A 1-D grid with ``k`` cells (only its size matters to the symbolic layer)."""
-    return UniformGrid(origin=(0.0,), eta=(1.0,), k_lo=(0,), k_hi=(k - 1,), lb=(0.0,), ub=(float(k - 1),))
-
-
 def cube(m: SymbolicModel, digit: str, value: int):
     """``code(digit) == value``, one bit at a time: the naive construction the bulk one must equal."""
     bits = m.bits[digit]
@@ -43,16 +38,6 @@ def cube(m: SymbolicModel, digit: str, value: int):
         v = m.var(b)
         f &= v if (value >> (len(bits) - 1 - k)) & 1 else ~v
     return f
-
-
-def random_relation(rng, state_shape, n_u, n_w, p_block=0.2) -> SubsystemRelation:
-    n_x, n = math.prod(state_shape), len(state_shape)
-    size = np.asarray(state_shape)
-    lo = rng.integers(0, size, size=(n_x, n_u, n_w, n))
-    hi = np.minimum(lo + rng.integers(0, 3, size=lo.shape), size - 1)
-    blocking = rng.random((n_x, n_u, n_w)) < p_block
-    lo[blocking], hi[blocking] = 0, -1
-    return SubsystemRelation("test", lo.astype(np.int32), hi.astype(np.int32), blocking, 1.0, 1.0)
 
 
 def naive_relation(m: SymbolicModel, s: SubsystemLayout, rel: SubsystemRelation):
@@ -200,19 +185,6 @@ def test_identical_subsystems_rename_equals_build():
         T2, NB2 = subsystem_relations(m, {"same": rel}, share="build")
         assert T1 == T2 and NB1 == NB2
         assert len({int(t) for t in T1}) == 3  # each over its own variables
-
-
-def random_node(rng, output, out_size, inputs, in_sizes, p_empty=0.1) -> NodeRelation:
-    shape = tuple(in_sizes)
-    lo = rng.integers(0, out_size, size=shape)
-    hi = np.minimum(lo + rng.integers(0, 2, size=shape), out_size - 1)
-    empty = rng.random(shape) < p_empty
-    lo = np.where(empty, out_size - 1, lo)
-    hi = np.where(empty, 0, hi)
-    if out_size == 1:
-        hi = np.where(empty, -1, hi)
-    return NodeRelation(output, grid(out_size), tuple(inputs), tuple(grid(k) for k in in_sizes), None,
-                        lo.astype(np.int32), hi.astype(np.int32), 0.0)
 
 
 def explicit_node_sets(nodes, x: tuple[int, ...]) -> dict[str, set[int]]:

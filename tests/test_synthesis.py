@@ -31,23 +31,10 @@ from pipelines.synthesis.synthesize import synthesize
 from workers.job import run_abstraction
 
 from .conftest import EXAMPLES
+from .strategies import drifting_relation, grid, random_node
 
 
 # ============================================================================ random networks
-def grid(k: int) -> UniformGrid:
-    return UniformGrid(origin=(0.0,), eta=(1.0,), k_lo=(0,), k_hi=(k - 1,), lb=(0.0,), ub=(float(k - 1),))
-
-
-def random_node(rng, output, out_size, inputs, in_sizes, p_empty) -> NodeRelation:
-    shape = tuple(in_sizes)
-    lo = rng.integers(0, out_size, size=shape)
-    hi = np.minimum(lo + rng.integers(0, 2, size=shape), out_size - 1)
-    empty = rng.random(shape) < p_empty
-    lo, hi = np.where(empty, 1, lo), np.where(empty, 0, hi)
-    return NodeRelation(output, grid(out_size), tuple(inputs), tuple(grid(k) for k in in_sizes), None,
-                        lo.astype(np.int32), hi.astype(np.int32), 0.0)
-
-
 @dataclass
 class Net:
     layouts: list[SubsystemLayout]
@@ -99,19 +86,8 @@ def random_net(rng: np.random.Generator, shared: bool) -> Net:
         layouts.append(SubsystemLayout(i, (shape[i],), n_u[i], reads[i], key, i))
         if not same:
             n_w = math.prod(w_sizes[j] for j in reads[i]) if reads[i] else 1
-            relations[key] = random_relation(rng, shape[i], n_u[i], n_w, 0.1)
+            relations[key] = drifting_relation(rng, shape[i], n_u[i], n_w, 0.1)
     return Net(layouts, relations, w_sizes, nodes, shape, n_u)
-
-
-def random_relation(rng: np.random.Generator, n_x: int, n_u: int, n_w: int, p_block: float) -> SubsystemRelation:
-    """A 1-D subsystem relation whose successors lie near the state (drift of -1..1 cells, width 1-2: safe sets are
-    then often non-empty), each triple blocking with probability ``p_block``."""
-    here = np.arange(n_x).reshape(-1, 1, 1, 1)
-    lo = np.clip(here + rng.integers(-1, 2, size=(n_x, n_u, n_w, 1)), 0, n_x - 1)
-    hi = np.minimum(lo + rng.integers(0, 2, size=lo.shape), n_x - 1)
-    blocking = rng.random((n_x, n_u, n_w)) < p_block
-    lo[blocking], hi[blocking] = 0, -1
-    return SubsystemRelation("test", lo.astype(np.int32), hi.astype(np.int32), blocking, 1, 1)
 
 
 # ============================================================================ the explicit solver
