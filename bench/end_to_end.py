@@ -84,7 +84,9 @@ _SUBSYSTEM_KEYS = ("name", "growth_bound", "scp_objective", "triples", "mean_suc
 # ====================================================================================== child side
 def child_end_to_end(p: dict, emit: Emit) -> None:
     """A spec end to end through :func:`workers.job.run_job`: on an embedded cluster of ``p['workers']`` workers,
-    or (``0`` or absent) in this process.
+    or (``0`` or absent) in this process on one thread; with ``p['auto']``, as ``compabs run`` runs it (in this
+    process on ``workers`` threads or on an embedded cluster of as many workers, as
+    :func:`workers.job.runs_in_process` decides).
 
     The stage clock closes the audit's segment when the job waits for the audit beside synthesis, after the figures
     are drawn; the report's ``waited_seconds`` splits that segment into the figures (``other``) and the wait
@@ -99,8 +101,9 @@ def child_end_to_end(p: dict, emit: Emit) -> None:
     emit({"type": "info", "abstract_states": build_network(spec, None).abstract_states})  # kept if the job is killed
     clock = StageClock(emit)
     workers = int(p.get("workers", 0))
+    execution = Execution(workers=max(1, workers), in_process=None if p.get("auto") else not workers)
     with tempfile.TemporaryDirectory(prefix="compabs-bench-") as out:
-        rep = run_job(spec, out, execution=Execution(workers=max(1, workers), in_process=not workers), progress=clock)
+        rep = run_job(spec, out, execution=execution, progress=clock)
     audit = rep["audit"]
     seconds = dict(rep["stage_seconds"])
     if audit.get("beside_synthesis"):  # the harness's audit stage is the wait for it, not its own seconds

@@ -2,7 +2,7 @@
 side with SCOTS.
 
 For each example (``examples/dcdc.yaml``, ``examples/vehicle.yaml``, ``examples/double_integrator.yaml``,
-``examples/rooms.yaml``): the job end to end in one process (:func:`bench.end_to_end.child_end_to_end`:
+``examples/rooms.yaml``): the job end to end as ``compabs run`` runs it (:func:`bench.end_to_end.child_end_to_end`:
 :func:`workers.job.run_job`, the audit beside synthesis, synthesis, closed loop, files), its abstract states,
 transitions and winning domain, and the per-cell stage against the floor (the black box alone on the same samples,
 :func:`bench.floor.child_floor`), printed beside SCOTS's figures (:data:`SCOTS`) and, for a linear example, beside
@@ -153,7 +153,8 @@ def bench_general(args: Any, *, run_child: Callable[..., dict] = harness.run_chi
     rows: list[dict] = []
     for name in GENERAL_EXAMPLES:
         spec = examples / f"{name}.yaml"
-        child = run_child("end_to_end", {"spec": str(spec)}, args.point_timeout, args.mem_limit_gb * 1024)
+        child = run_child("end_to_end", {"spec": str(spec), "auto": True, "workers": 2}, args.point_timeout,
+                          args.mem_limit_gb * 1024)
         rec = case_record(f"general {name}", child, spec=spec.name)
         d = rec["details"]
         rec["transitions"] = transitions_of(d.get("subsystems") or [])
