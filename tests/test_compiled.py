@@ -193,7 +193,7 @@ def test_box_block_equals_the_generic_numpy_path(name, sub, monkeypatch):
     L_x = LipschitzMatrix.given(lip.x, sub.n, sub.n, "x")
     L_w = LipschitzMatrix.given(lip.w if sub.p else 0.0, sub.n, sub.p, "w")
     samples = int(np.prod(gb.subgrid_counts(sub.spec.samples, sub.n + sub.p)))
-    cells = min(sub.state_grid.size, max(20, 6000 * sub.state_grid.size // sub.triples))  # about 6,000 triples
+    cells = min(sub.state_grid.size, max(4, 3000 * sub.state_grid.size // sub.triples))  # about 3,000 triples
     start = (sub.state_grid.size - cells) // 2  # the middle of the grid: some triples stay inside it
     for block in (subsystem.BLOCK_POINTS, 7 * samples):
         monkeypatch.setattr(subsystem, "BLOCK_POINTS", block)
