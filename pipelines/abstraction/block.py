@@ -438,7 +438,7 @@ def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, sample: np.
     if compiled_pass:  # the Lipschitz bound in the pass only where every centre is there
         in_kernel = _BOX_KERNEL_NAMES if all_centres else ("hull",)
     boxes = {b.name: b.boxes(block, rows[b.name]) for b in bounds if b.name not in in_kernel}
-    counted = _count_boxes(xg, boxes)
+    counted, cells = _count_boxes(xg, boxes)
     if compiled_pass:
         lo, hi, blocking, sums, live, slopes = compiled.box_block(
             np.ascontiguousarray(tr.V.reshape(-1, B, n)), np.ascontiguousarray(tr.C),
@@ -451,10 +451,9 @@ def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, sample: np.
                         if name in in_kernel})
         sx, sw = slopes[:, :, :len(cx)], slopes[:, :, len(cx):]
     else:
-        first, last, blocked = _cells_of(xg, *boxes[bound.name])
-        lo = np.where(blocked[:, None], 0, first).astype(np.int32)
-        hi = np.where(blocked[:, None], -1, last).astype(np.int32)
-        blocking = blocked
+        first, last, blocking = cells[bound.name]
+        lo = np.where(blocking[:, None], 0, first).astype(np.int32)
+        hi = np.where(blocking[:, None], -1, last).astype(np.int32)
         # Slopes for Lipschitz validation (docs/method.md §3), per entry: neighbours along x axes (w fixed) and w
         # axes (x fixed), each component on its own.
         if scalar:
@@ -479,18 +478,20 @@ def _cells_of(xg: UniformGrid, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarr
     return np.clip(first, 0, top), np.clip(last, 0, top), leaves
 
 
-def _count_boxes(xg: UniformGrid, boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[int, int]]:
-    """Per bound: successor cells summed over its non-blocking boxes, and their number (all boxes at once:
-    elementwise, so the same bits as one box at a time)."""
+def _count_boxes(xg: UniformGrid, boxes: dict[str, tuple[np.ndarray, np.ndarray]]
+                 ) -> tuple[dict[str, tuple[int, int]], dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """Per bound: successor cells summed over its non-blocking boxes and their number, and its boxes' cells
+    (:func:`_cells_of`); all boxes at once: elementwise, so the same bits as one box at a time."""
     if not boxes:
-        return {}
+        return {}, {}
     names = list(boxes)
     sizes = np.cumsum([0] + [boxes[k][0].shape[0] for k in names])
     first, last, leaves = _cells_of(xg, np.concatenate([boxes[k][0] for k in names]),
                                     np.concatenate([boxes[k][1] for k in names]))
     count = np.prod(last - first + 1, axis=1)
-    out = {}
+    counted, cells = {}, {}
     for name, a, b in zip(names, sizes[:-1], sizes[1:]):
         live = ~leaves[a:b]
-        out[name] = (int(count[a:b][live].sum()), int(live.sum()))
-    return out
+        counted[name] = (int(count[a:b][live].sum()), int(live.sum()))
+        cells[name] = (first[a:b], last[a:b], leaves[a:b])
+    return counted, cells
