@@ -224,8 +224,7 @@ def run_abstraction(
 
 #: Black-box evaluations of the per-cell stage below which a job that would start an embedded cluster runs in
 #: process, on threads, instead (``in_process=None``): up to about a minute of work on two cores, where threads do
-#: as well as two workers and starting and stopping them (3-4 s) is saved (dcdc: 7.3 s end to end in process,
-#: 11.3 s on the cluster; the vehicle, at 1.4e9: per-cell 16.8 s in process, 15.8-18.4 s on the cluster).
+#: as well as two workers and starting and stopping them (3-4 s) is saved.
 IN_PROCESS_EVALUATIONS = 4_000_000_000
 #: Composed abstract states above which a job keeps the cluster anyway (its synthesis may run parts there).
 IN_PROCESS_STATES = 10_000_000

@@ -190,7 +190,7 @@ class LipschitzMatrix:
         """``sum_j entries[i, j] r_j``, shape (B, n), for ``r`` of shape (B, d), summed in the order of ``j``.
 
         Not ``r @ entries.T``: BLAS would choose the order and the threads (its bits then depend on the library,
-        and its threads, beside the per-cell stage's own, oversubscribe the cores: 50 ms for 49,000 rows of 3).
+        and its threads, beside the per-cell stage's own, oversubscribe the cores).
         """
         out = np.zeros((r.shape[0], self._entries.shape[0]))
         for j in range(r.shape[1]):
