@@ -258,7 +258,9 @@ def test_concurrency_cap_is_429_and_delete_frees_a_place(make_client):
     assert r.status_code == 200 and r.json()["status"] in ("running", "cancelled")
     job = wait_for(c, first["id"], {"cancelled", "failed", "succeeded"})
     assert job["status"] == "cancelled" and job["error"] is None
-    assert any(s["stage"] == "subsystems" and s["done"] < s["total"] for s in job["stages"]), job["stages"]
+    # It stopped short of its end: the per-cell stage or a later one (the in-process per-cell stage can finish
+    # between the request and the next progress event) is left unfinished.
+    assert any(s["done"] < s["total"] for s in job["stages"]), job["stages"]
     assert wait_for(c, third["id"], {"succeeded", "failed"})["status"] == "succeeded"
 
 
