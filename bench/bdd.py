@@ -35,8 +35,8 @@ def child_bdd(p: dict, emit: Emit) -> None:
     from pipelines.abstraction.relation import assemble, chunk_ranges
     from pipelines.network import build_network
     from pipelines.spec.model import load_spec
-    from pipelines.symbolic.model import SymbolicModel
     from pipelines.symbolic.relations import subsystem_relation
+    from pipelines.symbolic.symbolic_model import SymbolicModel
     from pipelines.symbolic.tree import range_leaves, tree
 
     spec = load_spec(p["spec"], p.get("set"))

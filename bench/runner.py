@@ -58,7 +58,7 @@ def task_overhead(spec: JobSpec, n_tasks: int = 40) -> dict[str, float]:
     """Round trip minus compute of single-cell tasks, one at a time, on a 2-worker cluster (seconds)."""
     from workers.cluster import connect
     from workers.jobdir import relations_url
-    from workers.store import RelationStore, group_name
+    from workers.relation_store import RelationStore, group_name
     from workers.tasks import abstract_chunk
 
     network = build_network(spec, None)

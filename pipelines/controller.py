@@ -26,7 +26,7 @@ from pipelines.export.table import EXPORT_FORMAT, BDDTable, ExportedController, 
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
 from pipelines.symbolic.files import dump, load_all
-from pipelines.symbolic.model import Function
+from pipelines.symbolic.symbolic_model import Function
 from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
@@ -70,7 +70,7 @@ class Controller:
 
     @property
     def model(self):
-        """The :class:`~.symbolic.model.SymbolicModel` the controller's BDDs live in."""
+        """The :class:`~.symbolic.symbolic_model.SymbolicModel` the controller's BDDs live in."""
         return self._model
 
     @property

@@ -1,4 +1,4 @@
-"""``compabs audit DIR``: the command line of :func:`workers.audit.audit_job` (what it checks is said there).
+"""``compabs audit DIR``: the command line of :func:`workers.job_audit.audit_job` (what it checks is said there).
 
 It prints a table, writes ``DIR/audit.json`` and exits with status 3 if anything was violated (2 for a user
 error: a missing or damaged file, named).
@@ -46,7 +46,7 @@ def format_table(result: dict[str, Any]) -> str:
 
 def cmd_audit(args: argparse.Namespace) -> int:
     """The ``audit`` subcommand: 0 if nothing is violated, 3 otherwise (2 for a user error, raised)."""
-    from workers.audit import audit_job  # the pipelines: only when auditing
+    from workers.job_audit import audit_job  # the pipelines: only when auditing
 
     result = audit_job(args.dir, args.transitions, args.seed, args.runs, caps=local_caps())
     print(format_table(result))

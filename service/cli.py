@@ -35,8 +35,8 @@ import numpy as np
 
 from pipelines.errors import CompabsError, SpecError
 from service.arguments import count
-from service.table import Row, format_table
 from service.termination import Terminated, terminate_as_interrupt
+from service.text_table import Row, format_table
 from workers.huge_pages import restart_with_huge_pages
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
@@ -211,7 +211,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 # ====================================================================================== the run's summary
-#: The summary's lines wrap at :data:`SUMMARY_WIDTH` columns (:func:`service.table.format_table`).
+#: The summary's lines wrap at :data:`SUMMARY_WIDTH` columns (:func:`service.text_table.format_table`).
 SUMMARY_WIDTH = 100
 
 
@@ -240,7 +240,7 @@ def share_text(part: float, whole: float) -> str:
 
 
 def _line(label: str, *parts: str) -> Row:
-    """One labelled row of the summary (laid out with the others by :func:`service.table.format_table`)."""
+    """One labelled row of the summary (laid out with the others by :func:`service.text_table.format_table`)."""
     return label, parts
 
 

@@ -93,8 +93,8 @@ def run(job_id: str, settings: Any, store: Any, scheduler: str | None) -> int:
     from pipelines.errors import CompabsError
     from pipelines.spec.model import parse_spec
     from pipelines.spec.validate import cap_synthesis_processes
+    from service.job_store import JobStatus
     from service.models import summarize
-    from service.store import JobStatus
     from service.supervisor import EXIT_STOPPED, end_job
     from workers.executors import Execution
     from workers.job import JobCancelled, run_job

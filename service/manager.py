@@ -46,9 +46,9 @@ from pipelines.errors import SpecError
 from pipelines.spec.loader import load_json, load_yaml
 from pipelines.spec.model import JobSpec, parse_spec
 from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, UnsupportedMediaType
+from service.job_store import ACTIVE, JobRecord, JobStatus, JobStore, QueuedJob
 from service.models import job_json
 from service.settings import Settings
-from service.store import ACTIVE, JobRecord, JobStatus, JobStore, QueuedJob
 from service.supervisor import EXIT_STOPPED, JobProcess, describe_exit, end_job, kill_orphans
 
 log = logging.getLogger("compabs.service")

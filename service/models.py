@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from service.store import JobRecord, JobStatus
+from service.job_store import JobRecord, JobStatus
 from workers.job import STAGES
 
 

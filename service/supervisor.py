@@ -42,8 +42,8 @@ from typing import Any
 
 import psutil
 
+from service.job_store import JobStatus, JobStore
 from service.settings import Settings
-from service.store import JobStatus, JobStore
 from workers import checkpoint_store, jobdir
 from workers.processes.children import PACKAGE_ROOT
 

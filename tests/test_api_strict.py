@@ -34,8 +34,8 @@ from pipelines.errors import SpecError
 from pipelines.spec.loader import MAX_INT_DIGITS, MAX_YAML_NODES, expanded_size, load_json, load_yaml
 from pipelines.spec.model import JobSpec, load_spec, parse_spec
 from service.app import create_app
+from service.job_store import JobStatus
 from service.settings import Settings
-from service.store import JobStatus
 
 from .conftest import EXAMPLES, ROOT
 

@@ -406,12 +406,12 @@ def test_damaged_chunk_is_never_a_traceback(job, finished_job, capsys):
                                  RuntimeError("error during blosc decompression: -1")],
                          ids=["OSError", "internal error"])
 def test_store_errors_end_as_one_line(tmp_path, capsys, monkeypatch, exc):
-    import workers.store
+    import workers.relation_store
 
     def broken(*a, **k):
         raise exc
 
-    monkeypatch.setattr(workers.store.RelationStore, "open", broken)
+    monkeypatch.setattr(workers.relation_store.RelationStore, "open", broken)
     (tmp_path / "existing").mkdir()
     out = tmp_path / "existing" / "a" / "b"
     code, _, err = run_cli(capsys, "run", spec_file(tmp_path), "--out", out, "--quiet", "--in-process")

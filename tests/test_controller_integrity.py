@@ -27,7 +27,7 @@ from pipelines.controller_integrity import INTEGRITY, ControllerIntegrityError, 
 from pipelines.export.c import c_sources
 from pipelines.export.emit import export_controller
 from pipelines.spec.model import parse_spec
-from service.store import TERMINAL
+from service.job_store import TERMINAL
 from workers.executors import Execution
 from workers.job import run_job
 

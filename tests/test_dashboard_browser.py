@@ -244,9 +244,9 @@ def seeded_server(tmp_path_factory):
     """``compabs serve --in-process`` over a job store holding one succeeded job whose counts exceed 2^53."""
     if not CHROMIUM.exists():
         pytest.skip(f"{CHROMIUM} is missing: install Debian's chromium (.ci/run does)")
+    from service.job_store import JobStatus
     from service.manager import new_store
     from service.settings import Settings
-    from service.store import JobStatus
 
     tmp = tmp_path_factory.mktemp("seeded")
     store = new_store(Settings(data_dir=tmp / "data"))

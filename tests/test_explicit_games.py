@@ -21,9 +21,9 @@ from pipelines.errors import CompabsError, SpecError
 from pipelines.export.emit import as_bdd
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import enumerate_cells
-from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import state_set, subsystem_relations
+from pipelines.symbolic.symbolic_model import SymbolicModel
 from pipelines.synthesis import explicit
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.fixed_points import cobuchi, reach, reach_safe, safe

@@ -17,10 +17,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from service.job_store import JobStatus, QueuedJob
 from service.manager import fair_order
 from service.manager import new_store as open_store
 from service.settings import Settings, token_owner
-from service.store import JobStatus, QueuedJob
 
 from .test_service_processes import TOKEN, ended, long_in, small, wait_until
 

@@ -1,6 +1,6 @@
 """Integrity of the relation store (issue 23): a damaged chunk is recomputed, never reused, and the audit names it.
 
-Every chunk's done-marker carries a checksum of the chunk's data and position (``workers/store.py``, "Integrity").
+Every chunk's done-marker carries a checksum of the chunk's data and position (``workers/relation_store.py``, "Integrity").
 Three damages, each as the issue's campaign made them on a finished store: a data chunk deleted while its marker
 stays (it reads back as the fill value), two valid chunks swapped, garbage bytes in a chunk (a Blosc
 decompression error). A rerun of the same spec recomputes exactly the damaged chunks and gives the relations of a
@@ -27,7 +27,7 @@ from workers.errors import StoreMismatchError
 from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction
 from workers.jobdir import relations_url
-from workers.store import RelationStore
+from workers.relation_store import RelationStore
 
 from .conftest import EXAMPLES
 from .trust_log import record

@@ -123,6 +123,20 @@ def test_no_module_is_over_600_lines():
     assert not long, long
 
 
+#: Module names more than one package may use: the package marker, and each layer's one ``errors`` module (always
+#: imported with its package, ``pipelines.errors`` / ``workers.errors`` / ``service.errors``).
+SHARED_NAMES = {"__init__", "errors"}
+
+
+def test_no_two_modules_share_a_name():
+    by_name: dict[str, list[str]] = {}
+    for package in PACKAGES:
+        for p in sorted((ROOT / package).rglob("*.py")):
+            by_name.setdefault(p.stem, []).append(str(p.relative_to(ROOT)))
+    shared = {n: ps for n, ps in by_name.items() if len(ps) > 1 and n not in SHARED_NAMES}
+    assert not shared, shared
+
+
 def repository_files(*suffixes: str) -> list[Path]:
     """The repository's files with these suffixes, outside hidden directories (``.git``, ``.venv``, ...) and caches."""
     return sorted(p for p in ROOT.rglob("*") if p.suffix in suffixes and p.is_file()

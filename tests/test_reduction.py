@@ -18,8 +18,8 @@ from pipelines.interconnection.reduction import reduction_nodes
 from pipelines.network import Network, build_network
 from pipelines.spec.model import parse_spec
 from pipelines.symbolic.files import dump, load_all
-from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.relations import interconnection_parts
+from pipelines.symbolic.symbolic_model import SymbolicModel
 from tests.test_interconnection import both_cells
 
 from .conftest import EXAMPLES

@@ -60,9 +60,9 @@ def test_reads_without_an_interconnection_are_refused():
 
 @pytest.mark.parametrize("text", [SINGLE, SINGLE_ODE], ids=["dynamics", "ode"])
 def test_a_single_system_runs_end_to_end(tmp_path, text):
-    from workers.audit import audit_job
     from workers.executors import Execution
     from workers.job import run_job
+    from workers.job_audit import audit_job
 
     report = run_job(parse_spec(text), tmp_path / "job", execution=Execution(in_process=True))
     assert report["interconnection"]["nodes"] == []

@@ -1,4 +1,4 @@
-"""The summary's layout: one table formatter (service.table), so a long name or a large count never runs into the
+"""The summary's layout: one table formatter (service.text_table), so a long name or a large count never runs into the
 text beside it (``follower[0] ×383,349 (x, u, w) triples`` read as ×3 and 83,349)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from service.cli import SUMMARY_WIDTH, summary_lines
-from service.table import format_table
+from service.text_table import format_table
 
 
 def _report(name: str, members: int, triples: int) -> dict:

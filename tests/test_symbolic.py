@@ -13,7 +13,6 @@ from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.spec.regions import AbstractRegion
 from pipelines.symbolic.counting import count, count_states, enumerate_cells, inputs_at, sample
 from pipelines.symbolic.files import dump, load
-from pipelines.symbolic.model import GC_LOOSE_UP_TO, MAX_CACHE_ENTRIES, BDDMemoryError, SymbolicModel, bit_width
 from pipelines.symbolic.order import SubsystemLayout, block_order, reader_order
 from pipelines.symbolic.relations import (
     interconnection,
@@ -23,6 +22,13 @@ from pipelines.symbolic.relations import (
     state_set,
     subsystem_relation,
     subsystem_relations,
+)
+from pipelines.symbolic.symbolic_model import (
+    GC_LOOSE_UP_TO,
+    MAX_CACHE_ENTRIES,
+    BDDMemoryError,
+    SymbolicModel,
+    bit_width,
 )
 from pipelines.symbolic.tree import factorize, unique_rows
 

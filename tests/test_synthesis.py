@@ -21,9 +21,9 @@ from pipelines.interconnection import NodeRelation
 from pipelines.spec.model import load_spec
 from pipelines.spec.regions import abstract_region
 from pipelines.symbolic.counting import enumerate_cells, inputs_at
-from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout, tree_owners
 from pipelines.symbolic.relations import interconnection_parts, state_set, subsystem_relations
+from pipelines.symbolic.symbolic_model import SymbolicModel
 from pipelines.synthesis.cpre import CHAIN_ORDERS, ControllablePredecessor, predecessors_of
 from pipelines.synthesis.fixed_points import reach, reach_and_stay, reach_avoid, safe
 from pipelines.synthesis.options import SynthesisOptions

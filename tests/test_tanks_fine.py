@@ -18,9 +18,9 @@ from pipelines.interconnection import NodeRelation
 from pipelines.network import build_network
 from pipelines.spec.model import load_spec
 from pipelines.spec.regions import abstract_region
-from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import node_relation
+from pipelines.symbolic.symbolic_model import SymbolicModel
 from pipelines.symbolic.tree import range_leaves, tree
 
 from .conftest import EXAMPLES

@@ -36,8 +36,8 @@ from pipelines.spec.loader import EXPONENT_FLOAT, MAX_YAML_NODES, load_yaml
 from pipelines.spec.model import load_spec, parse_spec
 from service.app import create_app
 from service.cli import main
+from service.job_store import JobStatus
 from service.settings import Settings
-from service.store import JobStatus
 
 from .conftest import EXAMPLES
 from .trust_log import Tally

@@ -290,7 +290,7 @@ def test_workers_beyond_any_machine_are_refused(tmp_path, capsys, monkeypatch):
 
 def test_audit_transitions_beyond_the_cap_are_refused(finished, tmp_path, capsys, monkeypatch):
     started: list[Any] = []
-    monkeypatch.setattr("workers.audit.audit_abstraction", stand_in(started))
+    monkeypatch.setattr("workers.job_audit.audit_abstraction", stand_in(started))
     job = Path(shutil.copytree(finished[0], tmp_path / "job"))
     code = main(["audit", str(job), "--transitions", str(10**11), "--runs", "0"])
     assert one_error(code, *capsys.readouterr()) and not started

@@ -220,7 +220,7 @@ def _pause_after_data(flag: str, release: str, start: int, limit: float) -> None
     """On a worker: the first task to reach the done-marker of the chunk starting at ``start`` creates ``flag``
     (its pid inside) and waits there, between the chunk's data and its marker, until ``release`` exists (at most
     ``limit`` seconds); then it gives up without writing the marker, as if its worker had died there."""
-    import workers.store as store
+    import workers.relation_store as store
 
     original = store.marker
 
@@ -244,7 +244,7 @@ def _pause_after_data(flag: str, release: str, start: int, limit: float) -> None
 
 def _unpause() -> None:
     """On a worker: undo :func:`_pause_after_data`."""
-    import workers.store as store
+    import workers.relation_store as store
 
     store.marker = getattr(store, "_original_marker", store.marker)
     store.__dict__.pop("_original_marker", None)

@@ -28,7 +28,7 @@ from workers.errors import ClusterError, StoreError, StoreMismatchError
 from workers.executors import Execution
 from workers.job import abstract_job, run_abstraction
 from workers.jobdir import relations_url
-from workers.store import code_version, marker, result_from, write_chunk
+from workers.relation_store import code_version, marker, result_from, write_chunk
 
 from .conftest import EXAMPLES, ROOT, wait_idle
 
@@ -133,7 +133,7 @@ def test_group_left_half_created_is_made_again(tmp_path):
     import shutil
 
     from pipelines.network import build_network
-    from workers.store import RelationStore, group_name
+    from workers.relation_store import RelationStore, group_name
 
     spec = small_spec(chunk_cells=4, dynamics=None)
     net = build_network(spec, None)
@@ -510,7 +510,7 @@ def test_task_that_kills_its_workers_is_a_clear_error(tmp_path, client):
 def test_store_write_outside_a_chunk_is_refused(tmp_path, client):
     from pipelines.abstraction.cells import abstract_cells
     from pipelines.network import build_network
-    from workers.store import RelationStore, group_name
+    from workers.relation_store import RelationStore, group_name
 
     spec = small_spec(chunk_cells=4, dynamics=None)
     net = build_network(spec, None)

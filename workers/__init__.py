@@ -5,9 +5,9 @@
 - :mod:`workers.executors`: where the per-cell tasks run: in this process or on Dask (``InProcess``, ``OnDask``).
 - :mod:`workers.cluster`: ``connect()`` to an embedded LocalCluster or an external scheduler.
 - :mod:`workers.tasks`: ``abstract_chunk``, the task the cluster runs (importable by scheduler and workers).
-- :mod:`workers.store`: the Zarr v3 relation store (``DIR/relations.zarr``), chunk writes and done-markers.
+- :mod:`workers.relation_store`: the Zarr v3 relation store (``DIR/relations.zarr``), chunk writes and done-markers.
 - :mod:`workers.jobdir`: the job directory: every path, reader and writer.
-- :mod:`workers.audit`: ``audit_job``, the audit of a finished job's stored files (``compabs audit``).
+- :mod:`workers.job_audit`: ``audit_job``, the audit of a finished job's stored files (``compabs audit``).
 - :mod:`workers.processes`: local helper processes: the audit beside synthesis, the partitioned CPre.
 - :mod:`workers.errors`: the execution errors (all ``CompabsError``).
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from pipelines.errors import CompabsError
 from pipelines.symbolic.files import check_dddmp, file_sha256
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
 FORMAT = "compabs-checkpoint/1"
 #: Least seconds between two writes of a fixed point's iterate (the last one is always written): dumping an

@@ -19,7 +19,7 @@ transport is the job's Dask client:
 This process computes nothing while the parts run: CUDD holds the GIL for a whole operation, and the thread
 that waits for the workers' answers must keep moving. A part that fails (its worker died more often than Dask
 retries, or the cluster went away) is a :class:`DaskPartFailed`, after which the CPre goes on in this process;
-CUDD out of memory in a part is a :class:`~pipelines.symbolic.model.BDDMemoryError`, raised to the caller.
+CUDD out of memory in a part is a :class:`~pipelines.symbolic.symbolic_model.BDDMemoryError`, raised to the caller.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from collections.abc import Iterator
 from typing import Any, cast
 
 from pipelines.symbolic.files import from_bytes, to_bytes
-from pipelines.symbolic.model import BDDMemoryError
+from pipelines.symbolic.symbolic_model import BDDMemoryError
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed
 from pipelines.synthesis.partitioned import Answer, Call, PartitionedCPre
 from pipelines.synthesis.parts import NOT_Z, Problem, pack

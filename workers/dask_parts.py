@@ -16,7 +16,7 @@ from collections.abc import Iterator, Sequence
 from typing import Any, NamedTuple
 
 from pipelines.symbolic.files import from_bytes, to_bytes
-from pipelines.symbolic.model import Function
+from pipelines.symbolic.symbolic_model import Function
 from pipelines.synthesis.parts import Outside, PartSpec, Problem, join, solve, symmetry, unpack
 
 HELD_PROBLEMS = 2

@@ -7,11 +7,11 @@ as they complete, in any order. Two kinds:
 - :class:`InProcess`: in this process, on threads or one task after another (tests, small jobs, ``compabs run
   --in-process``);
 - :class:`OnDask`: one Dask task per chunk on a cluster (:mod:`workers.cluster`), each writing its chunk into the
-  relation store (:mod:`workers.store`) and returning its small done-marker.
+  relation store (:mod:`workers.relation_store`) and returning its small done-marker.
 
 Both go through the job's relation store when they have one: a chunk whose done-marker is there is read back
 (*reused*) instead of computed, so a job that is run again resumes. A reused chunk is verified against the
-checksum in its marker (:func:`workers.store.check_chunks`, on one bulk read of the group); a damaged one
+checksum in its marker (:func:`workers.relation_store.check_chunks`, on one bulk read of the group); a damaged one
 (missing, unreadable, or not matching) is logged as a warning naming its group and chunk, its marker cleared,
 and it is recomputed like a chunk never done. Without a store (``InProcess()``) nothing is written. The chunk size is the executor's (:attr:`Executor.chunk_points`): a cluster task must be large enough
 for its overhead (about 10 ms) not to count.
@@ -30,7 +30,7 @@ from pipelines.abstraction.cells import CellTask
 from pipelines.abstraction.relation import DEFAULT_CHUNK_POINTS, CellsResult
 from pipelines.errors import CompabsError
 from workers.errors import ClusterError, StoreError, TaskTimeoutError
-from workers.store import ChunkCheck, RelationStore, chunk_place, group_name
+from workers.relation_store import ChunkCheck, RelationStore, chunk_place, group_name
 
 log = logging.getLogger(__name__)
 

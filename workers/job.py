@@ -43,8 +43,8 @@ from workers import jobdir, resume
 from workers.control import run_synthesis
 from workers.errors import StoreError
 from workers.executors import Execution, Executor, InProcess, OnDask
+from workers.relation_store import RelationStore
 from workers.stages import STAGES, Abstraction, JobCancelled, JobPolicy, Progress, Stage, no_progress
-from workers.store import RelationStore
 
 
 # ====================================================================================== abstraction stages

@@ -3,13 +3,13 @@
 ::
 
     DIR/spec.json                    the job spec, as run (:func:`write_spec`)
-    DIR/relations.zarr/              the subsystem relations (:mod:`workers.store`), the one relation format
+    DIR/relations.zarr/              the subsystem relations (:mod:`workers.relation_store`), the one relation format
     DIR/interconnection.json, .npz   the interconnection abstraction (:func:`save_interconnection`)
     DIR/controller.dddmp, .json      the controller (:mod:`pipelines.controller`); controller_<fixed point>.* for
                                      the other reach-and-stay fixed point
     DIR/trajectory.png, phase_plane.png, closed_loop_example.json   the figures and the runs they show
     DIR/report.json                  written last, atomically: a report means the job's files are complete
-    DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.audit.audit_job`)
+    DIR/audit.json                   written by ``compabs audit DIR`` (:func:`workers.job_audit.audit_job`)
     DIR/resume.json                  what a run of the same spec reads back (:mod:`workers.resume`)
     DIR/checkpoints/                 the safety fixed points' last iterates while synthesis runs, removed once the
                                      controller is written or the service ends the job cancelled or failed
@@ -159,7 +159,7 @@ def claim(out_dir: str | os.PathLike[str], spec: JobSpec, *, overwrite: bool = F
     StoreMismatchError
         ``out_dir`` holds the files of another spec's job (report.json or spec.json of another spec hash),
         unless ``overwrite``, which deletes them (report.json first; the relation store is checked, and with
-        ``overwrite`` replaced, by :meth:`workers.store.RelationStore.open`).
+        ``overwrite`` replaced, by :meth:`workers.relation_store.RelationStore.open`).
     StoreError, SpecError
         ``out_dir`` (or its relation store) cannot be written, or created: at the start, not after the work.
     """
@@ -392,7 +392,7 @@ def _check_shape(rel: SubsystemRelation, sub, where: str) -> None:
 
 def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict[str, dict[str, Any]]
                          ) -> tuple[dict[str, SubsystemRelation], dict[str, str], list[dict[str, Any]], int]:
-    """The stored relations, each chunk verified against its checksum (:func:`workers.store.check_chunks`).
+    """The stored relations, each chunk verified against its checksum (:func:`workers.relation_store.check_chunks`).
 
     Returns the relations (by subsystem key), their groups, the damaged chunks (``group``, ``subsystem``,
     ``chunk``, ``start``, ``stop``, ``reason``, ``message``) and the number of chunks checked. A damaged chunk's
@@ -401,7 +401,7 @@ def _load_zarr_relations(url: str, spec: JobSpec, network: Network, params: dict
     """
     import zarr
 
-    from workers.store import LAYOUT_VERSION, check_chunks, chunk_place, group_markers
+    from workers.relation_store import LAYOUT_VERSION, check_chunks, chunk_place, group_markers
 
     try:
         root = zarr.open_group(store=url, mode="r", use_consolidated=False)

@@ -1,6 +1,6 @@
 """What a run of the same spec into the same directory reads back instead of computing again.
 
-The relation chunks are reused by the store (:mod:`workers.store`); the interconnection abstraction and the
+The relation chunks are reused by the store (:mod:`workers.relation_store`); the interconnection abstraction and the
 abstraction's audit are read back here, from ``DIR/resume.json`` (:data:`workers.jobdir.RESUME`) and the
 interconnection files (:func:`workers.jobdir.save_interconnection`), when they were written for this very spec
 (its hash, which covers the seed, the audit size and everything the abstraction depends on):

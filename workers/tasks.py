@@ -21,7 +21,7 @@ from typing import Any
 from pipelines.abstraction.cells import CellTask
 from pipelines.abstraction.relation import CellsResult
 from workers.errors import TaskTimeoutError
-from workers.store import write_chunk
+from workers.relation_store import write_chunk
 
 #: Seconds a timed-out task waits for its thread to stop after asking it to.
 STOP_GRACE = 1.0
@@ -35,7 +35,7 @@ def abstract_chunk(store_url: str, group: str, task: CellTask, timeout: float | 
     store_url : str
         The relation store (``DIR/relations.zarr``, a path or fsspec URL).
     group : str
-        The store group of this subsystem and these constants (:func:`workers.store.group_name`); it exists
+        The store group of this subsystem and these constants (:func:`workers.relation_store.group_name`); it exists
         already, created by the runner.
     task : CellTask
         The chunk to compute; ``[task.start, task.stop)`` is exactly one chunk of the group.
@@ -46,7 +46,7 @@ def abstract_chunk(store_url: str, group: str, task: CellTask, timeout: float | 
     -------
     dict
         The chunk's done-marker (start, stop, successors, slope_x, slope_w, seconds of compute, all_fill, and
-        sha256: the chunk's checksum, :func:`workers.store.chunk_checksum`).
+        sha256: the chunk's checksum, :func:`workers.relation_store.chunk_checksum`).
 
     Raises
     ------

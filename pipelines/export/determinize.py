@@ -23,7 +23,7 @@ import numpy as np
 from pipelines.controller import Controller, LayeredController
 from pipelines.export.table import RULES, BDDTable, ExportError, node_table
 from pipelines.symbolic.counting import enumerate_cells
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 from pipelines.synthesis.at_state import cpre_at_state
 from pipelines.synthesis.cpre import bad_inputs
 

@@ -18,6 +18,7 @@ import numpy as np
 from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
 from pipelines.controller_integrity import seal_export
+from pipelines.export.decision_tree import decision_tree
 from pipelines.export.determinize import bdd_table, determinize
 from pipelines.export.table import (
     CSV_MAX_ROWS,
@@ -30,12 +31,11 @@ from pipelines.export.table import (
     TreeTable,
     codes_from_bits,
 )
-from pipelines.export.tree import decision_tree
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import count
-from pipelines.symbolic.model import SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import pair_set
+from pipelines.symbolic.symbolic_model import SymbolicModel
 
 #: Largest state grid for which the exact tree is built (it labels every cell of the grid).
 TREE_MAX_CELLS = 1 << 21

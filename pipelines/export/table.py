@@ -175,7 +175,7 @@ def _edge(ids: dict[int, int], g: Any) -> int:
 
 def node_table(model: Any, domain: Any, outputs: Sequence[Any] = ()) -> BDDTable:
     """The :class:`BDDTable` of ``domain`` and ``outputs``, BDDs over the current-state bits of ``model`` (a
-    :class:`~pipelines.symbolic.model.SymbolicModel`), sharing their nodes.
+    :class:`~pipelines.symbolic.symbolic_model.SymbolicModel`), sharing their nodes.
 
     The walk visits every node once (Python work proportional to the BDDs, never to the states); what the table
     gives per cell is then one vectorised walk (:meth:`BDDTable.evaluate`).

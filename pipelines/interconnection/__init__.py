@@ -15,7 +15,7 @@ of the full product grid (exponential in ``N``); here nothing is enumerated beyo
 
 Modules
 -------
-:mod:`~pipelines.interconnection.relation`
+:mod:`~pipelines.interconnection.node_relations`
     :class:`NodeRelation` and :class:`InterconnectionAbstraction`: ``M̂`` as a forest of node relations and the
     exact ``∃z. ∧ R_node`` query (Algorithm 3's result, Theorem thrm_inter).
 :mod:`~pipelines.interconnection.sampling`
@@ -38,6 +38,6 @@ Modules
 from __future__ import annotations
 
 from pipelines.interconnection.abstraction import abstract_interconnection
-from pipelines.interconnection.relation import InterconnectionAbstraction, NodeRelation
+from pipelines.interconnection.node_relations import InterconnectionAbstraction, NodeRelation
 
 __all__ = ["abstract_interconnection", "InterconnectionAbstraction", "NodeRelation"]

@@ -30,9 +30,9 @@ from pipelines.interconnection.certification import MAX_CERTIFY_CELLS, check_lip
 from pipelines.interconnection.grids import axis_grid
 from pipelines.interconnection.learning import complete_support, dependence, lasso_row, refit, support_of
 from pipelines.interconnection.mdec import mdec
+from pipelines.interconnection.node_relations import InterconnectionAbstraction, NodeRelation
 from pipelines.interconnection.nodes import box_node, covers_box, direct_node, intermediate_grid, linear_node
 from pipelines.interconnection.reduction import REDUCTIONS, check_reduction, reduction_nodes
-from pipelines.interconnection.relation import InterconnectionAbstraction, NodeRelation
 from pipelines.interconnection.sampling import Sampler, check_count, training_count
 from pipelines.network import Network
 

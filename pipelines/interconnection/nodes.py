@@ -34,7 +34,7 @@ from pipelines.grid import UniformGrid
 from pipelines.interconnection.certification import FP_ATOL, FP_RTOL
 from pipelines.interconnection.grids import axis_grid, cell_bounds, clip_range, subgrid_counts, unravel
 from pipelines.interconnection.mdec import NodePlan
-from pipelines.interconnection.relation import NodeRelation
+from pipelines.interconnection.node_relations import NodeRelation
 from pipelines.interconnection.sampling import Sampler
 
 __all__ = ["linear_node", "direct_node", "intermediate_grid", "covers_box", "box_node", "MAX_NODE_ENTRIES",

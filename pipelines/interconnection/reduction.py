@@ -31,7 +31,7 @@ from pipelines.errors import CertificationError, SpecError
 from pipelines.grid import UniformGrid
 from pipelines.interconnection.certification import FP_ATOL, FP_RTOL
 from pipelines.interconnection.grids import cell_bounds, clip_range
-from pipelines.interconnection.relation import NodeRelation
+from pipelines.interconnection.node_relations import NodeRelation
 
 __all__ = ["REDUCTIONS", "check_reduction", "reduction_nodes"]
 

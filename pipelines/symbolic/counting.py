@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
 CountTable = tuple[Callable[[Function], int], Callable[[Function], int], int]
 """``(count, position, N)`` of :func:`count_table`."""

@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 
 from pipelines.controller_integrity import ControllerIntegrityError, file_sha256, read_header, seal, verify_header
-from pipelines.symbolic.model import Function, SymbolicModel
 from pipelines.symbolic.order import SubsystemLayout
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
 HEADER_FORMAT = "compabs-bdd/1"
 

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import SubsystemLayout, tree_owners
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.tree import Say, range_leaves, tree
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only

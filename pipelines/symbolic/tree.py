@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
 #: The Shannon-tree keys are int64: at most this many bits per key; :func:`tree` splits wider relations by digit.
 MAX_TREE_BITS = 62

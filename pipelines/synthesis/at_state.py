@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from pipelines.symbolic.model import Function, SymbolicModel, and_exists
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel, and_exists
 from pipelines.synthesis.schedule import Chain
 
 

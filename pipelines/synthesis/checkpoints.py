@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
 
 class Checkpoints(Protocol):

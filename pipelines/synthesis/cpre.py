@@ -43,9 +43,9 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, TypedDict
 
 from pipelines.errors import CompabsError
-from pipelines.symbolic.model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.order import default_order
 from pipelines.symbolic.relations import interconnection_parts, subsystem_relations
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel, and_exists
 from pipelines.symbolic.tree import Say
 from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 from pipelines.synthesis.schedule import Chain, schedule
@@ -320,7 +320,7 @@ class ControllablePredecessor:
 
         ``order`` defaults to :func:`~.symbolic.order.default_order` (``interleaved`` where each internal
         variable has one reader, ``shared_top`` otherwise: the orders docs/method.md §6 found best for the tanks and
-        consensus); ``max_memory`` is CUDD's (:class:`~.symbolic.model.SymbolicModel`), ``share`` how identical
+        consensus); ``max_memory`` is CUDD's (:class:`~.symbolic.symbolic_model.SymbolicModel`), ``share`` how identical
         subsystems share their relations (:func:`~.symbolic.relations.subsystem_relations`), ``say`` is told how
         building them goes (:data:`~.symbolic.tree.Say`); ``options`` are the
         constructor's (:class:`Options`).

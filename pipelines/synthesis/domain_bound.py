@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from pipelines.symbolic.model import Function, and_exists
+from pipelines.symbolic.symbolic_model import Function, and_exists
 from pipelines.synthesis.cpre import bad_inputs
 from pipelines.synthesis.local_games import (
     MAX_GROUP_BITS,

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any, Concatenate, ParamSpec, TypeVar
 
 from pipelines.symbolic.counting import count_states
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.local_games import invariant_bound

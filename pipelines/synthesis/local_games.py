@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from pipelines.symbolic.counting import count_states
-from pipelines.symbolic.model import Function, and_exists
+from pipelines.symbolic.symbolic_model import Function, and_exists
 from pipelines.synthesis.cpre import bad_inputs
 from pipelines.synthesis.schedule import Chain, schedule
 

@@ -29,7 +29,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
 
 def update_density(density: np.ndarray, bounds: Sequence[tuple[int, int]], seconds: Sequence[float]) -> np.ndarray:

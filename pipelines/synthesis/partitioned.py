@@ -21,7 +21,7 @@ process runs it, so every mode gives the one-process answer.
 * **Failures.** Any error abandons the parts (their pending answers must not be read by the next call); a
   transport's failure is a :class:`~.cpre.PartitionFailed`, after which
   :meth:`~.cpre.ControllablePredecessor.predecessors` goes on in one process; CUDD out of memory in a part is a
-  :class:`~pipelines.symbolic.model.BDDMemoryError`.
+  :class:`~pipelines.symbolic.symbolic_model.BDDMemoryError`.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from pipelines.symbolic.model import BDDMemoryError, Function, and_exists
+from pipelines.symbolic.symbolic_model import BDDMemoryError, Function, and_exists
 from pipelines.synthesis.cpre import PartitionFailed
 from pipelines.synthesis.partition import damped_cuts, equal_work_cuts, split_digits, update_density, w_window
 from pipelines.synthesis.parts import PartSpec, Problem

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from pipelines.symbolic.files import from_bytes, header, model_from_header, to_bytes
-from pipelines.symbolic.model import Function, SymbolicModel, and_exists
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel, and_exists
 from pipelines.synthesis.cpre import bad_inputs, predecessors_of
 from pipelines.synthesis.partition import admitting_below, lexicographic_part, lowest_code_states, w_window
 from pipelines.synthesis.schedule import Chain

@@ -49,10 +49,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from pipelines.symbolic.counting import count_states
-from pipelines.symbolic.model import and_exists
+from pipelines.symbolic.symbolic_model import and_exists
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
-    from pipelines.symbolic.model import Function, SymbolicModel
+    from pipelines.symbolic.symbolic_model import Function, SymbolicModel
     from pipelines.synthesis.cpre import ControllablePredecessor
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from pipelines.symbolic.model import Function
+from pipelines.symbolic.symbolic_model import Function
 
 Chain = list[tuple[Function, list[str]]]  # (relation, next-state bits it quantifies), in schedule order
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from pipelines.symbolic.model import Function, SymbolicModel
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 from pipelines.synthesis.schedule import Chain
 
 Swap = dict[str, Function]

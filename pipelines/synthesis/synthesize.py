@@ -16,8 +16,8 @@ import numpy as np
 
 from pipelines.spec.regions import AbstractRegion, abstract_region
 from pipelines.symbolic.counting import count_states
-from pipelines.symbolic.model import Function
 from pipelines.symbolic.relations import region
+from pipelines.symbolic.symbolic_model import Function
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
 from pipelines.synthesis.domain_bound import domain_bound

@@ -16,10 +16,10 @@ from typing import Annotated, Any
 from fastapi import Depends, HTTPException, Request, Security
 from fastapi.security import APIKeyQuery, HTTPAuthorizationCredentials, HTTPBearer
 
+from service.job_store import JobRecord
 from service.manager import JobManager
 from service.models import ErrorDetail
 from service.settings import token_owner
-from service.store import JobRecord
 
 _bearer = HTTPBearer(auto_error=False, description="the server's token (COMPABS_TOKEN)")
 _query = APIKeyQuery(

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
+from service.job_store import JobStatus
 from service.models import Health
 from service.routers.common import Manager
-from service.store import JobStatus
 
 router = APIRouter(tags=["health"])
 

@@ -16,10 +16,10 @@ from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from pipelines.controller_integrity import ControllerIntegrityError
 from pipelines.spec.model import parse_spec
+from service.job_store import TERMINAL, JobRecord, JobStatus
 from service.manager import JobManager
 from service.models import ErrorDetail, Job, JobList, ProgressEvent
 from service.routers.common import AUTH_RESPONSES, FoundJob, Manager, require_token
-from service.store import TERMINAL, JobRecord, JobStatus
 from workers import jobdir
 from workers.controller_files import controller_archive
 

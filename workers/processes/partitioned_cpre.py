@@ -13,7 +13,7 @@ child processes (not ``multiprocessing``'s spawn, which would re-run the caller'
 Failures: a helper that dies or fails is a :class:`HelperError` (a
 :class:`~pipelines.synthesis.cpre.PartitionFailed`), after which the helpers are stopped (pending answers would
 desynchronise the next call) and :meth:`~pipelines.synthesis.cpre.ControllablePredecessor.predecessors` answers in
-one process. CUDD out of memory in a helper is a :class:`~pipelines.symbolic.model.BDDMemoryError`.
+one process. CUDD out of memory in a helper is a :class:`~pipelines.symbolic.symbolic_model.BDDMemoryError`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from collections.abc import Iterator, Sequence
 from multiprocessing.connection import Connection
 
 from pipelines.symbolic.files import from_bytes, header, model_from_header, to_bytes
-from pipelines.symbolic.model import BDDMemoryError, SymbolicModel
+from pipelines.symbolic.symbolic_model import BDDMemoryError, SymbolicModel
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionFailed
 from pipelines.synthesis.partitioned import Answer, Call, PartitionedCPre
 from pipelines.synthesis.parts import NOT_Z, Problem, compute, pack, solve, unpack
