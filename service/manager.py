@@ -483,6 +483,8 @@ class JobManager:
         rec = self.store.get(job_id)
         if rec is None or rec.terminal:
             return
+        stage = next(reversed(rec.stages), None) if rec.stages else None
+        where = f" during stage '{stage}'" if stage else ""  # the stage a limit stopped, for its message
         if entry.reason == CANCEL or rec.cancel_requested:
             end_job(self.store, self.settings, job_id, JobStatus.CANCELLED)
         elif entry.reason == INTERRUPT or (self._stopping and code == EXIT_STOPPED):
@@ -490,16 +492,12 @@ class JobManager:
             log.info("job %s interrupted by the API stopping; re-queued", job_id)
             self.store.set_status(job_id, JobStatus.QUEUED, attempts_delta=-1)
         elif entry.reason == TIME_LIMIT:
-            stage = next(reversed(rec.stages), None) if rec.stages else None
-            where = f" during stage '{stage}'" if stage else ""
             end_job(self.store, self.settings, job_id, JobStatus.FAILED,
                     error=f"the job ran past its time limit of {entry.time_limit:g} s{where} and was stopped "
                     f"(options.time_limit; this server's default is {self.settings.default_time_limit:g} s, its cap "
                     f"max_time_limit {self.settings.max_time_limit:g} s). Its finished chunks are kept: submit it "
                     "again with a larger options.time_limit, or make it smaller.")
         elif entry.reason == MEMORY_LIMIT:
-            stage = next(reversed(rec.stages), None) if rec.stages else None
-            where = f" during stage '{stage}'" if stage else ""
             end_job(self.store, self.settings, job_id, JobStatus.FAILED,
                     error=f"the job's processes used {entry.memory_used / MIB:.0f} MiB of memory{where}, over its "
                     f"memory limit of {entry.memory_limit // MIB} MiB, and were stopped (options.memory_limit; this "
