@@ -12,6 +12,7 @@ import workers.processes.audit_beside as audit_beside
 from pipelines.errors import BlackBoxError, CompabsError
 from pipelines.spec.model import load_spec
 from workers.job import run_abstraction
+from workers.job_session import JobSession
 from workers.processes.audit_beside import BackgroundAudit
 
 from .conftest import EXAMPLES
@@ -24,16 +25,17 @@ def small(**options):
 
 def test_audit_beside_equals_the_audit_in_this_process():
     here = run_abstraction(small())
-    beside = run_abstraction(small(), audit_beside=True)
-    assert beside.report["audit"].get("pending") and beside.pending_audit is not None
+    session = JobSession()
+    beside = run_abstraction(small(), session=session)
+    assert beside.report["audit"].get("pending") and session.pending_audit is not None
     seen = []
-    beside.finish_audit(lambda *a: seen.append(a))
+    session.finish_audit(beside, lambda *a: seen.append(a))
     got = beside.report["audit"]
-    assert got["beside_synthesis"] and got["waited_seconds"] >= 0 and beside.pending_audit is None
+    assert got["beside_synthesis"] and got["waited_seconds"] >= 0 and session.pending_audit is None
     assert {k: v for k, v in got.items() if k not in ("beside_synthesis", "waited_seconds")} == here.report["audit"]
     assert got["transitions_checked"] > 20_000 and got["violations"] == 0
     assert seen[-1][:3] == ("audit", 1, 1) and beside.report["stage_seconds"]["audit"] > 0
-    beside.finish_audit()  # nothing pending: nothing happens
+    session.finish_audit(beside)  # nothing pending: nothing happens
     assert beside.report["audit"] == got
 
 
@@ -44,8 +46,9 @@ def test_the_child_imports_this_package_from_any_working_directory(tmp_path, mon
     (tmp_path / "pipelines").mkdir()
     (tmp_path / "pipelines" / "__init__.py").write_text("raise ImportError('the decoy pipelines package')\n")
     monkeypatch.chdir(tmp_path)
-    beside = run_abstraction(spec, audit_beside=True)
-    beside.finish_audit()
+    session = JobSession()
+    beside = run_abstraction(spec, session=session)
+    session.finish_audit(beside)
     assert beside.report["audit"]["transitions_checked"] > 20_000 and beside.report["audit"]["violations"] == 0
 
 
@@ -75,12 +78,24 @@ def test_a_users_error_in_the_child_is_raised_as_it_is(tmp_path, monkeypatch):
 
 
 def test_cancel_stops_the_child_and_removes_its_files():
-    r = run_abstraction(small(audit_transitions=2_000_000), audit_beside=True)
-    pending = r.pending_audit
+    session = JobSession()
+    run_abstraction(small(audit_transitions=2_000_000), session=session)
+    pending = session.pending_audit
+    assert pending is not None
     folder: Path = pending._dir
-    r.cancel_audit()
-    assert pending._proc.poll() is not None and not folder.exists() and r.pending_audit is None
-    r.cancel_audit()  # idempotent
+    session.cancel_audit()
+    assert pending._proc.poll() is not None and not folder.exists() and session.pending_audit is None
+    session.cancel_audit()  # idempotent
+
+
+def test_leaving_the_session_stops_the_child():
+    """A job that fails or is cancelled during synthesis leaves its session (``with``): the audit stops with it."""
+    with pytest.raises(RuntimeError, match="synthesis failed"), JobSession() as session:
+        run_abstraction(small(audit_transitions=2_000_000), session=session)
+        pending = session.pending_audit
+        assert pending is not None
+        raise RuntimeError("synthesis failed")
+    assert pending._proc.poll() is not None and not pending._dir.exists() and session.pending_audit is None
 
 
 PARENT_THAT_DIES = """
@@ -89,8 +104,10 @@ from pathlib import Path
 sys.path.insert(0, {root!r})
 from tests.test_audit_beside import small
 from workers.job import run_abstraction
-r = run_abstraction(small(audit_transitions=50_000_000), audit_beside=True)
-p = r.pending_audit
+from workers.job_session import JobSession
+s = JobSession()
+run_abstraction(small(audit_transitions=50_000_000), session=s)
+p = s.pending_audit
 print(p._proc.pid, p._dir, flush=True)
 os.kill(os.getpid(), signal.SIGKILL)  # no cancel, no finally: as when the job's process is killed
 """

@@ -36,13 +36,14 @@ from pipelines.abstraction.relation import CellsResult, SubsystemRelation, assem
 from pipelines.errors import CompabsError
 from pipelines.network import Network, Subsystem, build_network
 from pipelines.spec.model import JobSpec, spec_hash
-from pipelines.spec.regions import dead_ranges, never_winning, spec_regions
+from pipelines.spec.regions import AbstractRegion, dead_ranges, never_winning, spec_regions
 from pipelines.spec.validate import Validation, check_cells, validate_spec
 from pipelines.verification.audit import audit_abstraction
 from workers import jobdir, resume
 from workers.control import run_synthesis
 from workers.errors import StoreError
 from workers.executors import Execution, Executor, InProcess, OnDask
+from workers.job_session import JobSession
 from workers.relation_store import RelationStore
 from workers.stages import STAGES, Abstraction, JobCancelled, JobPolicy, Progress, Stage, no_progress
 
@@ -101,6 +102,100 @@ def _abstract_subsystem(
     return rel, info
 
 
+def _plan(spec: JobSpec, validated: Validation | None, allowed_modules: Sequence[str] | None,
+          progress: Progress) -> tuple[Network, dict[str, AbstractRegion], dict[str, list[Subsystem]]]:
+    """The ``plan`` stage: the network, the spec's regions and the distinct subsystems (identical ones are abstracted
+    once); the validation's network and regions when the caller ran it (their exact counts are not swept again),
+    else built and checked here."""
+    progress("plan", 0, 1, "building grids")
+    if validated is not None:
+        network, regions = validated.network, validated.regions
+    else:
+        network = build_network(spec, allowed_modules)
+        check_cells(spec, network)
+        regions = spec_regions(spec, network)
+    groups = network.unique_subsystems()
+    progress("plan", 1, 1, f"{len(network.subsystems)} subsystems, {len(groups)} distinct")
+    return network, regions, groups
+
+
+def _lipschitz(groups: dict[str, list[Subsystem]], rng: np.random.Generator,
+               progress: Progress) -> dict[str, dict[str, ConstantRecord]]:
+    """The ``lipschitz`` stage: each distinct subsystem's constants in ``x`` and ``w``, given or estimated
+    (Algorithm 4), drawn from ``rng`` in the order of ``groups`` (the job's seed fixes them)."""
+    constants: dict[str, dict[str, ConstantRecord]] = {}
+    for i, (key, members) in enumerate(groups.items()):
+        constants[key] = {arg: resolve_constant(members[0], arg, rng) for arg in ("x", "w")}
+        progress("lipschitz", i + 1, len(groups), members[0].name)
+    return constants
+
+
+def _abstract_subsystems(
+    spec: JobSpec, network: Network, regions: dict[str, AbstractRegion], groups: dict[str, list[Subsystem]],
+    constants: dict[str, dict[str, ConstantRecord]], executor: Executor, progress: Progress,
+) -> tuple[dict[str, SubsystemRelation], list[dict]]:
+    """The ``subsystems`` stage: Algorithm 1 for each distinct subsystem (:func:`_abstract_subsystem`), one
+    progress bar over all their chunks; the cells that can never win are not abstracted."""
+    relations: dict[str, SubsystemRelation] = {}
+    infos = []
+    total = sum(len(chunk_ranges(m[0], spec.options.chunk_cells, executor.chunk_points)) for m in groups.values())
+    done = 0
+    for key, members in groups.items():
+        rel, info = _abstract_subsystem(members, constants[key], executor, spec.options.chunk_cells, progress, done,
+                                         total, never_winning(spec, network, regions))
+        done += info["chunks"]
+        relations[key] = rel
+        infos.append(info)
+    return relations, infos
+
+
+def _audit_stage(
+    abstraction: Abstraction, rng: np.random.Generator, progress: Progress, session: JobSession | None,
+    stored: dict[str, Any] | None, resume_dir: Path | None,
+) -> dict[str, Any]:
+    """The ``audit`` stage (Theorems 4.2 and 4.7 on random concrete transitions): the report a first run stored
+    (``stored``), or an audit started in a child process held by ``session`` (returned at once, marked
+    ``pending``), or one run here and kept in ``resume_dir`` for a resumed run."""
+    spec, network, relations, ia = (abstraction.spec, abstraction.network, abstraction.relations,
+                                    abstraction.interconnection)
+    if stored is not None:
+        progress("audit", 1, 1, "read back: the first run checked these relations")
+        return stored
+    if session is not None:
+        from workers.processes.audit_beside import BackgroundAudit
+
+        # The child reports each part it finishes; the relay thread calls progress (the service's callback
+        # writes under the job store's lock, so it may be called from that thread).
+        session.pending_audit = BackgroundAudit(network, relations, ia, spec.options.audit_transitions, rng,
+                                                progress=lambda done, total, part: progress("audit", done, total, part))
+        progress("audit", 0, 1, "running in a child process beside synthesis")
+        return {"transitions_checked": 0, "violations": 0, "pending": True}
+    t0 = time.perf_counter()
+    report = audit_abstraction(network, relations, ia, spec.options.audit_transitions, rng,
+                               lambda done, total, part: progress("audit", done, total, part))
+    abstraction.report["stage_seconds"]["audit"] = time.perf_counter() - t0
+    resume.keep_audit(resume_dir, spec, report)
+    return report
+
+
+def _report(spec: JobSpec, network: Network, regions: dict[str, AbstractRegion], seconds: dict[str, float],
+            infos: list[dict], ia: Any, read_back: bool) -> dict[str, Any]:
+    """The abstraction's part of the job's report (``audit`` is filled in by the audit stage)."""
+    counts = {k: r.states for k, r in regions.items()}  # exact counts cost a sweep each: once per region
+    return {
+        "name": spec.name,
+        "spec_hash": spec_hash(spec),
+        "abstract_states": network.abstract_states,
+        "region_states": counts.get("target", counts.get("safe")),
+        "regions": {k: {"states": counts[k], "boxes": len(r.boxes)} for k, r in regions.items()},
+        "subsystem_count": len(network.subsystems),
+        "stage_seconds": seconds,
+        "subsystems": infos,
+        "interconnection": {**ia.describe(), **({"read_back": True} if read_back else {})},
+        "audit": {"transitions_checked": 0, "violations": 0},
+    }
+
+
 def run_abstraction(
     spec: JobSpec,
     *,
@@ -108,7 +203,7 @@ def run_abstraction(
     progress: Progress = no_progress,
     allowed_modules: Sequence[str] | None = None,
     audit: bool = True,
-    audit_beside: bool = False,
+    session: JobSession | None = None,
     validated: Validation | None = None,
     resume_dir: Path | None = None,
 ) -> Abstraction:
@@ -123,10 +218,10 @@ def run_abstraction(
         ``progress(stage, done, total, message)``, called as work completes.
     allowed_modules
         Modules a ``module:function`` may name (``None``: any, the local command line).
-    audit_beside : bool
-        Start the audit in a child process and return without waiting: synthesis needs nothing the audit makes,
-        so it runs on another core meanwhile. The caller must call :meth:`Abstraction.finish_audit` (which fills
-        ``report["audit"]``) or :meth:`Abstraction.cancel_audit`.
+    session : JobSession, optional
+        Start the audit in a child process held by ``session.pending_audit`` and return without waiting: synthesis
+        needs nothing the audit makes, so it runs on another core meanwhile. The caller must call
+        :meth:`JobSession.finish_audit` (which fills ``report["audit"]``) or :meth:`JobSession.close`.
     validated : Validation, optional
         The spec's :func:`~pipelines.spec.validate.validate_spec`, if the caller ran it: its network and regions
         (with their exact counts) are the plan, not built and counted again.
@@ -145,35 +240,15 @@ def run_abstraction(
     seconds: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    progress("plan", 0, 1, "building grids")
-    if validated is not None:
-        network, regions = validated.network, validated.regions
-    else:
-        network = build_network(spec, allowed_modules)
-        check_cells(spec, network)
-        regions = spec_regions(spec, network)
-    groups = network.unique_subsystems()
-    progress("plan", 1, 1, f"{len(network.subsystems)} subsystems, {len(groups)} distinct")
+    network, regions, groups = _plan(spec, validated, allowed_modules, progress)
     seconds["plan"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    constants: dict[str, dict[str, ConstantRecord]] = {}
-    for i, (key, members) in enumerate(groups.items()):
-        constants[key] = {arg: resolve_constant(members[0], arg, rng) for arg in ("x", "w")}
-        progress("lipschitz", i + 1, len(groups), members[0].name)
+    constants = _lipschitz(groups, rng, progress)
     seconds["lipschitz"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    relations: dict[str, SubsystemRelation] = {}
-    infos = []
-    total = sum(len(chunk_ranges(m[0], spec.options.chunk_cells, executor.chunk_points)) for m in groups.values())
-    done = 0
-    for key, members in groups.items():
-        rel, info = _abstract_subsystem(members, constants[key], executor, spec.options.chunk_cells, progress, done,
-                                         total, never_winning(spec, network, regions))
-        done += info["chunks"]
-        relations[key] = rel
-        infos.append(info)
+    relations, infos = _abstract_subsystems(spec, network, regions, groups, constants, executor, progress)
     seconds["subsystems"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -182,44 +257,12 @@ def run_abstraction(
     progress("interconnection", 1, 1, f"{len(ia.nodes)} nodes" + (", read back" if read_back else ""))
     seconds["interconnection"] = time.perf_counter() - t0
 
-    audit_report: dict[str, Any] = {"transitions_checked": 0, "violations": 0}
-    pending = None
     stored = resume.stored_audit(resume_dir, spec, interconnection_read_back=read_back,
                                  chunks_computed=executor.stats.chunks_computed)
+    result = Abstraction(spec, network, relations, ia, _report(spec, network, regions, seconds, infos, ia, read_back))
     if audit and spec.options.audit_transitions:
-        if stored is not None:
-            audit_report = stored
-            progress("audit", 1, 1, "read back: the first run checked these relations")
-        elif audit_beside:
-            from workers.processes.audit_beside import BackgroundAudit
-
-            # The child reports each part it finishes; the relay thread calls progress (the service's callback
-            # writes under the job store's lock, so it may be called from that thread).
-            pending = BackgroundAudit(network, relations, ia, spec.options.audit_transitions, rng,
-                                      progress=lambda done, total, part: progress("audit", done, total, part))
-            audit_report = {"transitions_checked": 0, "violations": 0, "pending": True}
-            progress("audit", 0, 1, "running in a child process beside synthesis")
-        else:
-            t0 = time.perf_counter()
-            audit_report = audit_abstraction(network, relations, ia, spec.options.audit_transitions, rng,
-                                             lambda done, total, part: progress("audit", done, total, part))
-            seconds["audit"] = time.perf_counter() - t0
-            resume.keep_audit(resume_dir, spec, audit_report)
-
-    counts = {k: r.states for k, r in regions.items()}  # exact counts cost a sweep each: once per region
-    report = {
-        "name": spec.name,
-        "spec_hash": spec_hash(spec),
-        "abstract_states": network.abstract_states,
-        "region_states": counts.get("target", counts.get("safe")),
-        "regions": {k: {"states": counts[k], "boxes": len(r.boxes)} for k, r in regions.items()},
-        "subsystem_count": len(network.subsystems),
-        "stage_seconds": seconds,
-        "subsystems": infos,
-        "interconnection": {**ia.describe(), **({"read_back": True} if read_back else {})},
-        "audit": audit_report,
-    }
-    return Abstraction(spec, network, relations, ia, report, pending_audit=pending)
+        result.report["audit"] = _audit_stage(result, rng, progress, session, stored, resume_dir)
+    return result
 
 
 #: Black-box evaluations of the per-cell stage below which a job that would start an embedded cluster runs in
@@ -265,7 +308,7 @@ def abstract_job(
     policy: JobPolicy | None = None,
     audit: bool = True,
     overwrite: bool = False,
-    for_synthesis: bool = False,
+    session: JobSession | None = None,
 ) -> tuple[Abstraction, dict[str, Any]]:
     """The abstraction stages of a job whose relations go into its directory's store (resumable).
 
@@ -274,10 +317,10 @@ def abstract_job(
     says (:class:`~workers.executors.Execution`; default: an embedded cluster of two workers).
 
     Returns the abstraction and the report's ``runner`` section (``scheduler``, ``workers``, ``dashboard``,
-    ``embedded``, ``store``, chunk counts, ``task_compute_seconds``). With ``for_synthesis`` the audit starts in a
-    child process beside synthesis (:meth:`Abstraction.finish_audit`), and the abstraction's ``client`` is the
-    cluster's client, left open for synthesis: the caller must call :meth:`Abstraction.close_cluster` (a cluster
-    this call started closes then).
+    ``embedded``, ``store``, chunk counts, ``task_compute_seconds``). With a ``session`` (a job that goes on to
+    synthesis) the audit starts in a child process beside synthesis (:meth:`JobSession.finish_audit`), and the
+    session holds the cluster's client, left open for synthesis, and the connection this call opened: the caller
+    must call :meth:`JobSession.close` (a cluster this call started closes then; a caller's client stays open).
 
     Before anything else the spec is validated (:func:`pipelines.spec.validate.validate_spec`, with ``policy``'s
     allowed modules and caps) and a local directory claimed (:func:`workers.jobdir.claim`: created if needed, writable, not
@@ -308,7 +351,7 @@ def abstract_job(
         kept = False
         try:
             result = run_abstraction(spec, executor=executor, progress=progress,
-                                     allowed_modules=policy.allowed_modules, audit=audit, audit_beside=for_synthesis,
+                                     allowed_modules=policy.allowed_modules, audit=audit, session=session,
                                      validated=validated,
                                      resume_dir=Path(out_dir) if local else None)
             try:
@@ -316,17 +359,19 @@ def abstract_job(
                 if local:  # what `compabs audit` checks
                     jobdir.save_interconnection(result.interconnection, out_dir, spec)
             except OSError as exc:
-                result.cancel_audit()
+                if session is not None:  # nothing will wait for it: the caller gets no abstraction
+                    session.cancel_audit()
                 raise StoreError(
                     f"writing the job's files in {os.fspath(out_dir)} failed: {exc}. Every chunk is stored; free space "
                     "or fix the permissions and run the job again to finish it."
                 ) from None
             except BaseException:
-                result.cancel_audit()
+                if session is not None:
+                    session.cancel_audit()
                 raise
-            if for_synthesis and not in_process:
-                result.client = execution.client if conn is None else conn.client
-                result.cluster, kept = conn, True
+            if session is not None and not in_process:
+                session.client = execution.client if conn is None else conn.client
+                session.connection, kept = conn, True
         finally:
             if conn is not None and not kept:
                 conn.close()
@@ -392,20 +437,19 @@ def run_job(
     # the audit runs beside it in a child process: it needs nothing synthesis makes, and its violations set the
     # job's status at the end either way.
     # The cluster stays up through synthesis: the fixed points' parts run on its workers (workers.dask_cpre).
-    result, runner = abstract_job(spec, Path(out_dir), execution, progress=progress, policy=policy, audit=audit,
-                                  overwrite=overwrite, for_synthesis=synthesize)
-    out = Path(out_dir)
-    result.report["runner"] = runner
-    try:
+    # Leaving the session stops the audit's child on an error or a cancellation (nothing when it finished) and
+    # closes a cluster this job started.
+    with JobSession() as session:
+        result, runner = abstract_job(spec, Path(out_dir), execution, progress=progress, policy=policy, audit=audit,
+                                      overwrite=overwrite, session=session if synthesize else None)
+        out = Path(out_dir)
+        result.report["runner"] = runner
         if synthesize:
-            extra = run_synthesis(result, out, progress=progress, client=result.client)
+            extra = run_synthesis(result, out, progress=progress, client=session.client)
             result.report["stage_seconds"].update(extra.pop("stage_seconds"))
             result.report.update(extra)
-        result.finish_audit(progress)
+        session.finish_audit(result, progress)
         resume.keep_audit(out, spec, result.report["audit"])
-    finally:
-        result.cancel_audit()  # an error or a cancellation: stop the child (nothing when finished)
-        result.close_cluster()
     try:
         jobdir.write_spec(out, spec)
         jobdir.write_report(out, result.report)  # last: a report on disk means the job's files are complete
@@ -415,5 +459,5 @@ def run_job(
     return result.report
 
 
-__all__ = ["STAGES", "Abstraction", "Execution", "JobCancelled", "JobPolicy", "Progress", "Stage", "abstract_job",
-           "run_abstraction", "run_job"]
+__all__ = ["STAGES", "Abstraction", "Execution", "JobCancelled", "JobPolicy", "JobSession", "Progress", "Stage",
+           "abstract_job", "run_abstraction", "run_job"]

@@ -66,38 +66,13 @@ class JobPolicy:
 
 @dataclass
 class Abstraction:
-    """Everything the abstraction stages produce; synthesis consumes it."""
+    """Everything the abstraction stages produce; synthesis consumes it.
+
+    Results only: the resources a job holds open beside them (its Dask client, the cluster connection, the audit
+    running beside synthesis) are its :class:`~workers.job_session.JobSession`'s."""
 
     spec: JobSpec
     network: Network
     relations: dict[str, SubsystemRelation]  # by subsystem key
     interconnection: Any
     report: dict[str, Any] = field(default_factory=dict)
-    pending_audit: Any = field(default=None, repr=False)  # a BackgroundAudit until finish_audit
-    client: Any = field(default=None, repr=False)  # the job's Dask client, kept open for synthesis
-    cluster: Any = field(default=None, repr=False)  # the Connection to close after synthesis, if this job opened it
-
-    def close_cluster(self) -> None:
-        """Close the cluster connection kept for synthesis (``abstract_job(for_synthesis=True)``), if this job
-        opened it; a caller's client stays open (idempotent)."""
-        conn, self.cluster, self.client = self.cluster, None, None
-        if conn is not None:
-            conn.close()
-
-    def finish_audit(self, progress: Progress = no_progress) -> None:
-        """Wait for an audit started beside synthesis (``run_abstraction(audit_beside=True)``) and put its report
-        in ``report["audit"]``; nothing if none is pending. Raises what the audit raised (e.g. a black box that
-        returned NaN on an audit sample)."""
-        if self.pending_audit is None:
-            return
-        pending, self.pending_audit = self.pending_audit, None
-        audit, seconds, waited = pending.result()
-        self.report["audit"] = {**audit, "beside_synthesis": True, "waited_seconds": waited}
-        self.report["stage_seconds"]["audit"] = seconds
-        progress("audit", 1, 1, f"{audit['transitions_checked']} transitions, {audit['violations']} violations")
-
-    def cancel_audit(self) -> None:
-        """Stop an audit started beside synthesis, if one is running (idempotent)."""
-        if self.pending_audit is not None:
-            pending, self.pending_audit = self.pending_audit, None
-            pending.cancel()
