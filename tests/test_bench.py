@@ -355,7 +355,7 @@ def test_the_end_to_end_case_runs_the_job_through_run_job():
 
 
 @pytest.mark.parametrize("command", [["bench/run.py"], ["-m", "bench"], ["-m", "bench.run"], ["bench/synthesis.py"],
-                                     ["bench/trust.py"], ["bench/runner.py"]])
+                                     ["bench/trust.py"], ["bench/runner.py"], ["bench/latency.py"]])
 def test_the_scripts_run_from_the_repository_root(command):
     """``python bench/run.py`` starts itself again as ``python -m bench`` (no ``sys.path`` edit); each script
     answers ``--help`` from the repository root."""
@@ -386,3 +386,28 @@ def test_the_general_case_solves_a_single_system_on_both_back_ends(tmp_path):
     assert e["domains"] == b["domains"] and e["domains"]["safe"] > 0 and b["same_domains"] == {"safe": True}
     assert e["transitions"] == b["transitions"] > 0 and b["transitions_per_second"] > 0
     assert min(e["build_seconds"], e["fixed_point_seconds"], b["relation_seconds"], b["fixed_point_seconds"]) >= 0
+
+
+def test_the_latency_bench_runs_and_prints_its_lines(tmp_path):
+    """``bench/latency.py`` on a small job with few requests: real ``compabs serve``, real HTTP; each route's line
+    parses and the JSON agrees with it. Exit 1 (a request slower than 1 s on a loaded machine) is a latency, which
+    tests do not judge; only a bench that could not run (2) fails here."""
+    import re
+
+    out = tmp_path / "latency.json"
+    proc = subprocess.run([sys.executable, "-m", "bench.latency", "--agents", "3", "--requests", "5", "--json",
+                           str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode in (0, 1), proc.stdout[-2000:] + proc.stderr[-3000:]
+    head = re.search(r"compabs latency bench: job (\w+) \(consensus, 3 agents\), (\d+) of 10 requests sent while it "
+                     r"synthesized", proc.stdout)
+    assert head, proc.stdout
+    number = r"(\d+\.\d) ms"
+    lines = re.findall(rf"GET (\S+) +n +5  median +{number}  p99 +{number}  max +{number}  within 1 s: (\d+) of 5",
+                       proc.stdout)
+    assert [route for route, *_ in lines] == ["/health", "/jobs/{id}"], proc.stdout
+    res = json.loads(out.read_text())
+    assert res["job"] == head.group(1) and res["sent"] == 10 and res["during_synthesis"] == int(head.group(2))
+    for (route, median, p99, most, within), rec in zip(lines, res["routes"]):
+        assert rec["route"] == route and rec["n"] == 5 and rec["within"] == int(within)
+        assert 0 < rec["median"] <= rec["p99"] <= rec["max"] and float(median) <= float(p99) <= float(most)
+        assert abs(float(most) - rec["max"] * 1e3) <= 0.051
