@@ -286,10 +286,13 @@ class JobStore:
             raise JobNotFound(job_id)
         return rec
 
-    def list(self, limit: int = 100, statuses: Iterable[JobStatus] | None = None) -> builtins.list[JobRecord]:
-        """Jobs newest first (``statuses``: only those; oldest first then, for the queue)."""
+    def list(self, limit: int = 100, statuses: Iterable[JobStatus] | None = None,
+             owner: str | None = None) -> builtins.list[JobRecord]:
+        """Jobs newest first (``statuses``: only those; oldest first then, for the queue; ``owner``: only its)."""
         with Session(self.engine) as s:
             q = select(JobRow)
+            if owner is not None:
+                q = q.where(JobRow.owner == owner)
             if statuses is not None:
                 q = q.where(JobRow.status.in_(_values(statuses))).order_by(JobRow.created_at, JobRow.id)
             else:

@@ -45,7 +45,7 @@ import yaml
 from pipelines.errors import SpecError
 from pipelines.spec.loader import load_json, load_yaml
 from pipelines.spec.model import JobSpec, parse_spec
-from service.errors import BadSpec, CapExceeded, NotReady, QueueFull, UnsupportedMediaType
+from service.errors import BadSpec, CapExceeded, JobNotFound, NotReady, QueueFull, UnsupportedMediaType
 from service.job_store import ACTIVE, JobRecord, JobStatus, JobStore, QueuedJob
 from service.models import job_json
 from service.settings import Settings
@@ -312,9 +312,19 @@ class JobManager:
         self._kick()
         return rec
 
-    def get(self, job_id: str) -> JobRecord:
-        """The job ``job_id``; :class:`~service.errors.JobNotFound` if there is none."""
-        return self.store.require(job_id)
+    def get(self, job_id: str, owner: str | None = None) -> JobRecord:
+        """The job ``job_id``, of ``owner`` only unless ``owner`` is ``None``.
+
+        Raises
+        ------
+        JobNotFound
+            When there is no such job, or it is another owner's: the same error, so that an id tells a user
+            nothing about other users' jobs.
+        """
+        rec = self.store.require(job_id)
+        if owner is not None and rec.owner != owner:
+            raise JobNotFound(job_id)
+        return rec
 
     def cancel(self, job_id: str) -> JobRecord:
         """Cancel a job: a queued one at once; a running one once its process group has been stopped (within

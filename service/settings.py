@@ -25,7 +25,11 @@ Caps (each refusal names the cap and its value, so a user knows what to change o
     and marked failed with the limit and the use measured (:mod:`service.supervisor`).
 ``token``, ``tokens``
     ``token`` is the operator's; ``tokens`` (``COMPABS_TOKENS``, comma-separated) are further tokens, one per user,
-    each accepted like ``token``. The queue is fair between tokens: the next job to start is taken round-robin
+    each accepted like ``token``. Each user's token sees, reads, follows, downloads and cancels only the jobs it
+    submitted: ``GET /jobs`` lists only those, and another user's job answers 404 exactly like an unknown id, so
+    ids tell nothing about other users' jobs. The operator's ``token`` sees and may cancel every job (jobs stored
+    before tokens were set belong to no user: only the operator sees them); without any token (127.0.0.1 only)
+    every request sees every job. The queue is fair between tokens: the next job to start is taken round-robin
     over the tokens with queued jobs, oldest first within a token (:func:`service.manager.fair_order`).
 
 ``max_streams`` (64), ``max_streams_per_client`` (8), ``stream_idle_timeout`` (120 s)
@@ -93,13 +97,13 @@ class Settings(BaseModel):
 
     token: str | None = Field(
         default=None, repr=False,
-        description="bearer token every route but /health requires (Authorization: Bearer <token>, or ?token=); "
-        "None: no authentication (bind to 127.0.0.1 only)",
+        description="the operator's bearer token, which every route but /health requires (Authorization: Bearer "
+        "<token>, or ?token=) and which sees every job; None: no authentication (bind to 127.0.0.1 only)",
     )
     tokens: list[str] = Field(
         default_factory=list, repr=False,
-        description="further bearer tokens, one per user, each accepted like token (which must be set too); the "
-        "queue is fair between tokens",
+        description="further bearer tokens, one per user, each accepted like token (which must be set too) and "
+        "each seeing only its own jobs; the queue is fair between tokens",
     )
     data_dir: Path = Field(default=Path("compabs-data"), description="jobs' directories are DATA/jobs/<id>/")
     db_url: str | None = Field(default=None, description="SQLAlchemy URL of the job store (default sqlite:///DATA/jobs.sqlite)")

@@ -99,8 +99,11 @@ def test_another_tokens_job_starts_before_the_first_tokens_later_ones(client):
         places = {job_id: get(client, job_id)["queue_position"] for job_id in [*later, bobs]}
         assert places == {bobs: 1, later[0]: 2, later[1]: 3, later[2]: 4}, places
         assert get(client, first)["queue_position"] is None
-        listed = {j["id"]: j["queue_position"] for j in client.get("/jobs", headers=auth(BOB)).json()["jobs"]}
+        listed = {j["id"]: j["queue_position"] for j in client.get("/jobs", headers=auth(OPERATOR)).json()["jobs"]}
         assert listed == {**places, first: None}
+        # Bob's list holds his job only, at its place in the one queue.
+        assert {j["id"]: j["queue_position"] for j in client.get("/jobs", headers=auth(BOB)).json()["jobs"]} == \
+            {bobs: 1}
     finally:
         client.delete(f"/jobs/{first}", headers=auth(ALICE))
     ends = {job_id: wait_until(client, job_id, ended, "the queue to run out") for job_id in [*later, bobs]}

@@ -1,4 +1,5 @@
-"""``/jobs``: submit, list, show, follow (server-sent events), download results, cancel."""
+"""``/jobs``: submit, list, show, follow (server-sent events), download results, cancel; each token its own jobs
+(the operator's every job: :mod:`service.routers.common`)."""
 
 from __future__ import annotations
 
@@ -19,13 +20,13 @@ from pipelines.spec.model import parse_spec
 from service.job_store import TERMINAL, JobRecord, JobStatus
 from service.manager import JobManager
 from service.models import ErrorDetail, Job, JobList, ProgressEvent
-from service.routers.common import AUTH_RESPONSES, FoundJob, Manager, require_token
+from service.routers.common import AUTH_RESPONSES, CallerOf, FoundJob, Manager, require_token
 from workers import jobdir
 from workers.controller_files import controller_archive
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[Depends(require_token)], responses=AUTH_RESPONSES)
 
-_NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorDetail, "description": "no such job"}}
+_NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorDetail, "description": "no such job (another user's job answers the same)"}}
 _NOT_DONE: dict[int | str, dict[str, Any]] = {409: {"model": ErrorDetail, "description": "the job has not succeeded"}}
 #: How often an idle event stream looks for new events written by this process, and, at the longest, in the DB.
 _POLL, _DB_POLL = 0.1, 2.0
@@ -90,10 +91,11 @@ async def submit_job(
 @router.get("", response_model=JobList)
 def list_jobs(
     manager: Manager,
+    caller: CallerOf,
     limit: Annotated[int, Query(ge=1, le=1000, description="at most this many, newest first")] = 100,
 ) -> JobList:
-    """Jobs, newest first."""
-    records = manager.store.list(limit=limit)
+    """The caller's jobs, newest first (the operator's token: every job)."""
+    records = manager.store.list(limit=limit, owner=caller.only)
     places = manager.queue_positions() if any(r.status == JobStatus.QUEUED for r in records) else {}
     return JobList(jobs=[Job.of(r, places.get(r.id)) for r in records])
 
