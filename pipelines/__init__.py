@@ -23,9 +23,9 @@ from pathlib import Path
 
 
 def load_controller(directory: str | Path, name: str = "controller"):
-    """Load a controller saved by ``compabs run`` (see :func:`pipelines.controller.load_controller`); imported on
-    use, so that ``import pipelines.grid`` does not load CUDD."""
-    from pipelines.controller import load_controller as _load
+    """Load a controller saved by ``compabs run`` (see :func:`pipelines.controller_loading.load_controller`);
+    imported on use, so that ``import pipelines.grid`` does not load CUDD."""
+    from pipelines.controller_loading import load_controller as _load
 
     return _load(directory, name)
 

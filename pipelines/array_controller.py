@@ -24,14 +24,13 @@ import numpy as np
 
 from pipelines.controller_integrity import ControllerIntegrityError, read_header, seal, verify_header
 from pipelines.errors import CompabsError
-from pipelines.export.table import quantize
-from pipelines.grid import UniformGrid
+from pipelines.grid_controller import GridController
 
 #: ``format`` of an array controller's header.
 ARRAY_FORMAT = "compabs-array-controller/1"
 
 
-class ArrayController:
+class ArrayController(GridController):
     """A controller ``C(x̂) ⊆ Û`` of a single system stored as arrays (module docstring).
 
     Parameters
@@ -46,9 +45,7 @@ class ArrayController:
     """
 
     def __init__(self, admissible: np.ndarray, layer: np.ndarray | None, meta: dict[str, Any]) -> None:
-        self._meta = {**meta, "form": "array"}
-        self._state_grid = UniformGrid.from_description(meta["state_grid"])
-        self._input_grids = [UniformGrid.from_description(g) for g in meta["input_grids"]]
+        super().__init__(meta, {**meta, "form": "array"})
         if len(self._input_grids) != 1:
             raise CompabsError(f"an array controller has one input grid, got {len(self._input_grids)}")
         admissible = np.asarray(admissible, dtype=bool)
@@ -63,22 +60,6 @@ class ArrayController:
             raise CompabsError("an array controller's layers do not match its domain")
 
     # ------------------------------------------------------------------ what the controller is
-    @property
-    def meta(self) -> dict[str, Any]:
-        return dict(self._meta)
-
-    @property
-    def state_grid(self) -> UniformGrid:
-        return self._state_grid
-
-    @property
-    def input_grids(self) -> list[UniformGrid]:
-        return list(self._input_grids)
-
-    @property
-    def input_dim(self) -> int:
-        return self._input_grids[0].dim
-
     @property
     def admissible(self) -> np.ndarray:
         """The inputs allowed at each flat cell, shape (n_x, n_u) (read-only view)."""
@@ -102,14 +83,6 @@ class ArrayController:
         return int(self._admissible.size // 8 + (0 if self._layer is None else self._layer.nbytes))
 
     # ------------------------------------------------------------------ queries
-    def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """As :meth:`~.controller.Controller.cells` (:func:`~.export.table.quantize`)."""
-        return quantize(self._state_grid, X)
-
-    def cell(self, x: np.ndarray) -> np.ndarray | None:
-        idx, ok = self.cells(np.asarray(x, dtype=float).reshape(1, -1))
-        return idx[0] if ok[0] else None
-
     def _flat(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         idx = np.asarray(idx, dtype=np.int64).reshape(-1, self._state_grid.dim)
         ok = self._state_grid.on_grid(idx)

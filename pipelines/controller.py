@@ -1,8 +1,8 @@
 """Controllers as files, and their refinement to the concrete system (Theorem 4.2).
 
 A controller is a BDD over current-state and input bits, written in DDDMP with a JSON header (variable order,
-bit widths, the grids, the spec). :func:`load_controller` reads one without the job store; its
-:meth:`Controller.inputs` quantizes a concrete state and returns the admissible concrete inputs there.
+bit widths, the grids, the spec). :func:`~pipelines.controller_loading.load_controller` reads one without the job
+store; its :meth:`Controller.inputs` quantizes a concrete state and returns the admissible concrete inputs there.
 
 A :class:`LayeredController` is the same controller stored as what it is made of (the fixed point's iterates
 and the controllable predecessor's ingredients) and evaluated at one state at a time
@@ -13,19 +13,16 @@ disk and answers in milliseconds.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipelines.array_controller import ArrayController, is_array_controller
-from pipelines.controller_integrity import ControllerIntegrityError, job_spec_hash
 from pipelines.errors import CompabsError
-from pipelines.export.table import EXPORT_FORMAT, BDDTable, ExportedController, load_export, node_table, quantize
-from pipelines.grid import UniformGrid
+from pipelines.grid_controller import GridController
 from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
-from pipelines.symbolic.files import dump, load_all
+from pipelines.symbolic.files import dump
+from pipelines.symbolic.node_table import BDDTable, node_table
 from pipelines.symbolic.symbolic_model import Function
 from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 
@@ -36,7 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
 CONTROLLER_FILE = "controller"
 
 
-class Controller:
+class Controller(GridController):
     """A synthesized controller ``C(x̂) ⊆ Û``, refined by the feedback refinement relation.
 
     Parameters
@@ -51,22 +48,12 @@ class Controller:
     """
 
     def __init__(self, model, bdd, meta: dict) -> None:
+        super().__init__(meta, meta)
         self._model = model
         self._bdd = bdd
-        self._meta = dict(meta)
-        self._state_grid = UniformGrid.from_description(meta["state_grid"])
-        self._input_grids = [UniformGrid.from_description(g) for g in meta["input_grids"]]
         self._domain = model.bdd.exist(model.u_bits, bdd)
         self._domain_table: BDDTable | None = None  # built on the first in_domain
         self._samplers: dict[tuple[int, ...], Sampler] = {}
-
-    @property
-    def meta(self) -> dict:
-        return dict(self._meta)
-
-    @property
-    def input_dim(self) -> int:
-        return sum(g.dim for g in self._input_grids)
 
     @property
     def model(self):
@@ -82,28 +69,6 @@ class Controller:
     def domain(self) -> Function:
         """The controller's domain ``∃û.C`` over current-state bits."""
         return self._domain
-
-    @property
-    def input_grids(self) -> list[UniformGrid]:
-        return list(self._input_grids)
-
-    @property
-    def state_grid(self) -> UniformGrid:
-        return self._state_grid
-
-    def cell(self, x: np.ndarray) -> np.ndarray | None:
-        """The cell indices of a concrete state, shape (n,), or ``None`` off the grid or outside the box."""
-        idx, ok = self.cells(np.asarray(x, dtype=float).reshape(1, -1))
-        return idx[0] if ok[0] else None
-
-    def cells(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cell indices of concrete states, shape (B, n) -> (B, n), and whether each is in the box, shape (B,)
-        (indices of the others are meaningless).
-
-        A state on a cell boundary gets the upper cell, per coordinate the lower one where the upper is off the
-        grid, so a state on the upper edge of the box has a cell (:func:`~.export.table.quantize`, which the C
-        export reproduces)."""
-        return quantize(self._state_grid, X)
 
     def input_set(self, idx: np.ndarray):
         """The inputs allowed at a cell as a BDD over the input bits."""
@@ -166,7 +131,7 @@ class Controller:
     def in_domain(self, idx: np.ndarray) -> np.ndarray:
         """Whether composed cells, shape (B, n), are in the controller's domain; bool (B,).
 
-        One vectorised walk of the domain's node table (built once, :func:`~.export.table.node_table`) for all
+        One vectorised walk of the domain's node table (built once, :func:`~.symbolic.node_table.node_table`) for all
         cells: 0.2 s for 2·10^5 cells of the tanks' controller, where a ``let`` per cell takes about 8.5 s. A cell off the grid is in
         no domain (its bits could spell another cell's code)."""
         idx = np.asarray(idx, dtype=np.int64).reshape(-1, self._state_grid.dim)
@@ -320,60 +285,6 @@ class LayeredController(Controller):
             "shared": self._M is not None,
         }
         return dump(self._model, Path(directory) / name, roots, meta)
-
-
-def load_controller(
-    directory: str | os.PathLike[str], name: str = CONTROLLER_FILE, job_hash: str | None = None
-) -> Controller | ArrayController | ExportedController:
-    """Load a controller written by ``compabs run`` (``DIR/controller.json`` with ``DIR/controller.dddmp``, or
-    with ``DIR/controller.npz`` for an explicit game's :class:`~.array_controller.ArrayController`), or a
-    determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
-    ``inputs(x)`` (:class:`~.export.table.ExportedController`).
-
-    Every file is verified before use (:mod:`.controller_integrity`): the checksums and the spec hash its header
-    records, and that spec hash against ``job_hash`` (default: the spec hash of ``DIR/spec.json`` when the
-    controller lies in a job directory, so a controller copied from another job is refused).
-
-    Raises
-    ------
-    ControllerIntegrityError
-        A file missing, damaged, replaced, malformed, without an integrity record, or of another job.
-    """
-    path = Path(directory)
-    if path.is_file():
-        if _is_export(path):
-            return load_export(path)
-        directory, name = path.parent, path.name.removesuffix(".json").removesuffix(".dddmp").removesuffix(".npz")
-    base = Path(directory) / name
-    head = base.with_name(base.name + ".json")
-    if not head.exists():
-        raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
-    if job_hash is None:
-        job_hash = job_spec_hash(directory)
-    if is_array_controller(head):
-        return ArrayController.load(directory, name, job_hash)
-    model, roots, meta = load_all(base, job_hash=job_hash)
-    try:
-        if meta.get("form") != "layered":
-            (bdd,) = roots
-            return Controller(model, bdd, meta)
-        n_chain, n_layers, shared = len(meta["chain_next_bits"]), int(meta["layers"]), bool(meta["shared"])
-        if len(roots) != 1 + n_chain + n_layers + shared or n_layers < 1:
-            raise ValueError(f"{len(roots)} BDD files for {n_chain} relations, {n_layers} layers")
-        admissible, chain, layers = roots[0], roots[1:1 + n_chain], roots[1 + n_chain:1 + n_chain + n_layers]
-        M = roots[1 + n_chain + n_layers] if shared else None
-        bits = [[str(b) for b in group] for group in meta["chain_next_bits"]]
-        return LayeredController(model, admissible, list(zip(chain, bits)), M, layers, meta["stay"], meta)
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-        raise ControllerIntegrityError(f"{head}: not a readable controller header ({type(exc).__name__}: {exc})"
-                                       ) from None
-
-
-def _is_export(path: Path) -> bool:
-    """Whether a file is a JSON export (its ``format``; the first bytes are enough)."""
-    with open(path, "rb") as f:
-        head = f.read(4096)
-    return re.search(rb'"format"\s*:\s*"' + re.escape(EXPORT_FORMAT.encode()) + rb'"', head) is not None
 
 
 def controller_of(cpre: ControllablePredecessor, result: SynthesisResult, meta: dict) -> Controller:

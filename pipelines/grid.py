@@ -16,7 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipelines.errors import SpecError
+from pipelines.errors import CompabsError, SpecError
+
+#: A bound, spacing or origin: one number for every dimension, or one per dimension.
+Values = float | Sequence[float]
 
 #: Relative tolerance used to snap ratios such as ``(lb - origin) / eta`` to an integer or half-integer.
 #: It is relative to the ratio's magnitude, never an absolute ``1e-10``: SCOTS's absolute ``eta/1e10``
@@ -42,7 +45,7 @@ def _index(r: np.ndarray) -> np.ndarray:
     return np.clip(r, -_INDEX_LIMIT, _INDEX_LIMIT).astype(np.int64)
 
 
-def _as_vector(value: float | Sequence[float], dim: int, name: str) -> np.ndarray:
+def _as_vector(value: Values, dim: int, name: str) -> np.ndarray:
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.shape == (1,) and dim > 1:
         arr = np.repeat(arr, dim)
@@ -76,14 +79,8 @@ class UniformGrid:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def covering(
-        cls,
-        lb: float | Sequence[float],
-        ub: float | Sequence[float],
-        eta: float | Sequence[float],
-        origin: float | Sequence[float] | None = None,
-        name: str = "grid",
-    ) -> UniformGrid:
+    def covering(cls, lb: Values, ub: Values, eta: Values, origin: Values | None = None,
+                 name: str = "grid") -> UniformGrid:
         """Grid of every point whose cell meets ``[lb, ub]`` in a set of positive measure (state grids).
 
         The cells then cover the box, so every concrete state lies in some cell (docs/method.md §1). A box that is a
@@ -101,14 +98,8 @@ class UniformGrid:
         return cls._make(o_, eta_, k_lo, k_hi, lb_, ub_, name)
 
     @classmethod
-    def inside(
-        cls,
-        lb: float | Sequence[float],
-        ub: float | Sequence[float],
-        eta: float | Sequence[float],
-        origin: float | Sequence[float] | None = None,
-        name: str = "grid",
-    ) -> UniformGrid:
+    def inside(cls, lb: Values, ub: Values, eta: Values, origin: Values | None = None,
+               name: str = "grid") -> UniformGrid:
         """Grid of the points that lie in ``[lb, ub]`` (external-input grids: inputs are points, not cells)."""
         lb_, ub_, eta_, o_ = cls._check(lb, ub, eta, origin, name)
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is _make's SpecError, not a warning
@@ -313,3 +304,26 @@ class UniformGrid:
 def product_size(grids: Sequence[UniformGrid]) -> int:
     """Number of points of the product of grids (exact integer)."""
     return math.prod(g.size for g in grids)
+
+
+def quantize(grid: UniformGrid, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cell indices of concrete states, shape (B, n) -> (B, n), and whether each is in the box, shape (B,): the
+    quantizer of every controller's ``cells`` and of the C export.
+
+    Cells are closed, so a state on a cell boundary lies in two cells; the feedback refinement relation relates
+    it to both and either cell's inputs are admissible there. The upper cell is taken (:meth:`UniformGrid.cell_of`
+    with its relative snapping), per coordinate the lower one where the upper is off the grid: a state on the
+    upper edge of the box, when that edge is a cell boundary, still gets a cell. Indices of rows outside the
+    box (or NaN) are meaningless.
+    """
+    X = np.asarray(X, dtype=float)
+    if X.ndim != 2 or X.shape[1] != grid.dim:
+        raise CompabsError(f"a state has {grid.dim} components, got shape {X.shape[1:]}")
+    with np.errstate(invalid="ignore"):
+        in_box = np.all((X >= np.asarray(grid.lb)) & (X <= np.asarray(grid.ub)), axis=1)
+    shape = np.asarray(grid.shape, dtype=np.int64)
+    upper, _ = grid.cell_of(np.where(np.isfinite(X), X, 0.0), "upper")
+    lower, _ = grid.cell_of(np.where(np.isfinite(X), X, 0.0), "lower")
+    idx = np.where((upper >= 0) & (upper < shape), upper, lower)
+    ok = in_box & grid.on_grid(idx)
+    return np.where(ok[:, None], idx, 0), ok

@@ -371,7 +371,7 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from pipelines.controller import load_controller
+    from pipelines.controller_loading import load_controller
     from pipelines.network import build_network
     from pipelines.spec.model import parse_spec
     from pipelines.spec.regions import closed_loop_regions, spec_regions

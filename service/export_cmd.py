@@ -48,7 +48,8 @@ def _name(args: argparse.Namespace) -> str:
 def cmd_export(args: argparse.Namespace) -> int:
     """Write the export; print its sizes (JSON) and the files written."""
     from pipelines.array_controller import ArrayController
-    from pipelines.controller import Controller, load_controller
+    from pipelines.controller import Controller
+    from pipelines.controller_loading import load_controller
     from pipelines.export.c import write_c
     from pipelines.export.emit import export_controller, write_csv, write_json
 
@@ -93,7 +94,8 @@ def cmd_import(args: argparse.Namespace) -> int:
 def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobdir.CONTROLLER) -> dict[str, Any]:
     """What ``compabs control`` reports at a state: its cell, the admissible inputs, the determinized one."""
     from pipelines.array_controller import ArrayController
-    from pipelines.controller import Controller, LayeredController, load_controller
+    from pipelines.controller import Controller, LayeredController
+    from pipelines.controller_loading import load_controller
     from pipelines.export.determinize import determinized_at, resolve_rule
     from pipelines.export.table import RULES, ExportError
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines import controller as ctl
+from pipelines.controller_loading import load_controller
 from pipelines.network import build_network
 from pipelines.spec.model import parse_spec
 from pipelines.verification.closed_loop import simulate, simulate_many
@@ -56,7 +56,7 @@ def test_each_specification_holds_in_closed_loop(tmp_path, kind):
 
 def test_load_controller_gives_admissible_concrete_inputs(small_job):
     out, spec, report = small_job
-    c = ctl.load_controller(out)
+    c = load_controller(out)
     net = build_network(spec, None)
     rng = np.random.default_rng(0)
     checked = 0
@@ -74,7 +74,7 @@ def test_load_controller_gives_admissible_concrete_inputs(small_job):
 
 def test_a_loaded_controller_drives_the_concrete_system(small_job):
     out, spec, report = small_job
-    c = ctl.load_controller(out)
+    c = load_controller(out)
     net = build_network(spec, None)
     x0 = np.array(spec.options.initial_states[0])
     from pipelines.spec.regions import spec_regions
@@ -93,7 +93,7 @@ def test_runs_in_lockstep_are_the_runs_one_at_a_time(small_job, kind):
     """``simulate_many`` is ``simulate`` per row (deterministic input choice), including runs that stop early:
     states outside the box or the domain, targets reached (reach), the safe set left."""
     out, spec, _ = small_job
-    c = ctl.load_controller(out)
+    c = load_controller(out)
     net = build_network(spec, None)
     from pipelines.spec.regions import spec_regions
 
@@ -139,7 +139,7 @@ def test_simulate_without_a_controller(tmp_path, capsys):
 
 def test_domain_sampling_stays_in_the_domain_and_spreads(small_job):
     out, _, report = small_job
-    c = ctl.load_controller(out)
+    c = load_controller(out)
     cells = c.sample_cells(300, np.random.default_rng(0))
     assert cells.shape == (300, 2)
     assert c.in_domain(cells).all()

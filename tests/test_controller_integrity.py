@@ -22,8 +22,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipelines.controller import Controller, load_controller
+from pipelines.controller import Controller
 from pipelines.controller_integrity import INTEGRITY, ControllerIntegrityError, seal
+from pipelines.controller_loading import load_controller
 from pipelines.export.c import c_sources
 from pipelines.export.emit import export_controller
 from pipelines.spec.model import parse_spec

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines.controller import load_controller
+from pipelines.controller_loading import load_controller
 from pipelines.spec.model import parse_spec
 from pipelines.spec.regions import spec_regions
 from pipelines.verification.empty_domain import explain_empty_domain, local_game

@@ -169,7 +169,7 @@ def test_the_array_controller_answers_as_its_arrays(tmp_path):
 
 
 def test_array_controller_files_round_trip_and_refuse_tampering(tmp_path):
-    from pipelines.controller import load_controller
+    from pipelines.controller_loading import load_controller
 
     ctrl, r = _controller(np.random.default_rng(5))
     arrays, head = ctrl.save(tmp_path, "controller")
@@ -220,7 +220,7 @@ options: {audit_transitions: 2000, closed_loop_runs: 20, initial_states: [[0.8, 
 
 @pytest.mark.parametrize("kind", ["safe", "reach_avoid"])
 def test_a_job_on_either_back_end_gives_the_same_domain_and_an_exported_c_that_agrees(tmp_path, kind):
-    from pipelines.controller import load_controller
+    from pipelines.controller_loading import load_controller
     from pipelines.export.emit import export_controller
     from pipelines.spec.model import parse_spec
     from workers.executors import Execution

@@ -12,12 +12,13 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pipelines.controller import Controller, LayeredController, controller_of, load_controller
+from pipelines.controller import Controller, LayeredController, controller_of
+from pipelines.controller_loading import load_controller
 from pipelines.errors import CompabsError, SpecError
 from pipelines.export.determinize import determinize, determinized_at
 from pipelines.export.emit import domain_cells, export_controller, write_csv, write_json
-from pipelines.export.table import ExportedController, ExportError, load_export, quantize
-from pipelines.grid import UniformGrid
+from pipelines.export.table import ExportedController, ExportError, load_export
+from pipelines.grid import UniformGrid, quantize
 from pipelines.spec.model import load_spec
 from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.synthesize import synthesize

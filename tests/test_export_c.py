@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipelines.controller import Controller, load_controller
+from pipelines.controller import Controller
+from pipelines.controller_loading import load_controller
 from pipelines.export.c import write_c
 from pipelines.export.emit import Export, domain_cells, domain_count, export_controller, sample_domain_cells
-from pipelines.export.table import BDDTable, quantize
+from pipelines.grid import quantize
+from pipelines.symbolic.node_table import BDDTable
 
 from .test_export import cases, jobs  # noqa: F401 - the module-scoped fixture
 

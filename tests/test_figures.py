@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from matplotlib.image import AxesImage
 from matplotlib.patches import Rectangle
 
-from pipelines.controller import load_controller
+from pipelines.controller_loading import load_controller
 from pipelines.errors import SpecError
 from pipelines.figures import figure_setting, phase_plane, time_plot
 from pipelines.figures.phase_plane import cell_edges, check_axes

@@ -30,7 +30,8 @@ from matplotlib.patches import Rectangle
 
 import workers.figures as worker_figures
 from pipelines.array_controller import ArrayController
-from pipelines.controller import Controller, load_controller
+from pipelines.controller import Controller
+from pipelines.controller_loading import load_controller
 from pipelines.figures import FigureSetting, phase_plane, time_plot
 from pipelines.figures.domain import block_factors, block_levels, plane_mask
 from pipelines.figures.phase_plane import MAX_IMAGE_SIDE, MAX_SLICE_CELLS, cell_edges

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines.controller import load_controller
+from pipelines.controller_loading import load_controller
 from pipelines.figures import phase_plane
 from pipelines.figures.setting import FigureSetting
 from pipelines.grid import UniformGrid

@@ -503,7 +503,8 @@ def layered_matrix(ctrl, ex: Explicit) -> np.ndarray:
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
 @pytest.mark.parametrize("seed", SEEDS[:6])
 def test_layered_controllers_equal_explicit_ones_cell_for_cell(seed, shared, tmp_path):
-    from pipelines.controller import LayeredController, controller_of, load_controller
+    from pipelines.controller import LayeredController, controller_of
+    from pipelines.controller_loading import load_controller
 
     rng = np.random.default_rng(7000 + 1000 * shared + seed)
     net = random_net(rng, shared)

@@ -84,7 +84,7 @@ def _archive_matches(archive: Path, files: list[Path]) -> bool:
 
 def controller_archive(out_dir: str | os.PathLike[str], spec: JobSpec | None = None) -> Path | None:
     """The controller's files as one zip in the job directory (made once: a controller can be gigabytes), or
-    ``None`` if the job has no controller; the unzipped files load with :func:`pipelines.controller.load_controller`.
+    ``None`` if the job has no controller; the unzipped files load with :func:`pipelines.controller_loading.load_controller`.
 
     The files are verified first (:func:`verify_controller`), and a zip made before is served only if it holds
     them byte for byte (else it is made again).

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from pipelines.array_controller import ArrayController
-from pipelines.controller import Controller, load_controller
+from pipelines.controller import Controller
+from pipelines.controller_loading import load_controller
 from pipelines.errors import CompabsError
 from pipelines.figures import figure_setting, phase_plane, save_figure, time_plot
 from pipelines.figures.domain import plane_mask

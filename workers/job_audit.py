@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from pipelines.array_controller import ArrayController
-from pipelines.controller import Controller, load_controller
+from pipelines.controller import Controller
+from pipelines.controller_loading import load_controller
 from pipelines.errors import CompabsError
 from pipelines.spec.costs import Caps, CostError, audit_evaluations
 from pipelines.spec.model import spec_hash
@@ -37,7 +38,7 @@ AuditProgress = Callable[[str, int, int], None]
 
 def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | None:
     """The job's stored controller (``None`` without one), verified against its checksums and the job's spec hash
-    before any file of it is read (:func:`pipelines.controller.load_controller`)."""
+    before any file of it is read (:func:`pipelines.controller_loading.load_controller`)."""
     if not arts.has_controller:
         return None
     controller = load_controller(arts.directory, jobdir.CONTROLLER, job_hash=spec_hash(arts.spec))

@@ -2,7 +2,7 @@
 
 ``compabs_control`` returns 1 and writes the chosen input to ``u`` when ``x`` is in the controller's domain, 0
 otherwise (``u`` untouched). It allocates nothing and needs only ``<math.h>`` and ``<stdint.h>`` (link with
-``-lm``). Its quantizer is :func:`~.table.quantize` operation for operation (the same IEEE double operations in
+``-lm``). Its quantizer is :func:`pipelines.grid.quantize` operation for operation (the same IEEE double operations in
 the same order, the same relative snapping, the box's edges included), so it picks the cell the tool picks; the
 constants are written as hexadecimal floating literals, exact. The controller is the export's table: the BDD
 (one walk per root, at most one step per state bit) or the decision tree.
@@ -46,7 +46,7 @@ def _array(name: str, values: np.ndarray | list | tuple, ctype: str | None = Non
 
 
 QUANTIZE = """
-/* The cell of x (compabs's quantizer, pipelines.export.table.quantize): 1 and idx, or 0 outside the box. */
+/* The cell of x (compabs's quantizer, pipelines.grid.quantize): 1 and idx, or 0 outside the box. */
 static int quantize(const double *x, int64_t *idx)
 {
     for (int i = 0; i < NX; ++i) {

@@ -21,8 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from pipelines.controller import Controller, LayeredController
-from pipelines.export.table import RULES, BDDTable, ExportError, node_table
+from pipelines.export.table import RULES, ExportError
 from pipelines.symbolic.counting import enumerate_cells
+from pipelines.symbolic.node_table import BDDTable, node_table
 from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 from pipelines.synthesis.at_state import cpre_at_state
 from pipelines.synthesis.cpre import bad_inputs

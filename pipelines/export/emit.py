@@ -25,7 +25,6 @@ from pipelines.export.table import (
     EXPORT_FORMAT,
     FORMS,
     RULE_TEXT,
-    BDDTable,
     ExportedController,
     ExportError,
     TreeTable,
@@ -33,6 +32,7 @@ from pipelines.export.table import (
 )
 from pipelines.grid import UniformGrid
 from pipelines.symbolic.counting import count
+from pipelines.symbolic.node_table import BDDTable
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import pair_set
 from pipelines.symbolic.symbolic_model import SymbolicModel

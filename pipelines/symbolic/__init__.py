@@ -11,5 +11,6 @@ Modules, by the paper's concepts:
 * :mod:`.relations` — the subsystem relations ``T_i`` and non-blocking sets ``NB_i`` (Definition 4.2), the
   interconnection relation ``M̂ = ∃z. ∧ R_node`` (Section 4.2, Theorem 4.7), regions and sets of states.
 * :mod:`.counting` — exact counts, uniform sampling and listing of the cells of a BDD.
+* :mod:`.node_table` — a BDD over the state bits as a node table, evaluated on many cells at once.
 * :mod:`.files` — DDDMP files with a JSON header (controllers, helper-process transport).
 """

@@ -1,0 +1,73 @@
+"""Reading any controller file back: the one entry point that knows every form (:func:`load_controller`).
+
+A job's controller is a BDD (:mod:`.controller`, explicit or layered), an explicit game's arrays
+(:mod:`.array_controller`), or a determinized one exported as JSON (:mod:`.export.table`); this module sits above
+all three, so that none of them imports another's package to dispatch.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from pipelines.array_controller import ArrayController, is_array_controller
+from pipelines.controller import CONTROLLER_FILE, Controller, LayeredController
+from pipelines.controller_integrity import ControllerIntegrityError, job_spec_hash
+from pipelines.errors import CompabsError
+from pipelines.export.table import EXPORT_FORMAT, ExportedController, load_export
+from pipelines.symbolic.files import load_all
+
+
+def load_controller(
+    directory: str | os.PathLike[str], name: str = CONTROLLER_FILE, job_hash: str | None = None
+) -> Controller | ArrayController | ExportedController:
+    """Load a controller written by ``compabs run`` (``DIR/controller.json`` with ``DIR/controller.dddmp``, or
+    with ``DIR/controller.npz`` for an explicit game's :class:`~.array_controller.ArrayController`), or a
+    determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
+    ``inputs(x)`` (:class:`~.export.table.ExportedController`).
+
+    Every file is verified before use (:mod:`.controller_integrity`): the checksums and the spec hash its header
+    records, and that spec hash against ``job_hash`` (default: the spec hash of ``DIR/spec.json`` when the
+    controller lies in a job directory, so a controller copied from another job is refused).
+
+    Raises
+    ------
+    ControllerIntegrityError
+        A file missing, damaged, replaced, malformed, without an integrity record, or of another job.
+    """
+    path = Path(directory)
+    if path.is_file():
+        if _is_export(path):
+            return load_export(path)
+        directory, name = path.parent, path.name.removesuffix(".json").removesuffix(".dddmp").removesuffix(".npz")
+    base = Path(directory) / name
+    head = base.with_name(base.name + ".json")
+    if not head.exists():
+        raise CompabsError(f"no controller in {directory} (expected {base.name}.json and {base.name}.dddmp)")
+    if job_hash is None:
+        job_hash = job_spec_hash(directory)
+    if is_array_controller(head):
+        return ArrayController.load(directory, name, job_hash)
+    model, roots, meta = load_all(base, job_hash=job_hash)
+    try:
+        if meta.get("form") != "layered":
+            (bdd,) = roots
+            return Controller(model, bdd, meta)
+        n_chain, n_layers, shared = len(meta["chain_next_bits"]), int(meta["layers"]), bool(meta["shared"])
+        if len(roots) != 1 + n_chain + n_layers + shared or n_layers < 1:
+            raise ValueError(f"{len(roots)} BDD files for {n_chain} relations, {n_layers} layers")
+        admissible, chain, layers = roots[0], roots[1:1 + n_chain], roots[1 + n_chain:1 + n_chain + n_layers]
+        M = roots[1 + n_chain + n_layers] if shared else None
+        bits = [[str(b) for b in group] for group in meta["chain_next_bits"]]
+        return LayeredController(model, admissible, list(zip(chain, bits)), M, layers, meta["stay"], meta)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise ControllerIntegrityError(f"{head}: not a readable controller header ({type(exc).__name__}: {exc})"
+                                       ) from None
+
+
+def _is_export(path: Path) -> bool:
+    """Whether a file is a JSON export (its ``format``; the first bytes are enough)."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    return re.search(rb'"format"\s*:\s*"' + re.escape(EXPORT_FORMAT.encode()) + rb'"', head) is not None
