@@ -67,14 +67,56 @@ def run_synthesis(
     Progress: ``("synthesis", 0, 1)`` while the BDDs are built, then ``("synthesis", k, k + 1)`` at the ``k``-th
     iteration of any fixed point (their number is unknown beforehand) and ``("synthesis", 1, 1)`` at the end.
     """
-    spec = abstraction.spec
+    spec, network = abstraction.spec, abstraction.network
     opts = spec.options
     if out_dir is not None:  # CUDD's DDDMP writer aborts the process on a missing directory
         os.makedirs(out_dir, exist_ok=True)
     kind = spec.specification.kind
-    network = abstraction.network
     t0 = time.perf_counter()
-    backend = choose_backend(opts.synthesis_backend if not opts.synthesis_quotient else "bdd", network,
+    results, syn_report, make, store = _solve(abstraction, out_dir, progress, client)
+    seconds = {"synthesis": time.perf_counter() - t0}
+    main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))
+    main = results[main_key]
+    controller, files = _save_controllers(abstraction, results, main_key, make, out_dir)
+    if store is not None:
+        store.clear()  # the controller files hold what the iterates were kept for
+
+    t0 = time.perf_counter()
+    loop = _closed_loop(abstraction, controller, main, runs, progress)
+    seconds["closed_loop"] = time.perf_counter() - t0
+
+    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why.
+    figures = [] if out_dir is None else draw_figures(network, controller, loop, out_dir)
+
+    return {
+        "domain_states": main.domain_states,
+        "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
+        "controller": {"fixed_point": main_key,
+                       "form": "layered" if isinstance(main, SynthesisResult) and main.layers else
+                       "explicit" if isinstance(main, SynthesisResult) else "array",
+                       "nodes": controller.nodes, "files": files},
+        "synthesis": syn_report,
+        "closed_loop": loop.summary(),
+        "figures": figures,
+        "stage_seconds": seconds,
+        "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
+                                       loop.initial_states, has_safe=spec.specification.safe is not None,
+                                       quotient=opts.synthesis_quotient)
+        + ([] if store is None else store.warnings)
+        + (explain_empty_domain(network, abstraction.relations, abstraction.interconnection, spec)
+           if main.domain_states == 0 else []),
+    }
+
+
+def _solve(
+    abstraction: Abstraction, out_dir: str | os.PathLike[str] | None, progress: Progress, client: Any,
+) -> tuple[Mapping[str, SynthesisResult | ExplicitResult], dict[str, Any], Any, DirectoryCheckpoints | None]:
+    """The ``synthesis`` stage's fixed points (Algorithm 5) on the back end the options choose
+    (:func:`~pipelines.synthesis.explicit.choose_backend`): their results, the report, a maker of controllers and,
+    for the BDD back end with a job directory, the checkpoints a stopped job resumes from."""
+    spec = abstraction.spec
+    opts = spec.options
+    backend = choose_backend(opts.synthesis_backend if not opts.synthesis_quotient else "bdd", abstraction.network,
                              abstraction.relations)
     if opts.synthesis_quotient and opts.synthesis_backend == "explicit":
         raise SpecError("options.synthesis_quotient solves a quotient of the BDD game: set options.synthesis_backend "
@@ -100,12 +142,19 @@ def run_synthesis(
         results, syn_report, make = _bdd_synthesis(abstraction, iteration, store, client)
     syn_report["backend"] = backend
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
-    seconds = {"synthesis": time.perf_counter() - t0}
-    main_key = opts.controller if kind == "reach_and_stay" else next(iter(results))
-    main = results[main_key]
+    return results, syn_report, make, store
 
+
+def _save_controllers(
+    abstraction: Abstraction, results: Mapping[str, SynthesisResult | ExplicitResult], main_key: str, make: Any,
+    out_dir: str | os.PathLike[str] | None,
+) -> tuple[Any, list[str]]:
+    """The controller of the ``main_key`` fixed point and the names of its files in ``out_dir``; every other fixed
+    point's controller is saved beside it (``controller_<key>``)."""
+    spec, network = abstraction.spec, abstraction.network
+    main = results[main_key]
     meta = {
-        "kind": kind,
+        "kind": spec.specification.kind,
         "fixed_point": main_key,
         "state_grid": network.composed_state_grid().describe(),
         "input_grids": [s.input_grid.describe() for s in network.subsystems],
@@ -121,42 +170,26 @@ def run_synthesis(
                 make(r, {**meta, "fixed_point": key, "domain_states": r.domain_states}).save(
                     out_dir, f"{jobdir.CONTROLLER}_{key}"
                 )
-    if store is not None:
-        store.clear()  # the controller files hold what the iterates were kept for
+    return controller, files
 
-    # Closed loop (Theorem 4.2): from the spec's initial states in the domain, and from random domain states.
-    t0 = time.perf_counter()
+
+def _closed_loop(
+    abstraction: Abstraction, controller: Any, main: SynthesisResult | ExplicitResult, runs: int | None,
+    progress: Progress,
+) -> Any:
+    """The ``closed_loop`` stage (Theorem 4.2): the concrete black boxes under the controller, from the spec's
+    initial states in the domain and from random domain states, for twice the fixed point's iterations (plus a
+    margin) unless the options give the steps."""
+    spec, network = abstraction.spec, abstraction.network
+    opts = spec.options
     rng = np.random.default_rng(opts.seed + 1)
     steps = opts.closed_loop_steps or (2 * (main.iterations + main.inner_iterations) + 30)
     checked = closed_loop_regions(spec, network, spec_regions(spec, network))
-    target, avoid = checked["target"], checked["avoid"]
-    loop = run_closed_loop(
-        network, controller, opts.initial_states, opts.closed_loop_runs if runs is None else runs, steps, rng, kind,
-        target, avoid, safe=checked["safe"], progress=lambda k, n: progress("closed_loop", k, n, "runs in lockstep"),
+    return run_closed_loop(
+        network, controller, opts.initial_states, opts.closed_loop_runs if runs is None else runs, steps, rng,
+        spec.specification.kind, checked["target"], checked["avoid"], safe=checked["safe"],
+        progress=lambda k, n: progress("closed_loop", k, n, "runs in lockstep"),
     )
-    seconds["closed_loop"] = time.perf_counter() - t0
-
-    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why.
-    figures = [] if out_dir is None else draw_figures(network, controller, loop, out_dir)
-
-    return {
-        "domain_states": main.domain_states,
-        "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
-        "controller": {"fixed_point": main_key,
-                       "form": "layered" if isinstance(main, SynthesisResult) and main.layers else
-                       "explicit" if isinstance(main, SynthesisResult) else "array",
-                       "nodes": controller.nodes, "files": files},
-        "synthesis": syn_report,
-        "closed_loop": loop.summary(),
-        "figures": figures,
-        "stage_seconds": seconds,
-        "warnings": synthesis_warnings(kind, main_key, {k: r.domain_states for k, r in results.items()},
-                                       loop.initial_states, has_safe=spec.specification.safe is not None,
-                                       quotient=opts.synthesis_quotient)
-        + ([] if store is None else store.warnings)
-        + (explain_empty_domain(network, abstraction.relations, abstraction.interconnection, spec)
-           if main.domain_states == 0 else []),
-    }
 
 
 def _bdd_synthesis(
