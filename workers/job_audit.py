@@ -80,6 +80,53 @@ def _relation_store(arts: jobdir.JobArtifacts) -> dict[str, Any]:
     return {"chunks_checked": arts.chunks_checked, "damaged": damaged, "first_damaged": first}
 
 
+def _transitions_per_part(arts: jobdir.JobArtifacts, transitions: int | None, caps: Caps) -> int:
+    """The transitions each part draws: as asked, else the spec's ``audit_transitions`` (10^6 if 0), refused when
+    negative or when every part drawing them (the composition too, not the job audit's tenth) would pass the cost
+    model's ``max_audit_evaluations``, before the long part starts."""
+    if transitions is None:
+        transitions = arts.spec.options.audit_transitions or 1_000_000
+    if transitions < 0:
+        raise CompabsError(f"--transitions must be >= 0, got {transitions}")
+    evaluations = audit_evaluations(transitions, len(arts.network.unique_subsystems()), len(arts.network.subsystems),
+                                    composition=transitions)
+    if evaluations > caps.max_audit_evaluations:
+        raise CostError("--transitions", evaluations, caps.max_audit_evaluations, "max_audit_evaluations",
+                        f"--transitions {transitions:,} makes {evaluations:,} black-box evaluations; {caps.owner} cap "
+                        f"max_audit_evaluations is {caps.max_audit_evaluations:,}: give fewer transitions")
+    return transitions
+
+
+def _fresh_seed() -> int:
+    """A seed drawn from fresh entropy, reported in the result so the audit can be repeated."""
+    entropy = np.random.SeedSequence().entropy
+    assert isinstance(entropy, int)  # drawn fresh (an int) when none is given
+    return int(entropy % (2**63))
+
+
+def _audited_parts(arts: jobdir.JobArtifacts, transitions: int, rng: np.random.Generator,
+                   report: AuditProgress) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """Theorems 4.2 and 4.7 on random concrete transitions (:func:`~pipelines.verification.audit.audit_abstraction`)
+    and its report per part: each distinct subsystem (with its members and the file it is stored in), the
+    interconnection and the composition, each with its time."""
+    ia = arts.interconnection
+    assert ia is not None  # load_job reads it (or raises ArtifactError)
+    seconds: dict[str, float] = {}
+    audited = audit_abstraction(arts.network, arts.relations, ia, transitions, rng,
+                                lambda done, total, part: report(part, done, total + 1), composition=transitions,
+                                seconds=seconds)
+    parts = {}
+    for key, members in arts.network.unique_subsystems().items():
+        parts[f"subsystem {members[0].name}"] = {**audited["parts"][members[0].name],
+                                                 "seconds": seconds[members[0].name],
+                                                 "members": [m.name for m in members],
+                                                 "stored_as": arts.relation_files.get(key)}
+    parts["interconnection"] = {**audited["parts"]["interconnection"], "mode": ia.mode,
+                                "seconds": seconds["interconnection"]}
+    parts["composition"] = {**audited["parts"]["composition"], "seconds": seconds["composition"]}
+    return audited, parts
+
+
 def audit_job(
     directory: str | os.PathLike[str],
     transitions: int | None = None,
@@ -135,39 +182,10 @@ def audit_job(
     report = progress or (lambda *_: None)
     arts = jobdir.load_job(directory, allowed_modules)
     controller = _controller(arts)  # a damaged or foreign controller is refused before the long part
-    if transitions is None:
-        transitions = arts.spec.options.audit_transitions or 1_000_000
-    if transitions < 0:
-        raise CompabsError(f"--transitions must be >= 0, got {transitions}")
-    caps = caps if caps is not None else Caps.local()
-    # Every part draws `transitions`, the composition too (not the job audit's tenth).
-    evaluations = audit_evaluations(transitions, len(arts.network.unique_subsystems()), len(arts.network.subsystems),
-                                    composition=transitions)
-    if evaluations > caps.max_audit_evaluations:
-        raise CostError("--transitions", evaluations, caps.max_audit_evaluations, "max_audit_evaluations",
-                        f"--transitions {transitions:,} makes {evaluations:,} black-box evaluations; {caps.owner} cap "
-                        f"max_audit_evaluations is {caps.max_audit_evaluations:,}: give fewer transitions")
-    if seed is None:
-        entropy = np.random.SeedSequence().entropy
-        assert isinstance(entropy, int)  # drawn fresh (an int) when none is given
-        seed = int(entropy % (2**63))
+    transitions = _transitions_per_part(arts, transitions, caps if caps is not None else Caps.local())
+    seed = _fresh_seed() if seed is None else seed
     rng = np.random.default_rng(seed)
-    groups = arts.network.unique_subsystems()
-    seconds: dict[str, float] = {}
-    ia = arts.interconnection
-    assert ia is not None  # load_job reads it (or raises ArtifactError)
-    audited = audit_abstraction(arts.network, arts.relations, ia, transitions, rng,
-                                lambda done, total, part: report(part, done, total + 1), composition=transitions,
-                                seconds=seconds)
-    parts = {}
-    for key, members in groups.items():
-        parts[f"subsystem {members[0].name}"] = {**audited["parts"][members[0].name],
-                                                 "seconds": seconds[members[0].name],
-                                                 "members": [m.name for m in members],
-                                                 "stored_as": arts.relation_files.get(key)}
-    parts["interconnection"] = {**audited["parts"]["interconnection"], "mode": ia.mode,
-                                "seconds": seconds["interconnection"]}
-    parts["composition"] = {**audited["parts"]["composition"], "seconds": seconds["composition"]}
+    audited, parts = _audited_parts(arts, transitions, rng, report)
     store = _relation_store(arts)
     if store["damaged"]:
         parts["relation store"] = {
@@ -176,7 +194,8 @@ def audit_job(
             "damaged_chunks": store["damaged"], "seconds": 0.0,
         }
     closed = _closed_loop(arts, controller, runs, rng) if controller is not None else None
-    report("closed loop", len(groups) + 3, len(groups) + 3)
+    last = len(arts.network.unique_subsystems()) + 3
+    report("closed loop", last, last)
     result = {
         "directory": str(arts.directory),
         "job": arts.spec.name,
