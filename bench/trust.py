@@ -19,8 +19,15 @@ the store's integrity and the command line (``tests/test_trust_boundary_cli.py``
 record a row (``tests/test_integrity.py``, ``tests/test_cli_errors.py``). The campaign tries more than 20,000
 inputs (the slow share included).
 
+Issue 47's class: tampered controllers (``tests/test_trust_controllers.py``, drawn from the same seed): bytes of
+a header, a DDDMP or NPZ payload or a JSON export changed, files truncated, removed or swapped, a controller of
+another spec, a header carrying C, invalid node lines with recomputed checksums, each tried against
+``load_controller``, ``compabs export/control/audit/import`` (in child processes, so that a crash shows as a signal)
+and the API's download. Its columns: tampered controllers refused, and processes crashed (signal), which must be 0;
+a tampered controller accepted is a wrong result.
+
 The exit status is 0 only if every test passed, the columns that must be 0 (5xx, payloads executed,
-results wrong) are 0 and (a full run) at least :data:`MIN_INPUTS` inputs were tried.
+results wrong, processes crashed) are 0 and (a full run) at least :data:`MIN_INPUTS` inputs were tried.
 """
 
 from __future__ import annotations
@@ -49,6 +56,7 @@ TRUST_TESTS = [
     "tests/test_trust_boundary_cli.py",
     "tests/test_integrity.py",
     "tests/test_cli_errors.py",
+    "tests/test_trust_controllers.py",
 ]
 #: The least number of inputs the whole campaign (the slow share included) must try (issue 23).
 MIN_INPUTS = 20_000

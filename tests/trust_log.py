@@ -24,9 +24,11 @@ COLUMNS: dict[str, str] = {
     "identical": "jobs completed identical",
     "failed_cleanly": "jobs failed cleanly",
     "wrong": "results wrong (must be 0)",
+    "tampered": "tampered controllers refused",
+    "crashed": "processes crashed (signal) (must be 0)",
 }
 #: Columns that must sum to 0.
-MUST_BE_ZERO = ("5xx", "executed", "wrong")
+MUST_BE_ZERO = ("5xx", "executed", "wrong", "crashed")
 
 RECORDS: list[dict[str, Any]] = []
 
