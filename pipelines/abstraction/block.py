@@ -401,11 +401,11 @@ def _scalar_kernel_block(sub: Subsystem, tr: _Triples, bound: GrowthBound) -> _B
     lo, hi, blocking, sums, live, sx, sw = compiled.scalar_block(
         tr.V.reshape(Sx, Sw, B), tr.C[:, 0], tr.xl[:, 0], tr.xh[:, 0], tr.wl[:, 0] if p else _NO_W,
         tr.wh[:, 0] if p else _NO_W, float(tr.counts_x[0]), float(tr.counts_w[0]) if p else 1.0, L_x, L_w,
-        compiled.SCALAR_METHODS.index(bound.name), *_grid_arrays(sub.state_grid), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL,
+        compiled.SCALAR_METHODS.index(bound.name), _grid_arrays(sub.state_grid), FP_RTOL, SNAP_RTOL, SCP_TIE_RTOL,
         SCP_SKIP_RTOL,
     )
     successors = {name: (int(sums[q]), int(live[q])) for q, name in enumerate(compiled.SCALAR_METHODS)}
-    return _Block(lo[:, None], hi[:, None], blocking, successors, tr.record(sx[:, None, None]),
+    return _Block(lo, hi, blocking, successors, tr.record(sx[:, None, None]),
                   tr.record(sw[:, None, None] if p else np.zeros((B, 1, 0))))
 
 
@@ -444,7 +444,7 @@ def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, sample: np.
             np.ascontiguousarray(tr.V.reshape(-1, B, n)), np.ascontiguousarray(tr.C),
             np.ascontiguousarray(bound.lipschitz_radius(block)), np.ascontiguousarray(bound.margin(block, 2)),
             np.asarray(cx + cw, dtype=np.int64), np.ascontiguousarray(np.concatenate([HX, HW], axis=1)),
-            _BOX_KERNEL_NAMES.index(bound.name), _BOX_KERNEL_NAMES.index(in_kernel[0]), *_grid_arrays(xg), FP_RTOL,
+            _BOX_KERNEL_NAMES.index(bound.name), _BOX_KERNEL_NAMES.index(in_kernel[0]), _grid_arrays(xg), FP_RTOL,
             SNAP_RTOL,
         )
         counted.update({name: (int(sums[q]), int(live[q])) for q, name in enumerate(_BOX_KERNEL_NAMES)

@@ -40,10 +40,9 @@ def scalar_sample_pass(V: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
     Returns
     -------
-    vmax_w, vmin_w : ndarray, shape (S_x, B)
-        Extremes over the internal-input samples at each state sample.
-    dx, dw : ndarray, shape (B,)
-        Largest ``|ΔV|`` between neighbouring samples along the state axis and along the internal-input axis.
+    vmax_w, vmin_w, dx, dw : ndarray, shapes (S_x, B), (S_x, B), (B,), (B,)
+        Those of the reference: the extremes over the internal-input samples at each state sample, and the
+        largest neighbour differences along the state and the internal-input axis.
     """
     Sx, Sw, B = V.shape
     vmax = np.empty((Sx, B))
@@ -227,6 +226,21 @@ def _cell_range(
 
 
 @_jit
+def _successor_arrays(
+    B: int, n: int, bounds: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The results a block kernel fills for ``B`` triples with ``n`` state coordinates and ``bounds`` growth
+    bounds: the chosen bound's successor ranges ``lo, hi`` (int32, (B, n)), its blocking flags, and the
+    per-bound successor sums and non-blocking counts (int64, zero).
+
+    The kernels write them in their per-triple loops, not through a helper called per triple with these arrays
+    and the grid's: numba compiles such a loop markedly slower (passing arrays is not free), even inlined."""
+    lo = np.empty((B, n), dtype=np.int32)
+    hi = np.empty((B, n), dtype=np.int32)
+    return lo, hi, np.empty(B, dtype=np.bool_), np.zeros(bounds, dtype=np.int64), np.zeros(bounds, dtype=np.int64)
+
+
+@_jit
 def _margins(
     xl: np.ndarray, xh: np.ndarray, wl: np.ndarray, wh: np.ndarray, b: int, has_w: bool, cx: float, cw: float,
     L_x: float, L_w: float,
@@ -249,6 +263,46 @@ def _margins(
     return rx, hx, hw, lip, rho_h, rho
 
 
+@_jit
+def _scp_candidates(
+    bound: np.ndarray, xl: np.ndarray, xh: np.ndarray, wl: np.ndarray, wh: np.ndarray, has_w: bool, cx: float,
+    cw: float, L_x: float, L_w: float, skip_rtol: float,
+) -> np.ndarray:
+    """Which triples may need the SCP, shape (B,) bool: the first test of ``block.abstract_block``. Where the
+    quick lower bound of the SCP radius (:func:`hull_and_bound`) plus its margin already reaches the Lipschitz
+    radius, the SCP cannot beat Lemma 4.3 and its pair maxima are not computed."""
+    B = bound.shape[0]
+    need = np.zeros(B, dtype=np.bool_)
+    for b in range(B):
+        _, _, _, lip_b, _, rho_b = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
+        need[b] = not (bound[b] + rho_b >= lip_b * (1 + skip_rtol))
+    return need
+
+
+@_jit
+def _scp_radii(
+    e: np.ndarray, need: bool, half: int, rx: float, hx: float, rho: float, lip: float, L_x: float, tie_rtol: float,
+    skip_rtol: float,
+) -> tuple[float, float]:
+    """One triple's SCP radius (Theorem 4.4) ``min(theta1 r_x + theta2, lip)`` under the paper's objective and
+    under the radius objective, from its pair maxima ``e``; the Lipschitz radius ``lip`` itself where the SCP
+    cannot beat it (both tests of ``block.abstract_block``: :func:`_scp_candidates`, then ``max_{k <= half} E_k``).
+    """
+    cannot = not need
+    if not cannot:
+        near = e[0]
+        for k in range(1, half + 1):
+            near = max(near, e[k])
+        cannot = near + rho >= lip * (1 + skip_rtol)
+    if cannot:
+        return lip, lip
+    # Both bounds are sound: so is their min.
+    t1, t2 = _scp_column(e, hx, rho, L_x, 1.0, tie_rtol)
+    paper = min(t1 * rx + t2, lip)
+    t1, t2 = _scp_column(e, hx, rho, L_x, rx, tie_rtol)
+    return paper, min(t1 * rx + t2, lip)
+
+
 #: Order of the growth bounds in :func:`scalar_block`'s successor statistics (that of ``abstract_block``).
 SCALAR_METHODS = ("lipschitz", "hull", "scp", "scp_radius")
 
@@ -266,12 +320,7 @@ def scalar_block(
     L_x: float,
     L_w: float,
     chosen: int,
-    origin: np.ndarray,
-    eta: np.ndarray,
-    k_lo: np.ndarray,
-    shape: np.ndarray,
-    lb: np.ndarray,
-    ub: np.ndarray,
+    grid: tuple,
     fp_rtol: float,
     snap_rtol: float,
     tie_rtol: float,
@@ -299,15 +348,16 @@ def scalar_block(
         Lipschitz constants.
     chosen : int
         Position in :data:`SCALAR_METHODS` of the growth bound whose successors are returned.
-    origin, eta, k_lo, shape, lb, ub, fp_rtol, snap_rtol
-        The state grid (``UniformGrid`` fields as arrays of shape (1,)) and the rounding margins
-        ``growth_bound.FP_RTOL``, ``grid.SNAP_RTOL`` (see :func:`_cell_range`).
+    grid : tuple of ndarray
+        The state grid's ``origin, eta, k_lo, shape, lb, ub`` (``UniformGrid`` fields as arrays of shape (1,)).
+    fp_rtol, snap_rtol : float
+        The rounding margins ``growth_bound.FP_RTOL``, ``grid.SNAP_RTOL`` (see :func:`_cell_range`).
     tie_rtol, skip_rtol : float
         ``growth_bound.SCP_TIE_RTOL`` and ``subsystem.SCP_SKIP_RTOL``.
 
     Returns
     -------
-    lo, hi : ndarray of int32, shape (B,)
+    lo, hi : ndarray of int32, shape (B, 1)
         Successor range of the chosen bound, ``(0, -1)`` where blocking.
     blocking : ndarray of bool, shape (B,)
     sums, live : ndarray of int64, shape (4,)
@@ -321,44 +371,24 @@ def scalar_block(
     vmax, vmin, dx, dw = scalar_sample_pass(V)
     half = Sx // 2
     hull_lo, hull_hi, bound = hull_and_bound(vmax, vmin, half)
-    lo = np.empty(B, dtype=np.int32)
-    hi = np.empty(B, dtype=np.int32)
-    blocking = np.empty(B, dtype=np.bool_)
-    sums = np.zeros(4, dtype=np.int64)
-    live = np.zeros(4, dtype=np.int64)
+    lo, hi, blocking, sums, live = _successor_arrays(B, 1, 4)
     slope_x = np.zeros(B)
     slope_w = np.zeros(B)
-    # Which triples may need the SCP: the first test of block.abstract_block (max(E_0, E_half), the same bound).
-    need = np.zeros(B, dtype=np.bool_)
-    for b in range(B):
-        _, _, _, lip_b, _, rho_b = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
-        need[b] = not (bound[b] + rho_b >= lip_b * (1 + skip_rtol))
+    need = _scp_candidates(bound, xl, xh, wl, wh, has_w, cx, cw, L_x, L_w, skip_rtol)
     # The pair maxima of every triple (batch on the contiguous axis: vectorised) when one needs them.
     E = pair_maxima_batch_last(vmax, vmin) if need.any() else np.empty((Sx, 0))
-    box_lo = np.empty(4)
+    box_lo = np.empty(4)  # one box per bound of SCALAR_METHODS
     box_hi = np.empty(4)
+    origin, eta, k_lo, shape, lb, ub = grid
     for b in range(B):
         rx, hx, hw, lip_b, rho_h, rho_b = _margins(xl, xh, wl, wh, b, has_w, cx, cw, L_x, L_w)
-        c = C[b]
-        box_lo[0] = c - lip_b
-        box_hi[0] = c + lip_b
-        box_lo[1] = hull_lo[b] - rho_h
-        box_hi[1] = hull_hi[b] + rho_h
-        # The SCP only where it can beat the Lipschitz radius (the second test of block.abstract_block).
-        cannot = not need[b]
         e = E[:, b] if need[b] else vmax[:0, 0]
-        if not cannot:
-            near = e[0]
-            for k in range(1, half + 1):
-                near = max(near, e[k])
-            cannot = near + rho_b >= lip_b * (1 + skip_rtol)
-        for q in range(2):
-            rad = lip_b
-            if not cannot:
-                t1, t2 = _scp_column(e, hx, rho_b, L_x, 1.0 if q == 0 else rx, tie_rtol)
-                rad = min(t1 * rx + t2, lip_b)  # both bounds are sound: so is the min
-            box_lo[2 + q] = c - rad
-            box_hi[2 + q] = c + rad
+        paper, radius = _scp_radii(e, need[b], half, rx, hx, rho_b, lip_b, L_x, tie_rtol, skip_rtol)
+        c = C[b]
+        box_lo[0], box_hi[0] = c - lip_b, c + lip_b
+        box_lo[1], box_hi[1] = hull_lo[b] - rho_h, hull_hi[b] + rho_h
+        box_lo[2], box_hi[2] = c - paper, c + paper
+        box_lo[3], box_hi[3] = c - radius, c + radius
         for q in range(4):
             f, g, leaves = _cell_range(box_lo[q], box_hi[q], origin[0], eta[0], k_lo[0], shape[0], lb[0], ub[0],
                                        fp_rtol, snap_rtol)
@@ -367,13 +397,57 @@ def scalar_block(
                 live[q] += 1
             if q == chosen:
                 blocking[b] = leaves
-                lo[b] = 0 if leaves else f
-                hi[b] = -1 if leaves else g
+                lo[b, 0] = 0 if leaves else f
+                hi[b, 0] = -1 if leaves else g
         if hx > 0:
             slope_x[b] = dx[b] / hx
         if hw > 0:  # 0 without internal inputs
             slope_w[b] = dw[b] / hw
     return lo, hi, blocking, sums, live, slope_x, slope_w
+
+
+@_jit
+def box_sample_pass(V: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sample hull of every triple and the largest differences between neighbouring samples along each
+    sub-grid axis, in one read of the samples (:func:`box_block`'s counterpart of :func:`scalar_sample_pass`).
+
+    Parameters
+    ----------
+    V : ndarray, shape (S, B, n), finite
+        Successor samples, ``S`` the joint sub-grid (row-major over ``counts``).
+    counts : ndarray of int64, shape (d,)
+        Sub-grid points per axis.
+
+    Returns
+    -------
+    vmin, vmax : ndarray, shape (B, n)
+    diff : ndarray, shape (d, B, n)
+        Largest ``|ΔV_i|`` between neighbouring samples along each axis.
+    """
+    S, B, n = V.shape
+    d = counts.shape[0]
+    vmin = V[0].copy()
+    vmax = V[0].copy()
+    diff = np.zeros((d, B, n))
+    stride = np.ones(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):
+        stride[a] = stride[a + 1] * counts[a + 1]
+    for s in range(S):
+        row = V[s]
+        for b in range(B):
+            for i in range(n):
+                v = row[b, i]
+                vmin[b, i] = min(vmin[b, i], v)
+                vmax[b, i] = max(vmax[b, i], v)
+        for a in range(d):
+            if (s // stride[a]) % counts[a] == counts[a] - 1:  # the last sample along this axis
+                continue
+            nxt = V[s + stride[a]]
+            da = diff[a]
+            for b in range(B):
+                for i in range(n):
+                    da[b, i] = max(da[b, i], abs(nxt[b, i] - row[b, i]))
+    return vmin, vmax, diff
 
 
 @_jit
@@ -386,12 +460,7 @@ def box_block(
     h: np.ndarray,
     chosen: int,
     first_bound: int,
-    origin: np.ndarray,
-    eta: np.ndarray,
-    k_lo: np.ndarray,
-    shape: np.ndarray,
-    lb: np.ndarray,
-    ub: np.ndarray,
+    grid: tuple,
     fp_rtol: float,
     snap_rtol: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -417,8 +486,8 @@ def box_block(
         0: the Lipschitz bound's successors are returned; 1: the hull's.
     first_bound : int
         0: both bounds; 1: the hull only (the Lipschitz bound's statistics are left 0).
-    origin, eta, k_lo, shape, lb, ub, fp_rtol, snap_rtol
-        The state grid and rounding margins (see :func:`_cell_range`).
+    grid, fp_rtol, snap_rtol
+        The state grid and rounding margins (see :func:`scalar_block`).
 
     Returns
     -------
@@ -430,37 +499,12 @@ def box_block(
     slopes : ndarray, shape (B, n, d)
         Largest ``|ΔV_i| / h_a`` between neighbouring samples along each axis ``a`` (0 where ``h_a = 0``).
     """
-    S, B, n = V.shape
-    d = counts.shape[0]
-    vmin = V[0].copy()
-    vmax = V[0].copy()
-    diff = np.zeros((d, B, n))
-    stride = np.ones(d, dtype=np.int64)
-    for a in range(d - 2, -1, -1):
-        stride[a] = stride[a + 1] * counts[a + 1]
-    for s in range(S):
-        row = V[s]
-        for b in range(B):
-            for i in range(n):
-                v = row[b, i]
-                vmin[b, i] = min(vmin[b, i], v)
-                vmax[b, i] = max(vmax[b, i], v)
-        for a in range(d):
-            if (s // stride[a]) % counts[a] == counts[a] - 1:  # the last sample along this axis
-                continue
-            nxt = V[s + stride[a]]
-            da = diff[a]
-            for b in range(B):
-                for i in range(n):
-                    da[b, i] = max(da[b, i], abs(nxt[b, i] - row[b, i]))
-    lo = np.empty((B, n), dtype=np.int32)
-    hi = np.empty((B, n), dtype=np.int32)
-    blocking = np.empty(B, dtype=np.bool_)
-    sums = np.zeros(2, dtype=np.int64)
-    live = np.zeros(2, dtype=np.int64)
-    slopes = np.zeros((B, n, d))
+    B, n = V.shape[1], V.shape[2]
+    vmin, vmax, diff = box_sample_pass(V, counts)
+    lo, hi, blocking, sums, live = _successor_arrays(B, n, 2)
     first = np.empty(n, dtype=np.int64)
     last = np.empty(n, dtype=np.int64)
+    origin, eta, k_lo, shape, lb, ub = grid
     for b in range(B):
         for q in range(first_bound, 2):
             leaves = False
@@ -484,7 +528,9 @@ def box_block(
                 for i in range(n):
                     lo[b, i] = 0 if leaves else first[i]
                     hi[b, i] = -1 if leaves else last[i]
-        for a in range(d):
+    slopes = np.zeros((B, n, counts.shape[0]))
+    for b in range(B):
+        for a in range(counts.shape[0]):
             if h[b, a] > 0:
                 for i in range(n):
                     slopes[b, i, a] = diff[a, b, i] / h[b, a]
@@ -505,8 +551,8 @@ def warm_up() -> None:
     scp_parameters_batch_last(E, one, one, 1.0, one, 0.0)
     scp_parameters_batch_last(E[:, [0]], one[[0]], one[[0]], 1.0, one[[0]], 0.0)  # a column subset
     ints = np.zeros(1, dtype=np.int64)
+    grid = (one[:1], one[:1], ints, ints, one[:1], one[:1])
     box_block(np.zeros((2, 2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), np.zeros((2, 1)), np.full(1, 2, dtype=np.int64),
-              np.ones((2, 1)), 1, 0, one[:1], one[:1], ints, ints, one[:1], one[:1], 0.0, 0.0)
+              np.ones((2, 1)), 1, 0, grid, 0.0, 0.0)
     for w in (one, np.zeros(0)):
-        scalar_block(V, one, one, one, w, w, 2.0, 2.0, 1.0, 1.0, 0, one[:1], one[:1], ints, ints, one[:1], one[:1],
-                     0.0, 0.0, 0.0, 0.0)
+        scalar_block(V, one, one, one, w, w, 2.0, 2.0, 1.0, 1.0, 0, grid, 0.0, 0.0, 0.0, 0.0)
