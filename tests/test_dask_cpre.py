@@ -19,7 +19,7 @@ from pipelines.synthesis.options import SynthesisOptions
 from pipelines.synthesis.partitioned import SPLIT_FROM, cut_digits
 from pipelines.synthesis.parts import Problem, pack
 from pipelines.synthesis.synthesize import synthesize
-from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
+from tests.games import Explicit, build, random_net, random_set, states_vector
 from workers.control import partitioning
 from workers.dask_cpre import DaskPartFailed, DaskPredecessors, on_cluster, parts_for
 from workers.dask_parts import (

@@ -20,8 +20,7 @@ from workers.control import run_synthesis
 from workers.job import run_abstraction
 
 from .conftest import ROOT
-from .test_local_games import coupled_net
-from .test_synthesis import Explicit, build, random_set, states_vector
+from .games import Explicit, build, coupled_net, random_set, states_vector
 
 
 def test_upstream_closed_groups_are_closures_smallest_first_without_the_whole_network():

@@ -3,8 +3,6 @@ points started from it give the same invariant and controllers as from the safe 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -15,44 +13,15 @@ from pipelines.synthesis import local_games
 from pipelines.synthesis.fixed_points import reach_and_stay, safe
 from pipelines.synthesis.local_games import invariant_bound, local_game, local_groups
 
-from .strategies import drifting_relation, random_node
-from .test_synthesis import (
+from .games import (
     Explicit,
     Net,
     build,
+    coupled_net,
     random_set,
     states_vector,
 )
-
-
-def coupled_net(rng: np.random.Generator, shared: bool) -> Net:
-    """4-6 subsystems, each coupled to one or two others through an internal variable (a chain, a tree, a ring):
-    groups of at most half the network exist. ``shared``: some internal variables are read by two subsystems."""
-    N = int(rng.integers(4, 7))
-    shape = tuple(int(k) for k in rng.integers(3, 5, size=N))
-    n_u = tuple(2 if i in rng.choice(N, size=2, replace=False) else 1 for i in range(N))  # keeps Explicit small
-    nodes, w_sizes, reads = [], [], []
-    for i in range(N):
-        if i == 0 and rng.random() < 0.5:  # a source that reads nothing
-            reads.append(())
-            continue
-        if shared and i > 0 and reads[i - 1] and rng.random() < 0.4:  # read the same variable as the previous one
-            reads.append(reads[i - 1])
-            continue
-        j = len(w_sizes)
-        Kw = int(rng.integers(2, 4))
-        w_sizes.append(Kw)
-        reads.append((j,))
-        others = [k for k in range(N) if k != i]
-        sup = sorted(rng.choice(others, size=int(rng.integers(1, 3)), replace=False).tolist())
-        nodes.append(random_node(rng, f"w{j}", Kw, [f"x{k}" for k in sup], [shape[k] for k in sup], 0.0))
-    layouts, relations = [], {}
-    for i in range(N):
-        key = f"k{i}"
-        layouts.append(SubsystemLayout(i, (shape[i],), n_u[i], reads[i], key, i))
-        n_w = math.prod(w_sizes[j] for j in reads[i]) if reads[i] else 1
-        relations[key] = drifting_relation(rng, shape[i], n_u[i], n_w, 0.03)
-    return Net(layouts, relations, w_sizes, nodes, shape, n_u)
+from .strategies import random_node
 
 
 def _case(seed: int, shared: bool):

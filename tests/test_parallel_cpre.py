@@ -23,7 +23,7 @@ from pipelines.synthesis.partition import (
     w_window,
 )
 from pipelines.synthesis.parts import window_predecessors
-from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
+from tests.games import Explicit, build, random_net, random_set, states_vector
 from workers.processes.partitioned_cpre import HelperError, PartitionedPredecessors
 
 

@@ -14,7 +14,7 @@ from pipelines.symbolic.relations import state_set
 from pipelines.synthesis.fixed_points import cobuchi, reach, safe
 from pipelines.synthesis.partitioned import PartitionedCPre
 from pipelines.synthesis.quotient import quotient
-from tests.test_synthesis import Explicit, build, random_net, random_set, states_vector
+from tests.games import Explicit, build, random_net, random_set, states_vector
 from workers.dask_cpre import on_cluster
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 

@@ -28,7 +28,7 @@ from workers.checkpoint_store import problem_key
 from workers.processes.partitioned_cpre import PartitionedPredecessors
 
 from .conftest import EXAMPLES
-from .test_synthesis import (
+from .games import (
     Explicit,
     Net,
     build,

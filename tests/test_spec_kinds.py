@@ -11,29 +11,30 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipelines.abstraction.relation import SubsystemRelation
 from pipelines.errors import SpecError
 from pipelines.grid import UniformGrid
-from pipelines.interconnection import NodeRelation
 from pipelines.spec.model import Region, parse_spec
 from pipelines.spec.regions import abstract_region
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import region, state_set
 from pipelines.synthesis.fixed_points import cobuchi, reach, reach_and_stay, reach_avoid, reach_safe, safe
 
-from .test_synthesis import (
+from .games import (
     Explicit,
     Net,
     build,
+    cells,
     check_progress,
     check_stay,
     controller_matrix,
-    grid,
+    integrator_spec,
+    integrators,
     layered_matrix,
     random_net,
     random_set,
     states_vector,
 )
+from .strategies import grid
 
 BOX = {"lb": 0, "ub": 1}
 
@@ -44,7 +45,7 @@ def test_every_kind_takes_an_optional_safe_set(kind):
     spec = {"kind": kind, "target": {"boxes": [BOX]}, "safe": {"boxes": [{"lb": 0, "ub": 5}]}}
     if kind == "reach_avoid":
         spec["avoid"] = {"boxes": [{"lb": 2, "ub": 3}, {"lb": 4, "ub": 4.5}]}
-    parsed = parse_spec(_integrator_spec(spec))
+    parsed = parse_spec(integrator_spec(spec))
     assert parsed.specification.safe is not None and parsed.specification.safe.boxes[0].ub == 5
 
 
@@ -57,34 +58,7 @@ def test_every_kind_takes_an_optional_safe_set(kind):
 ])
 def test_a_region_the_kind_does_not_use_is_refused_not_ignored(specification, match):
     with pytest.raises(SpecError, match=match):
-        parse_spec(_integrator_spec(specification))
-
-
-# ============================================================================ hand-made integrators
-def integrator(K: int, steps: tuple[int, ...]) -> tuple[SubsystemRelation, int]:
-    """``x' = x + u`` on cells ``0..K-1``, input ``j`` moving by ``steps[j]`` cells; leaving the grid blocks."""
-    x = np.arange(K)[:, None] + np.asarray(steps)[None, :]
-    blocking = (x < 0) | (x >= K)
-    lo = np.where(blocking, 0, x)[:, :, None, None].astype(np.int32)
-    hi = np.where(blocking, -1, x)[:, :, None, None].astype(np.int32)
-    return SubsystemRelation("test", lo, hi, blocking[:, :, None], 1.0, 0.0), len(steps)
-
-
-def integrators(shape: tuple[int, ...], steps: tuple[int, ...] = (-1, 0, 1)) -> Net:
-    """Independent integrators, one per coordinate; one internal variable nobody reads (the interconnection
-    of a network without coupling: ``M̂(x̂)`` is never empty)."""
-    layouts, relations = [], {}
-    for i, K in enumerate(shape):
-        rel, n_u = integrator(K, steps)
-        relations[f"k{i}"] = rel
-        layouts.append(SubsystemLayout(i, (K,), n_u, (), f"k{i}", i))
-    node = NodeRelation("w0", grid(1), ("x0",), (grid(shape[0]),), None, np.zeros(shape[0], np.int32),
-                        np.zeros(shape[0], np.int32), 0.0)
-    return Net(layouts, relations, [1], [node], shape, (len(steps),) * len(shape))
-
-
-def cells(game, *xs: int):
-    return state_set(game.model, np.array(xs).reshape(-1, 1))
+        parse_spec(integrator_spec(specification))
 
 
 def members(game, f, K: int) -> list[int]:
@@ -233,18 +207,6 @@ def test_layered_controllers_within_a_safe_set_equal_explicit_ones(seed):
 
 
 # ============================================================================ concrete closed loop
-def _integrator_spec(specification: dict, **options) -> dict:
-    """Two concrete integrators ``x' = x + u`` on [0, 9] (cells of width 1), inputs -2..2, no coupling (the map's
-    output is read by nobody). The abstraction moves ``u`` cells with one cell of slack either way."""
-    sub = {"name": "cart", "replicate": 2, "state": {"lb": 0, "ub": 9, "eta": 1},
-           "input": {"lb": -2, "ub": 2, "eta": 1}, "dynamics": "x[0] + u[0]", "lipschitz": {"x": 1.0},
-           "samples": 4, "growth_bound": "hull"}
-    return {"name": "carts", "subsystems": [sub],
-            "interconnection": {"map": "[x[0]]", "internal": {"lb": 0, "ub": 9, "eta": 1}, "error": "linear"},
-            "specification": specification,
-            "options": {"audit_transitions": 0, "closed_loop_runs": 30, "synthesis_processes": 1, **options}}
-
-
 def _explicit(res) -> tuple[Explicit, dict[str, np.ndarray]]:
     """The explicit solver on a job's own abstraction, and its spec's regions as masks over its states."""
     from pipelines.spec.regions import spec_regions
@@ -279,7 +241,7 @@ def test_closed_loop_runs_keep_the_safe_set_and_avoid_the_obstacles(specificatio
 
     outside = [3.0, 1.0] if "avoid" in specification else [8.0, 0.0] if specification["kind"] == "reach_and_stay" \
         else [0.0, 9.0]
-    spec = parse_spec(_integrator_spec(specification, initial_states=[[8.0, 8.0], outside]))
+    spec = parse_spec(integrator_spec(specification, initial_states=[[8.0, 8.0], outside]))
     res = run_abstraction(spec, audit=False)
     report = run_synthesis(res, None)
     ex, masks = _explicit(res)
@@ -306,7 +268,7 @@ def test_a_safe_set_changes_the_domain_of_the_concrete_integrators():
     from workers.job import run_abstraction
 
     def domain(specification):
-        return run_synthesis(run_abstraction(parse_spec(_integrator_spec(specification, closed_loop_runs=0)),
+        return run_synthesis(run_abstraction(parse_spec(integrator_spec(specification, closed_loop_runs=0)),
                                              audit=False), None)["domain_states"]
 
     free = domain({"kind": "reach", "target": TOP_RIGHT})
@@ -322,7 +284,7 @@ def test_a_run_that_leaves_the_safe_set_is_a_violation_also_at_the_last_step():
     from pipelines.spec.regions import closed_loop_regions
     from pipelines.verification.closed_loop import simulate
 
-    spec = parse_spec(_integrator_spec({"kind": "reach", "target": TOP_RIGHT,
+    spec = parse_spec(integrator_spec({"kind": "reach", "target": TOP_RIGHT,
                                         "safe": {"boxes": [{"lb": [0, 2.5], "ub": 9.5}]}}))
     net = build_network(spec, None)
     regions = closed_loop_regions(spec, net)
@@ -337,7 +299,7 @@ def test_a_run_that_leaves_the_safe_set_is_a_violation_also_at_the_last_step():
     assert last.violation == "step 1: the state left the safe set"
     up = simulate(net, push(2, 2), np.array([4.0, 4.0]), 5, rng, "reach", **regions)
     assert up.violation is None and up.states.shape[0] == 3 and up.in_target[-1]  # (8, 8) after two steps
-    walls = parse_spec(_integrator_spec({"kind": "reach_avoid", "target": TOP_RIGHT, "avoid": WALLS}))
+    walls = parse_spec(integrator_spec({"kind": "reach_avoid", "target": TOP_RIGHT, "avoid": WALLS}))
     into = simulate(net, push(1, 0), np.array([2.0, 1.0]), 3, rng, "reach_avoid", **closed_loop_regions(walls, net))
     assert into.violation == "step 1: the state entered the avoid set"
 
@@ -349,7 +311,7 @@ def test_an_empty_domain_is_said_in_the_warnings():
     from workers.job import run_abstraction
 
     specification = {"kind": "reach", "target": TOP_RIGHT, "safe": {"boxes": [{"lb": -1, "ub": 4.5}]}}
-    spec = parse_spec(_integrator_spec(specification, initial_states=[[1.0, 1.0]]))
+    spec = parse_spec(integrator_spec(specification, initial_states=[[1.0, 1.0]]))
     report = run_synthesis(run_abstraction(spec, audit=False), None)
     assert report["domain_states"] == 0 and report["closed_loop"]["runs"] == 0
     first, second, why = report["warnings"]

@@ -13,7 +13,7 @@ from pipelines.symbolic.relations import region
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.fixed_points import reach, reach_safe, safe
 from pipelines.synthesis.symmetry import find_symmetry
-from tests.test_synthesis import build, random_net
+from tests.games import build, random_net
 from workers.dask_cpre import DaskPredecessors, on_cluster
 from workers.job import run_abstraction
 from workers.processes.partitioned_cpre import PartitionedPredecessors

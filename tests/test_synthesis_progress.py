@@ -10,8 +10,7 @@ from pipelines.spec.model import parse_spec
 from pipelines.symbolic.relations import state_set
 from pipelines.synthesis.fixed_points import cobuchi, reach, reach_and_stay, reach_safe, safe
 
-from .test_spec_kinds import _integrator_spec, cells, integrators
-from .test_synthesis import Explicit, build, random_net, random_set
+from .games import Explicit, build, cells, integrator_spec, integrators, random_net, random_set
 
 
 def _line(K: int = 10):
@@ -100,7 +99,7 @@ def test_run_synthesis_maps_iterations_to_stage_progress(kind):
     from workers.job import run_abstraction
 
     specification = {"kind": kind, "target": {"boxes": [{"lb": 2.5, "ub": 5.5}]}}
-    spec = parse_spec(_integrator_spec(specification, closed_loop_runs=0))
+    spec = parse_spec(integrator_spec(specification, closed_loop_runs=0))
     events: list[tuple[str, int, int, str]] = []
     report = run_synthesis(run_abstraction(spec, audit=False), None,
                            progress=lambda stage, done, total, message: events.append((stage, done, total, message)))
