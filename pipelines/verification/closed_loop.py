@@ -129,18 +129,9 @@ def _cells_in(grid: UniformGrid, region: AbstractRegion | None, x: np.ndarray) -
     return inside & region.contains(idx)
 
 
-def simulate(
-    network: Network,
-    policy: Policy | InputChooser | None,
-    x0: np.ndarray,
-    steps: int,
-    rng: np.random.Generator,
-    kind: str,
-    target: AbstractRegion | None = None,
-    avoid: AbstractRegion | None = None,
-    choose: str = "random",
-    safe: AbstractRegion | None = None,
-) -> Run:
+def simulate(network: Network, policy: Policy | InputChooser | None, x0: np.ndarray, steps: int,
+             rng: np.random.Generator, kind: str, target: AbstractRegion | None = None,
+             avoid: AbstractRegion | None = None, choose: str = "random", safe: AbstractRegion | None = None) -> Run:
     """Run the concrete system from ``x0`` for ``steps`` steps under ``policy`` (``None``: all inputs 0).
 
     ``choose`` picks among the admissible inputs (:data:`CHOOSE`): ``random`` (as in the paper's figures),
@@ -179,92 +170,123 @@ def simulate_many(
     with one row this is exactly :func:`simulate`. ``progress(step, steps)`` is called after each step and
     with ``(steps, steps)`` at the end, also when every run ended early.
     """
-    grid = network.composed_state_grid()
-    lb, ub = np.asarray(grid.lb), np.asarray(grid.ub)
-    m = input_dim(network)
-    x = np.array(x0, dtype=float, ndmin=2)
-    R = x.shape[0]
-    xs: list[list[np.ndarray]] = [[row] for row in x]
-    us: list[list[np.ndarray]] = [[] for _ in range(R)]
-    inside: list[list[bool]] = [[bool(v)] for v in _cells_in(grid, target, x)]
-    violation: list[str | None] = [None] * R
-    going = np.ones(R, dtype=bool)
+    runs = _Lockstep(network, policy, np.array(x0, dtype=float, ndmin=2), kind, (target, avoid, safe), choose)
+    for k in range(steps):
+        live = np.flatnonzero(runs.going)
+        if live.size == 0:
+            break
+        X = runs.states(live)
+        choosing = runs.check(k, live, X)
+        runs.advance(k, live, X, choosing, runs.choose_inputs(X, live, choosing, rng))
+        if progress is not None and k + 1 < steps:
+            progress(k + 1, steps)
+    live = np.flatnonzero(runs.going)
+    if live.size:  # the state after the last step is checked too: leaving S there is a violation as well
+        runs.check(steps, live, runs.states(live))
+    if progress is not None:  # also when every run ended early
+        progress(steps, steps)
+    return [_finish(np.array(runs.xs[r]), runs.us[r], np.array(runs.inside[r]), runs.violation[r],
+                    policy is not None, kind, steps, runs.m) for r in range(len(runs.xs))]
 
-    def check(k: int, live: np.ndarray, X: np.ndarray) -> list[int]:
+
+class _Lockstep:
+    """The runs of :func:`simulate_many`, advanced together: per run its states, inputs, target flags (the
+    state's cell in ``target``), violation and whether it goes on; and the state checks and input choices of
+    :func:`simulate` applied at once to the runs still going at a step."""
+
+    def __init__(self, network: Network, policy: Policy | InputChooser | None, x: np.ndarray, kind: str,
+                 regions: tuple[AbstractRegion | None, AbstractRegion | None, AbstractRegion | None],
+                 choose: str) -> None:
+        self.network, self.policy, self.kind, self.choose = network, policy, kind, choose
+        self.target, self.avoid, self.safe = regions
+        self.grid = network.composed_state_grid()
+        self.lb, self.ub = np.asarray(self.grid.lb), np.asarray(self.grid.ub)
+        self.m = input_dim(network)
+        R = x.shape[0]
+        self.xs: list[list[np.ndarray]] = [[row] for row in x]
+        self.us: list[list[np.ndarray]] = [[] for _ in range(R)]
+        self.inside: list[list[bool]] = [[bool(v)] for v in _cells_in(self.grid, self.target, x)]
+        self.violation: list[str | None] = [None] * R
+        self.going = np.ones(R, dtype=bool)
+
+    def states(self, live: np.ndarray) -> np.ndarray:
+        """The present states of the runs ``live``, shape (len(live), n_total)."""
+        return np.array([self.xs[r][-1] for r in live])
+
+    def _stop(self, r: int, violation: str | None) -> None:
+        self.going[r] = False
+        if violation is not None:
+            self.violation[r] = violation
+
+    def check(self, k: int, live: np.ndarray, X: np.ndarray) -> list[int]:
         """The state checks at step ``k`` of the runs ``live`` (states ``X``): stops the runs that violate the
         specification or reached a reach target; returns the positions in ``live`` of the runs going on."""
-        now_in = np.array([inside[r][-1] for r in live])
-        out_of_box = np.any((X < lb) | (X > ub), axis=1)
-        in_avoid = _cells_in(grid, avoid, X)
-        in_safe = _cells_in(grid, safe, X) if safe is not None else np.ones(live.size, dtype=bool)
+        controlled = self.policy is not None
+        now_in = np.array([self.inside[r][-1] for r in live])
+        out_of_box = np.any((X < self.lb) | (X > self.ub), axis=1)
+        in_avoid = _cells_in(self.grid, self.avoid, X)
+        in_safe = _cells_in(self.grid, self.safe, X) if self.safe is not None else np.ones(live.size, dtype=bool)
         going_on = []
         for j, r in enumerate(live):
             # Arriving in the target ends a reach run only if the way there was kept: a state out of the box,
             # in A or out of S is a violation even on a target cell.
             if out_of_box[j]:
-                violation[r] = f"step {k}: the state {X[j].tolist()} left the state set"
+                self._stop(r, f"step {k}: the state {X[j].tolist()} left the state set")
             elif in_avoid[j]:
-                violation[r] = f"step {k}: the state entered the avoid set"
-            elif policy is not None and (not in_safe[j] or (kind == "safe" and not now_in[j])):
-                violation[r] = f"step {k}: the state left the safe set"
-            elif kind in ("reach", "reach_avoid") and policy is not None and now_in[j]:
-                going[r] = False  # reached: a reach controller's job ends here
-                continue
-            if violation[r] is not None:
-                going[r] = False
-                continue
-            going_on.append(j)
+                self._stop(r, f"step {k}: the state entered the avoid set")
+            elif controlled and (not in_safe[j] or (self.kind == "safe" and not now_in[j])):
+                self._stop(r, f"step {k}: the state left the safe set")
+            elif self.kind in ("reach", "reach_avoid") and controlled and now_in[j]:
+                self._stop(r, None)  # reached: a reach controller's job ends here
+            else:
+                going_on.append(j)
         return going_on
 
-    for k in range(steps):
-        live = np.flatnonzero(going)
-        if live.size == 0:
-            break
-        X = np.array([xs[r][-1] for r in live])
-        choosing = check(k, live, X)
-        # Only the choices draw from rng, in row order, as simulate() does run by run.
+    def choose_inputs(self, X: np.ndarray, live: np.ndarray, choosing: list[int], rng: np.random.Generator
+                      ) -> list[np.ndarray | None]:
+        """An admissible input for each run ``live[j]``, ``j`` in ``choosing`` (``None`` outside the controller's
+        domain): refinement takes any input of the state's cell (Theorem 4.2), picked as ``choose`` says. Only
+        the choices draw from ``rng``, in row order, as :func:`simulate` does run by run."""
+        policy, choose = self.policy, self.choose
         if policy is None:
-            chosen: list[np.ndarray | None] = [np.zeros(m) for _ in choosing]
-        elif hasattr(policy, "choose_many") and choose == "steady":
-            chosen = _steady(policy, X[choosing], [us[live[j]][-1] if us[live[j]] else None for j in choosing],
-                             rng) if choosing else []
-        elif hasattr(policy, "choose_many"):  # a Controller draws inputs without listing them all
-            chosen = policy.choose_many(X[choosing], rng, choose) if choosing else []
-        else:
-            chosen = []
-            for j in choosing:
-                options = policy(X[j])
-                before = us[live[j]][-1] if us[live[j]] else None
-                kept = (before is not None and choose == "steady"
-                        and bool(np.any(np.all(np.isclose(options, before), axis=1))))
-                chosen.append(None if options.shape[0] == 0 else before if kept else
-                              options[rng.integers(options.shape[0])] if choose == "random" else options[0])
+            return [np.zeros(self.m) for _ in choosing]
+        if not choosing:
+            return []
+        previous = [self.us[live[j]][-1] if self.us[live[j]] else None for j in choosing]
+        if hasattr(policy, "choose_many") and choose == "steady":
+            return _steady(policy, X[choosing], previous, rng)
+        if hasattr(policy, "choose_many"):  # a Controller draws inputs without listing them all
+            return policy.choose_many(X[choosing], rng, choose)
+        chosen: list[np.ndarray | None] = []
+        for j, before in zip(choosing, previous):
+            options = policy(X[j])
+            kept = (before is not None and choose == "steady"
+                    and bool(np.any(np.all(np.isclose(options, before), axis=1))))
+            chosen.append(None if options.shape[0] == 0 else before if kept else
+                          options[rng.integers(options.shape[0])] if choose == "random" else options[0])
+        return chosen
+
+    def advance(self, k: int, live: np.ndarray, X: np.ndarray, choosing: list[int],
+                chosen: list[np.ndarray | None]) -> None:
+        """Step the concrete network (:func:`step`) once for every run ``live[j]`` that has an input; a run
+        without one (outside the controller's domain) stops with that violation."""
         stepping, U = [], []
         for j, u in zip(choosing, chosen):
             if u is None:
-                violation[live[j]] = f"step {k}: the state {X[j].tolist()} is outside the controller's domain"
-                going[live[j]] = False
+                self._stop(live[j], f"step {k}: the state {X[j].tolist()} is outside the controller's domain")
                 continue
             stepping.append(j)
             U.append(u)
-        if stepping:
-            sel = np.asarray(stepping)
-            nxt = step(network, X[sel], np.array(U))
-            flags = _cells_in(grid, target, nxt)
-            for j, u, xn, f in zip(sel.tolist(), U, nxt, flags.tolist()):
-                r = live[j]
-                us[r].append(u)
-                xs[r].append(xn)
-                inside[r].append(f)
-        if progress is not None and k + 1 < steps:
-            progress(k + 1, steps)
-    live = np.flatnonzero(going)
-    if live.size:  # the state after the last step is checked too: leaving S there is a violation as well
-        check(steps, live, np.array([xs[r][-1] for r in live]))
-    if progress is not None:  # also when every run ended early
-        progress(steps, steps)
-    return [_finish(np.array(xs[r]), us[r], np.array(inside[r]), violation[r], policy is not None, kind, steps, m)
-            for r in range(R)]
+        if not stepping:
+            return
+        sel = np.asarray(stepping)
+        nxt = step(self.network, X[sel], np.array(U))
+        flags = _cells_in(self.grid, self.target, nxt)
+        for j, u, xn, f in zip(sel.tolist(), U, nxt, flags.tolist()):
+            r = live[j]
+            self.us[r].append(u)
+            self.xs[r].append(xn)
+            self.inside[r].append(f)
 
 
 def _finish(states: np.ndarray, us: list[np.ndarray], flags: np.ndarray, violation: str | None, controlled: bool,
