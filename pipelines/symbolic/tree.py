@@ -85,6 +85,24 @@ def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows[first], inverse
 
 
+class _Subtrees:
+    """The subtrees built so far, by id: ``funcs[i]`` is subtree ``i``, ``False`` is 0. Equal functions get equal
+    ids, so subtrees that CUDD finds equal pair up as equal (:func:`tree` makes one ``ite`` per distinct pair)."""
+
+    def __init__(self, false: Function) -> None:
+        self.funcs: list[Function] = [false]
+        self.ident: dict[int, int] = {int(false): 0}
+
+    def intern(self, f: Function) -> int:
+        """The id of ``f``, a new one if no equal function has one."""
+        k = int(f)
+        i = self.ident.get(k)
+        if i is None:
+            i = self.ident[k] = len(self.funcs)
+            self.funcs.append(f)
+        return i
+
+
 def tree(
     model: SymbolicModel,
     digits: Sequence[str],
@@ -112,40 +130,56 @@ def tree(
     Notes
     -----
     Per bit, from the bottom level up, siblings are paired; one ``ite`` is made per distinct
-    ``(low, high)`` pair of subtree ids, so Python work is proportional to the distinct subtrees.
+    ``(low, high)`` pair of subtree ids, so Python work is proportional to the distinct subtrees
+    (:func:`_build_levels`).
 
     Digits over more than :data:`MAX_TREE_BITS` bits in all (the ten tanks at spacing 1.25: 10 x 7 state bits)
-    are split: one tree over the other digits per code of the first digit, which become the leaves of a tree over
-    the first digit (the same function, since the cells with one code of the first digit are that code's subtree).
+    are split (:func:`_tree_by_first_digit`).
     """
     values = np.asarray(values, dtype=np.int64).reshape(len(leaf_ids), len(digits))
     leaf_ids = np.asarray(leaf_ids, dtype=np.int64)
     if len(digits) > 1 and sum(len(model.bits[d]) for d in digits) > MAX_TREE_BITS:
-        codes, which = np.unique(values[:, 0], return_inverse=True)
-        which = which.reshape(-1)
-        order = np.argsort(which, kind="stable")
-        bounds = np.searchsorted(which[order], np.arange(codes.size + 1))
-        subtrees = [tree(model, digits[1:], values[order[a:b], 1:], leaf_ids[order[a:b]], leaves, say)
-                    for a, b in zip(bounds[:-1], bounds[1:])]
-        return tree(model, digits[:1], codes.reshape(-1, 1), np.arange(codes.size, dtype=np.int64), subtrees)
-    funcs: list[Function] = [model.bdd.false]
-    ident: dict[int, int] = {int(model.bdd.false): 0}
-
-    def intern(f: Function) -> int:
-        # Equal functions get equal ids, so subtrees that CUDD finds equal pair up as equal.
-        k = int(f)
-        i = ident.get(k)
-        if i is None:
-            i = ident[k] = len(funcs)
-            funcs.append(f)
-        return i
-
-    leaf_map = np.array([intern(f) for f in leaves], dtype=np.int64)
+        return _tree_by_first_digit(model, digits, values, leaf_ids, leaves, say)
+    subtrees = _Subtrees(model.bdd.false)
+    leaf_map = np.array([subtrees.intern(f) for f in leaves], dtype=np.int64)
     ids = leaf_map[leaf_ids] if leaf_ids.size else leaf_ids
     keep = ids != 0  # absent codes are False already
     ids, values = ids[keep], values[keep]
     if ids.size == 0:
         return model.bdd.false
+    names, keys = _tree_keys(model, digits, values)
+    if not np.all(keys[1:] > keys[:-1]):  # often sorted already (row-major cells, digit-major order)
+        srt = np.argsort(keys, kind="stable")
+        keys, ids = keys[srt], ids[srt]
+        if np.any(keys[1:] == keys[:-1]):
+            raise ValueError("tree(): repeated cell in values")
+    return _build_levels(model, names, keys, ids, subtrees, say)
+
+
+def _tree_by_first_digit(model: SymbolicModel, digits: Sequence[str], values: np.ndarray, leaf_ids: np.ndarray,
+                         leaves: Sequence[Function], say: Say | None) -> Function:
+    """:func:`tree` of digits too wide for one int64 key: one tree over the other digits per code of the first
+    digit, which become the leaves of a tree over the first digit (the same function, since the cells with one
+    code of the first digit are that code's subtree)."""
+    codes, which = np.unique(values[:, 0], return_inverse=True)
+    which = which.reshape(-1)
+    order = np.argsort(which, kind="stable")
+    bounds = np.searchsorted(which[order], np.arange(codes.size + 1))
+    subtrees = [tree(model, digits[1:], values[order[a:b], 1:], leaf_ids[order[a:b]], leaves, say)
+                for a, b in zip(bounds[:-1], bounds[1:])]
+    return tree(model, digits[:1], codes.reshape(-1, 1), np.arange(codes.size, dtype=np.int64), subtrees)
+
+
+def _tree_keys(model: SymbolicModel, digits: Sequence[str], values: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """Each cell's path from the root of the tree as one int64 key: the bits of its codes, ordered as the BDD
+    orders their variables (the top variable the most significant bit).
+
+    Returns
+    -------
+    names : list of str
+        The digits' bit variables in level order (``names[k]`` is key bit ``B - 1 - k``).
+    keys : ndarray of int64, shape (N,)
+    """
     names: list[str] = []
     for d, digit in enumerate(digits):
         m = len(model.bits[digit])
@@ -157,7 +191,7 @@ def tree(
         raise ValueError(f"a relation over {B} bits exceeds the {MAX_TREE_BITS}-bit tree keys")
     names.sort(key=model.bdd.level_of_var)
     shift = {name: B - 1 - k for k, name in enumerate(names)}  # key bit of each variable (top = MSB)
-    keys = np.zeros(ids.size, dtype=np.int64)
+    keys = np.zeros(values.shape[0], dtype=np.int64)
     for d, digit in enumerate(digits):
         # One lookup table per digit scatters its code's bits to their key positions (bits of different
         # digits may interleave in level order).
@@ -168,12 +202,16 @@ def tree(
         for b, name in enumerate(bits):
             table |= ((codes >> (m - 1 - b)) & 1) << shift[name]
         keys |= table[values[:, d]]
-    if not np.all(keys[1:] > keys[:-1]):  # often sorted already (row-major cells, digit-major order)
-        srt = np.argsort(keys, kind="stable")
-        keys, ids = keys[srt], ids[srt]
-        if np.any(keys[1:] == keys[:-1]):
-            raise ValueError("tree(): repeated cell in values")
+    return names, keys
+
+
+def _build_levels(model: SymbolicModel, names: list[str], keys: np.ndarray, ids: np.ndarray, subtrees: _Subtrees,
+                  say: Say | None) -> Function:
+    """The Shannon tree from its cells' sorted keys (:func:`_tree_keys`) and leaf ids: for each bit from the
+    bottom level up, siblings are paired and one ``ite`` is made per distinct ``(low, high)`` pair of ids."""
     ite = model.bdd.ite
+    funcs = subtrees.funcs
+    B = len(names)
     tell = _Every(say)
     for level in range(B - 1, -1, -1):
         if tell.due():
@@ -194,7 +232,7 @@ def tree(
         made = np.empty(pairs.size, dtype=np.int64)
         for q, pair in enumerate(pairs.tolist()):
             lo_id, hi_id = divmod(pair, M)
-            made[q] = lo_id if lo_id == hi_id else intern(ite(var, funcs[hi_id], funcs[lo_id]))
+            made[q] = lo_id if lo_id == hi_id else subtrees.intern(ite(var, funcs[hi_id], funcs[lo_id]))
         ids = made[inverse.ravel()]
         keys = parent[starts]
     return funcs[int(ids[0])]
