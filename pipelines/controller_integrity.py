@@ -28,7 +28,7 @@ import json
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from pipelines.errors import CompabsError
 
@@ -89,18 +89,41 @@ def job_spec_hash(directory: str | os.PathLike) -> str | None:
                                        "damaged: run the job again") from None
 
 
+class JsonMessages(NamedTuple):
+    """The messages of :func:`read_json_object`: ``str.format`` templates of ``path``, ``what`` (the file's role)
+    and ``reason``: the system's error, the JSON parser's, or the JSON type the file holds."""
+
+    unreadable: str
+    not_json: str
+    not_object: str
+
+
+#: A controller header that cannot be read: the controller is written anew.
+HEADER_MESSAGES = JsonMessages(
+    "{path}: cannot read the {what} ({reason})",
+    "{path}: not a readable {what}: not valid JSON ({reason}); " + RERUN,
+    "{path}: not a readable {what}: a JSON {reason}, not an object; " + RERUN,
+)
+
+
+def read_json_object(path: str | os.PathLike, what: str, error: type[Exception],
+                     messages: JsonMessages) -> dict[str, Any]:
+    """The JSON object in a file; one that is missing, unreadable, not JSON or not an object raises ``error`` with
+    the matching message (every caller names the file and what it is for)."""
+    try:
+        data = json.loads(Path(path).read_bytes())
+    except OSError as exc:
+        raise error(messages.unreadable.format(path=path, what=what, reason=exc.strerror or exc)) from None
+    except ValueError as exc:
+        raise error(messages.not_json.format(path=path, what=what, reason=exc)) from None
+    if not isinstance(data, dict):
+        raise error(messages.not_object.format(path=path, what=what, reason=type(data).__name__))
+    return data
+
+
 def read_header(path: str | os.PathLike, what: str = "controller header") -> dict[str, Any]:
     """A header's JSON object; a file that is missing, unreadable or not a JSON object is refused, named."""
-    try:
-        head = json.loads(Path(path).read_bytes())
-    except OSError as exc:
-        raise ControllerIntegrityError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
-    except ValueError as exc:
-        raise ControllerIntegrityError(f"{path}: not a readable {what}: not valid JSON ({exc}); {RERUN}") from None
-    if not isinstance(head, dict):
-        raise ControllerIntegrityError(f"{path}: not a readable {what}: a JSON {type(head).__name__}, not an object; "
-                                       f"{RERUN}")
-    return head
+    return read_json_object(path, what, ControllerIntegrityError, HEADER_MESSAGES)
 
 
 def seal(head: dict[str, Any], directory: str | os.PathLike, files: Iterable[str]) -> dict[str, Any]:

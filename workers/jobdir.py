@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from pipelines.abstraction.relation import SubsystemRelation
+from pipelines.controller_integrity import JsonMessages, read_json_object
 from pipelines.errors import CompabsError, SpecError
 from pipelines.grid import UniformGrid
 from pipelines.interconnection import InterconnectionAbstraction, NodeRelation
@@ -506,18 +507,17 @@ class JobArtifacts:
         return has_controller(self.directory)
 
 
+#: A job file that cannot be read: the job directory is damaged.
+JOB_FILE_MESSAGES = JsonMessages(
+    "{path}: cannot read the job's {what} ({reason})",
+    "{path}: damaged: the job's {what} is not valid JSON ({reason}); run the job again",
+    "{path}: damaged: the job's {what} is a JSON {reason}, not an object; run the job again",
+)
+
+
 def _read_json_object(path: Path, what: str) -> dict[str, Any]:
     """A job file's JSON object; one that is unreadable, not JSON or not an object is named (damaged)."""
-    try:
-        data = json.loads(path.read_bytes())
-    except OSError as exc:
-        raise ArtifactError(f"{path}: cannot read the job's {what} ({exc.strerror or exc})") from None
-    except ValueError as exc:
-        raise ArtifactError(f"{path}: damaged: the job's {what} is not valid JSON ({exc}); run the job again") from None
-    if not isinstance(data, dict):
-        raise ArtifactError(f"{path}: damaged: the job's {what} is a JSON {type(data).__name__}, not an object; run "
-                            "the job again")
-    return data
+    return read_json_object(path, what, ArtifactError, JOB_FILE_MESSAGES)
 
 
 def _read_spec_file(path: Path) -> JobSpec:

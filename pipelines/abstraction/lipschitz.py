@@ -63,15 +63,46 @@ def _reverse_weibull_location(maxima: np.ndarray) -> float:
     return float(loc) if np.isfinite(loc) else top
 
 
-def estimate_lipschitz(
-    sub: Subsystem,
-    argument: str,
-    rng: np.random.Generator,
-    batches: int = 40,
-    pairs: int = 200,
-    delta: float | None = None,
-    safety_factor: float = 1.1,
-) -> LipschitzEstimate:
+@dataclass(frozen=True)
+class _Pairs:
+    """What Algorithm 4 draws its pairs in, for one argument of one subsystem (:func:`_pairs`)."""
+
+    lb: np.ndarray  # the argument's box
+    ub: np.ndarray
+    delta: float  # largest distance of a pair
+    n_u: int  # input grid points
+    total: int  # pairs: n_u * batches * pairs
+    U: np.ndarray  # the input of each pair, shape (total, m): every input batches * pairs times
+
+
+def _pairs(sub: Subsystem, argument: str, batches: int, pairs: int, delta: float | None) -> _Pairs | None:
+    """The box, distance and inputs of Algorithm 4's pairs of ``argument`` (``None``: the subsystem has no such
+    argument); ``delta`` defaults to a tenth of the grid's smallest spacing."""
+    grid = sub.state_grid if argument == "x" else sub.internal_grid
+    if grid is None:
+        return None
+    u_pts = sub.input_grid.all_points()
+    return _Pairs(np.asarray(grid.lb), np.asarray(grid.ub),
+                  float(np.min(grid.eta_array)) / 10 if delta is None else delta, u_pts.shape[0],
+                  u_pts.shape[0] * batches * pairs, np.repeat(u_pts, batches * pairs, axis=0))
+
+
+def _images(sub: Subsystem, argument: str, a: np.ndarray, b: np.ndarray, U: np.ndarray,
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``f`` at the pairs ``a``, ``b`` of ``argument`` with inputs ``U``, the other argument drawn at random in its
+    box (after ``a`` and ``b``) and shared by each pair."""
+    other_grid = sub.internal_grid if argument == "x" else sub.state_grid
+    if other_grid is None:
+        other = np.zeros((a.shape[0], 0))
+    else:
+        other = rng.uniform(np.asarray(other_grid.lb), np.asarray(other_grid.ub), (a.shape[0], other_grid.dim))
+    if argument == "x":
+        return sub.dynamics(a, U, other), sub.dynamics(b, U, other)
+    return sub.dynamics(other, U, a), sub.dynamics(other, U, b)
+
+
+def estimate_lipschitz(sub: Subsystem, argument: str, rng: np.random.Generator, batches: int = 40, pairs: int = 200,
+                       delta: float | None = None, safety_factor: float = 1.1) -> LipschitzEstimate:
     """Algorithm 4: estimate ``L_x`` (``argument='x'``) or ``L_w`` (``'w'``) of a subsystem's dynamics.
 
     For every input ``û`` and each of ``batches`` batches, ``pairs`` random pairs at infinity-distance at
@@ -79,31 +110,16 @@ def estimate_lipschitz(
     argument drawn at random and shared by the pair, give slopes ``||f(a) - f(b)|| / ||a - b||``; the batch
     maxima are fitted by a reverse Weibull distribution whose location estimates the constant.
     """
-    grid = sub.state_grid if argument == "x" else sub.internal_grid
-    if grid is None:
+    box = _pairs(sub, argument, batches, pairs, delta)
+    if box is None:
         return LipschitzEstimate(0.0, 0.0, 0.0, 0, 0)
-    lb, ub = np.asarray(grid.lb), np.asarray(grid.ub)
-    d = grid.dim
-    if delta is None:
-        delta = float(np.min(grid.eta_array)) / 10
-    u_pts = sub.input_grid.all_points()
-    n_u = u_pts.shape[0]
-    total = n_u * batches * pairs
-    a = rng.uniform(lb, ub, (total, d))
-    step = rng.uniform(-delta, delta, (total, d))
+    lb, ub, delta, n_u, total = box.lb, box.ub, box.delta, box.n_u, box.total
+    a = rng.uniform(lb, ub, (total, lb.size))
+    step = rng.uniform(-delta, delta, (total, lb.size))
     b = np.clip(a + step, lb, ub)
     same = np.all(a == b, axis=1)
     b[same] = np.clip(a[same] + delta / 2, lb, ub)
-    other_grid = sub.internal_grid if argument == "x" else sub.state_grid
-    if other_grid is None:
-        other = np.zeros((total, 0))
-    else:
-        other = rng.uniform(np.asarray(other_grid.lb), np.asarray(other_grid.ub), (total, other_grid.dim))
-    U = np.repeat(u_pts, batches * pairs, axis=0)
-    if argument == "x":
-        fa, fb = sub.dynamics(a, U, other), sub.dynamics(b, U, other)
-    else:
-        fa, fb = sub.dynamics(other, U, a), sub.dynamics(other, U, b)
+    fa, fb = _images(sub, argument, a, b, box.U, rng)
     dist = np.max(np.abs(a - b), axis=1)
     ok = dist > 0
     slopes = np.zeros(total)
@@ -122,15 +138,8 @@ def estimation_rounds(n: int, d: int) -> int:
     return 1 if n * d == 1 else 1 + d
 
 
-def estimate_entries(
-    sub: Subsystem,
-    argument: str,
-    rng: np.random.Generator,
-    batches: int = 40,
-    pairs: int = 200,
-    delta: float | None = None,
-    safety_factor: float = 1.1,
-) -> EntryEstimate:
+def estimate_entries(sub: Subsystem, argument: str, rng: np.random.Generator, batches: int = 40, pairs: int = 200,
+                     delta: float | None = None, safety_factor: float = 1.1) -> EntryEstimate:
     """Algorithm 4 per entry: ``L_x[i, j]`` (``argument='x'``) or ``L_w[i, j]`` (``'w'``) for every component ``i``
     of the successor and coordinate ``j`` of the argument.
 
@@ -138,20 +147,13 @@ def estimate_entries(
     the argument and the other argument drawn at random and shared by the pair), and the slopes
     ``|f_i(a) - f_i(b)| / |a_j - b_j|`` fitted per component: ``n`` fits per input and coordinate.
     """
-    grid = sub.state_grid if argument == "x" else sub.internal_grid
     n = sub.n
-    if grid is None:
+    box = _pairs(sub, argument, batches, pairs, delta)
+    if box is None:
         empty = np.zeros((n, 0))
         return EntryEstimate(empty, empty, empty)
-    lb, ub = np.asarray(grid.lb), np.asarray(grid.ub)
-    d = grid.dim
-    if delta is None:
-        delta = float(np.min(grid.eta_array)) / 10
-    u_pts = sub.input_grid.all_points()
-    n_u = u_pts.shape[0]
-    total = n_u * batches * pairs
-    other_grid = sub.internal_grid if argument == "x" else sub.state_grid
-    U = np.repeat(u_pts, batches * pairs, axis=0)
+    lb, ub, delta, n_u, total = box.lb, box.ub, box.delta, box.n_u, box.total
+    d = lb.size
     value, location, max_slope = np.zeros((n, d)), np.zeros((n, d)), np.zeros((n, d))
     for j in range(d):
         a = rng.uniform(lb, ub, (total, d))
@@ -159,14 +161,7 @@ def estimate_entries(
         b[:, j] = np.clip(a[:, j] + rng.uniform(-delta, delta, total), lb[j], ub[j])
         same = a[:, j] == b[:, j]
         b[same, j] = np.clip(a[same, j] + delta / 2, lb[j], ub[j])
-        if other_grid is None:
-            other = np.zeros((total, 0))
-        else:
-            other = rng.uniform(np.asarray(other_grid.lb), np.asarray(other_grid.ub), (total, other_grid.dim))
-        if argument == "x":
-            fa, fb = sub.dynamics(a, U, other), sub.dynamics(b, U, other)
-        else:
-            fa, fb = sub.dynamics(other, U, a), sub.dynamics(other, U, b)
+        fa, fb = _images(sub, argument, a, b, box.U, rng)
         dist = np.abs(a[:, j] - b[:, j])
         ok = dist > 0  # a box of zero width along j: no pair, no slope
         slopes = np.zeros((total, n))

@@ -211,6 +211,13 @@ def _solve_row(d: np.ndarray, r: np.ndarray, w: np.ndarray, L: float, coef: np.n
 
 
 @_jit
+def _row_workspace(K: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The arrays :func:`_solve_row` works in for ``K`` classes and ``n`` coordinates, made once per call and reused
+    for every row: the tableau, its basis, the constraints ``d`` and ``r``, and the unit coefficients."""
+    return np.empty((n + 2, K + n + 3)), np.empty(n + 1, dtype=np.int64), np.empty((K, n)), np.empty(K), np.ones(n)
+
+
+@_jit
 def scp_parameters_rows(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray, budget: np.ndarray,
                         by_spacing: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The SCP of every triple and output row: ``theta1`` of shape (B, n, n) and ``theta2`` of shape (B, n).
@@ -234,11 +241,7 @@ def scp_parameters_rows(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.nda
     K, n, B = E.shape
     theta1 = np.zeros((B, n, n))
     theta2 = np.zeros((B, n))
-    tab = np.empty((n + 2, K + n + 3))
-    basis = np.empty(n + 1, dtype=np.int64)
-    d = np.empty((K, n))
-    r = np.empty(K)
-    ones = np.ones(n)
+    tab, basis, d, r, ones = _row_workspace(K, n)
     for b in range(B):
         for q in range(K):
             for a in range(n):
@@ -297,12 +300,8 @@ def scp_radii_rows(E: np.ndarray, k: np.ndarray, h: np.ndarray, rho: np.ndarray,
             if 2.0 * k[q, a] > counts[a]:
                 near[q] = False
     rad = np.empty((B, n))
-    tab = np.empty((n + 2, K + n + 3))
-    basis = np.empty(n + 1, dtype=np.int64)
-    d = np.empty((K, n))
-    r = np.empty(K)
+    tab, basis, d, r, ones = _row_workspace(K, n)
     theta1 = np.empty(n)
-    ones = np.ones(n)
     for b in range(B):
         filled = False
         for j in range(n):

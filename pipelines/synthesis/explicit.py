@@ -34,6 +34,7 @@ import numpy as np
 from pipelines.errors import SpecError
 from pipelines.spec.regions import AbstractRegion, abstract_region
 from pipelines.synthesis import explicit_kernels as kernels
+from pipelines.synthesis import results
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -231,16 +232,8 @@ class ExplicitResult:
         return int(self.domain.sum())
 
     def summary(self) -> dict[str, Any]:
-        return {
-            "kind": self.kind,
-            "domain_states": self.domain_states,
-            "iterations": self.iterations,
-            "inner_iterations": self.inner_iterations,
-            "seconds": self.seconds,
-            "controller_form": "array",
-            "controller_pairs": int(self.admissible.sum()),
-            **self.details,
-        }
+        """JSON-ready numbers (:func:`.results.summary`)."""
+        return results.summary(self, controller_form="array", controller_pairs=int(self.admissible.sum()))
 
 
 def _tick(progress: IterationProgress | None, kind: str, iterations: int, domain: np.ndarray) -> None:

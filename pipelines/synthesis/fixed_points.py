@@ -27,6 +27,7 @@ from typing import Any, Concatenate, ParamSpec, TypeVar
 
 from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.symbolic_model import Function, SymbolicModel
+from pipelines.synthesis import results
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor
 from pipelines.synthesis.local_games import invariant_bound
@@ -89,20 +90,15 @@ class SynthesisResult:
     stay: bool = False
 
     def summary(self) -> dict[str, Any]:
-        """JSON-ready numbers (no BDDs)."""
-        return {
-            "kind": self.kind,
-            "domain_states": self.domain_states,
-            "iterations": self.iterations,
-            "inner_iterations": self.inner_iterations,
-            "seconds": self.seconds,
-            "peak_nodes": self.peak_nodes,
-            "controller_form": "layered" if self.layers else "explicit",
-            "controller_nodes": self.controller.dag_size if self.controller is not None else None,
-            "layer_nodes": [f.dag_size for f in self.layers],
-            "domain_nodes": self.domain.dag_size,
-            **self.details,
-        }
+        """JSON-ready numbers, no BDDs (:func:`.results.summary`)."""
+        return results.summary(
+            self,
+            peak_nodes=self.peak_nodes,
+            controller_form="layered" if self.layers else "explicit",
+            controller_nodes=self.controller.dag_size if self.controller is not None else None,
+            layer_nodes=[f.dag_size for f in self.layers],
+            domain_nodes=self.domain.dag_size,
+        )
 
 
 def _peak_live_nodes(model: SymbolicModel) -> int:

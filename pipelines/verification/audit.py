@@ -11,7 +11,7 @@ errors live.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -75,15 +75,26 @@ def _either_cell(grid: UniformGrid, x: np.ndarray, rng: np.random.Generator) -> 
     return np.where(off, np.where(pick_up, low, up), idx)
 
 
+def _batches(count: int) -> Iterator[int]:
+    """The sizes of the batches of ``count`` draws: :data:`BATCH` each, the last one the rest."""
+    return (min(BATCH, count - start) for start in range(0, count, BATCH))
+
+
+def _composed_draws(network: Network, grid: UniformGrid, b: int, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """``b`` composed states ``x`` (:func:`draw_in_box`), their cells, ``w = M(x)``, its cells and whether it lies in
+    the internal boxes (:func:`_internal_cells`), drawn from ``rng`` in that order."""
+    x = draw_in_box(grid, b, rng)
+    x_idx = _either_cell(grid, x, rng)
+    w = network.interconnection_map(x)
+    return (x, x_idx, w, *_internal_cells(network, w, rng))
+
+
 def audit_subsystem(sub: Subsystem, rel: SubsystemRelation, count: int, rng: np.random.Generator) -> AuditResult:
     """Check ``count`` random concrete transitions of one subsystem against its relation."""
     xg, ug, wg = sub.state_grid, sub.input_grid, sub.internal_grid
     checked = violations = skipped = 0
     first: str | None = None
-    done = 0
-    while done < count:
-        b = min(BATCH, count - done)
-        done += b
+    for b in _batches(count):
         x = draw_in_box(xg, b, rng)
         ui = rng.integers(0, ug.size, b)
         u = ug.points(ug.unravel(ui))
@@ -98,13 +109,7 @@ def audit_subsystem(sub: Subsystem, rel: SubsystemRelation, count: int, rng: np.
         lo, hi, block = rel.successor_ranges(xi, ui, wi)
         skipped += int(block.sum())
         live = ~block
-        # A successor on a cell boundary lies in both cells: both must be successors.
-        n_up, in_up = xg.cell_of(xn, "upper")
-        n_low, in_low = xg.cell_of(xn, "lower")
-        inside_box = np.all((xn >= np.asarray(xg.lb)) & (xn <= np.asarray(xg.ub)), axis=1)
-        ok = in_up & in_low & inside_box
-        ok &= np.all((n_up >= lo) & (n_up <= hi) & (n_low >= lo) & (n_low <= hi), axis=1)
-        n_idx = n_up
+        ok, n_idx = _successor_ok(xg, xn, lo, hi)
         bad = live & ~ok
         checked += int(live.sum())
         violations += int(bad.sum())
@@ -135,14 +140,8 @@ def audit_interconnection(network: Network, ia, count: int, rng: np.random.Gener
     grid = network.composed_state_grid()
     checked = violations = 0
     first: str | None = None
-    done = 0
-    while done < count:
-        b = min(BATCH, count - done)
-        done += b
-        x = draw_in_box(grid, b, rng)
-        x_idx = _either_cell(grid, x, rng)
-        w = network.interconnection_map(x)
-        w_idx, ok = _internal_cells(network, w, rng)
+    for b in _batches(count):
+        x, x_idx, w, w_idx, ok = _composed_draws(network, grid, b, rng)
         safe_idx = np.where(ok[:, None], w_idx, 0)
         ok &= ia.contains(x_idx, safe_idx)
         checked += b
@@ -205,14 +204,8 @@ def audit_composition(
     subs = network.subsystems
     checked = violations = skipped = 0
     first: str | None = None
-    done = 0
-    while done < count:
-        b = min(BATCH, count - done)
-        done += b
-        x = draw_in_box(grid, b, rng)
-        x_idx = _either_cell(grid, x, rng)
-        w = network.interconnection_map(x)
-        w_idx, w_in = _internal_cells(network, w, rng)
+    for b in _batches(count):
+        x, x_idx, w, w_idx, w_in = _composed_draws(network, grid, b, rng)
         bad_w = ~(w_in & ia.contains(x_idx, w_idx))
         blocked = np.zeros(b, dtype=bool)
         bad_sub = np.zeros(b, dtype=bool)
