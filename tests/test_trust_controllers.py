@@ -21,8 +21,8 @@ new child. Every attempt must be refused: a :class:`~pipelines.errors.CompabsErr
 status 2 with one ``error:`` line. A few cases run through the real ``python -m service.cli`` (exit 2, never a
 signal), and through the API's download (``GET /jobs/{id}/controller``: 409 or another 4xx with a JSON body,
 never 200 or 5xx) of a job whose files are those of the BDD job, stored as succeeded in the real job store. The
-download verifies checksums and the spec hash, and hands nothing to CUDD: a resealed DDDMP file with an invalid
-node line is refused where it is read (``load_controller`` on the unzipped files), so the API's draws leave it out.
+download verifies checksums, the spec hash and each BDD file's structure (a resealed DDDMP file with an invalid
+node line is refused there too), and hands nothing to CUDD.
 
 Forged headers whose text carries C and whose checksums are recomputed load (checksums are not signatures:
 pipelines/controller_integrity.py); their C export must hold none of that text. They have a row of their own.
@@ -544,7 +544,7 @@ def api_downloads(cases: range, jobs: dict[str, Path], tmp_path: Path) -> None:
         first = client.get(f"/jobs/{job_id}/controller", headers=auth)
         assert first.status_code == 200 and first.content[:2] == b"PK", first.text  # and its archive is made
         for number in cases:
-            case = draw(number, target, targets=("bdd",), forged_c=False, forged_nodes=False)
+            case = draw(number, target, targets=("bdd",), forged_c=False)
             try:
                 r = client.get(f"/jobs/{job_id}/controller", headers=auth)
             finally:

@@ -19,6 +19,7 @@ from pipelines.controller_integrity import (
     verify_header,
 )
 from pipelines.spec.model import JobSpec, spec_hash
+from pipelines.symbolic.files import check_dddmp
 from workers.jobdir import CONTROLLER, has_controller
 
 __all__ = ["controller_archive", "controller_files", "verify_controller"]
@@ -56,7 +57,18 @@ def verify_controller(out_dir: str | os.PathLike[str], spec: JobSpec | None = No
     files = controller_files(out_dir)
     head = files[-1]
     job_hash = spec_hash(spec) if spec is not None else job_spec_hash(out_dir)
-    verify_header(read_header(head), head, [f.name for f in files[:-1]], job_hash)
+    header = read_header(head)
+    verify_header(header, head, [f.name for f in files[:-1]], job_hash)
+    # A header resealed by a writer of the job directory passes the checksums: the BDD files' structure is checked
+    # too, so that no file a download serves can crash the CUDD that reads it.
+    bdd_files = [f for f in files[:-1] if f.suffix == ".dddmp"]
+    if bdd_files:
+        variables = header.get("variables")
+        if not isinstance(variables, list) or not all(isinstance(v, str) for v in variables):
+            raise ControllerIntegrityError(f"{head}: not a readable controller header (its 'variables' are not a "
+                                           "list of names); run the job again")
+        for f in bdd_files:
+            check_dddmp(f, variables)
     return files
 
 
