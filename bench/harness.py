@@ -85,7 +85,7 @@ class StageClock:
 
     Only events from the thread that made the clock count: an audit beside synthesis reports from its relay
     thread, and its segments would both race this thread's (a negative wall) and steal the time of the stage
-    running meanwhile. Such a stage is charged where the main thread waits for it (``finish_audit``).
+    running meanwhile. Such a stage is charged where the main thread waits for it (``JobSession.finish_audit``).
     """
 
     def __init__(self, emit: Emit) -> None:

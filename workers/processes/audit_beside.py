@@ -1,4 +1,5 @@
-"""The audit in a child process, beside synthesis (``run_abstraction(audit_beside=True)``).
+"""The audit in a child process, beside synthesis (``run_abstraction(session=...)``; the
+:class:`~workers.job_session.JobSession` holds it until its ``finish_audit`` or ``close``).
 
 Synthesis needs nothing the audit makes, and the audit (Theorems 4.2 and 4.7 checked on random transitions,
 :func:`~pipelines.verification.audit.audit_abstraction`) is pure numpy, while synthesis is CUDD in the job's process, which holds the
