@@ -155,49 +155,109 @@ def phase_plane(
     window = (ei[0], ei[-1], ej[0], ej[-1])
     fig = Figure(figsize=(7.8, 6.0))
     ax = fig.subplots()
-    handles: list = []
-    lines = [setting.initial_state_line()]
-
     base, where = base_cell(grid, setting.x0, runs, setting.x0_in_domain)
     sliced = grid.dim > 2
-    cells = grid.shape[i] * grid.shape[j]
     scope = f"slice through {where}, the other coordinates at its centre" if sliced else "whole state space"
+    handles, domain_lines = _draw_domain(ax, grid, in_domain, plane, base, (i, j), window, scope)
+    lines = [setting.initial_state_line(), *domain_lines]
+    region_handles, region_lines = _draw_regions(ax, setting, base, (i, j), window)
+    handles += region_handles
+    lines += region_lines + setting.notes
+    handles += _draw_runs(ax, runs, i, j)
+    if setting.x0 is not None and not setting.x0_in_domain:
+        x0_handles, x0_lines = _mark_x0_outside(ax, setting, base, (i, j))
+        handles += x0_handles
+        lines += x0_lines
+    n_init = sum(1 for origin, _, _ in runs if origin == "initial")
+    from_x0 = f"{n_init} from x0, " if setting.x0 is not None else ""
+    projected = ", projected on this plane" if sliced else ""
+    lines.append(f"runs: {from_x0}{len(runs) - n_init} from random domain states{projected}; "
+                 f"inputs: {CHOICES.get(setting.choice, setting.choice)}")
+
+    ax.set_xlim(window[0], window[1])
+    ax.set_ylim(window[2], window[3])
+    ri, rj = window[1] - window[0], window[3] - window[2]
+    if max(ri, rj) <= 3 * min(ri, rj):  # comparable ranges: distances read the same on both axes
+        ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel(setting.state_names[i])
+    ax.set_ylabel(setting.state_names[j])
+    ax.set_title("\n".join(textwrap.fill(t, 95) for t in lines), fontsize=8, loc="left")
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    return fig
+
+
+#: The window of a phase plane: ``(x_min, x_max, y_min, y_max)``, the outer edges of the grid's cells.
+Window = tuple[float, float, float, float]
+
+
+def _draw_domain(ax, grid: UniformGrid, in_domain: Callable[[np.ndarray], np.ndarray] | None,
+                 plane: Callable[[np.ndarray, int, int], np.ndarray] | None, base: np.ndarray,
+                 axes: tuple[int, int], window: Window, scope: str) -> tuple[list, list[str]]:
+    """The winning domain on the plane of ``axes`` through cell ``base`` as an image (``gid="domain"``), one
+    pixel per cell or, beyond :data:`MAX_IMAGE_SIDE` cells along a side, per block of cells; or the reason it is
+    not drawn. ``scope`` says what the plane is (the whole state space or a slice).
+
+    Returns
+    -------
+    handles : list
+        The domain's legend entries.
+    lines : list of str
+        What the caption says of the domain.
+    """
+    i, j = axes
+    cells = grid.shape[i] * grid.shape[j]
     cap = MAX_SLICE_CELLS if plane is None else MAX_PLANE_CELLS
     if in_domain is None and plane is None:
-        lines.append("no controller: no domain drawn")
-    elif cells > cap:
-        lines.append(f"domain not drawn: {cells:,} cells on this plane (at most {cap:,})")
+        return [], ["no controller: no domain drawn"]
+    if cells > cap:
+        return [], [f"domain not drawn: {cells:,} cells on this plane (at most {cap:,})"]
+    if plane is not None:
+        mask = np.asarray(plane(base, i, j), dtype=bool)
     else:
-        if plane is not None:
-            mask = np.asarray(plane(base, i, j), dtype=bool)
-        else:
-            assert in_domain is not None
-            mask = slice_mask(in_domain, grid, i, j, base)
-        label = f"winning domain ({int(mask.sum()):,} of {mask.size:,} cells)"
-        factors = block_factors(mask.shape, MAX_IMAGE_SIDE)
-        if factors == (1, 1):
-            image = mask.astype(np.int8)
-            extent = window
-            colors = [(1, 1, 1, 0), DOMAIN_COLOR]
-            handles.append(Patch(facecolor=DOMAIN_COLOR, edgecolor="none", label=label))
-        else:
-            image = block_levels(mask, factors)
-            # The last block of an axis may reach past the grid; the axes' limits cut it at the grid's edge.
-            extent = (ei[0], ei[0] + image.shape[0] * factors[0] * grid.eta[i],
-                      ej[0], ej[0] + image.shape[1] * factors[1] * grid.eta[j])
-            colors = [(1, 1, 1, 0), PARTLY_COLOR, DOMAIN_COLOR]
-            handles.append(Patch(facecolor=DOMAIN_COLOR, edgecolor="none",
-                                 label=f"{label}:\nblocks of {factors[0]} x {factors[1]} cells wholly in it"))
-            handles.append(Patch(facecolor=PARTLY_COLOR, edgecolor="none", label="blocks partly in it"))
-            scope += f"; drawn in blocks of {factors[0]} x {factors[1]} cells ({cells:,} cells on this plane)"
-        ax.imshow(image.T, origin="lower", extent=extent, interpolation="nearest", aspect="auto",
-                  cmap=ListedColormap(colors), vmin=0, vmax=len(colors) - 1, gid="domain", zorder=0)
-        lines.append(f"domain: {scope}")
+        assert in_domain is not None
+        mask = slice_mask(in_domain, grid, i, j, base)
+    label = f"winning domain ({int(mask.sum()):,} of {mask.size:,} cells)"
+    factors = block_factors(mask.shape, MAX_IMAGE_SIDE)
+    if factors == (1, 1):
+        image = mask.astype(np.int8)
+        extent = window
+        colors = [(1, 1, 1, 0), DOMAIN_COLOR]
+        handles = [Patch(facecolor=DOMAIN_COLOR, edgecolor="none", label=label)]
+    else:
+        image = block_levels(mask, factors)
+        # The last block of an axis may reach past the grid; the axes' limits cut it at the grid's edge.
+        extent = (window[0], window[0] + image.shape[0] * factors[0] * grid.eta[i],
+                  window[2], window[2] + image.shape[1] * factors[1] * grid.eta[j])
+        colors = [(1, 1, 1, 0), PARTLY_COLOR, DOMAIN_COLOR]
+        handles = [Patch(facecolor=DOMAIN_COLOR, edgecolor="none",
+                         label=f"{label}:\nblocks of {factors[0]} x {factors[1]} cells wholly in it"),
+                   Patch(facecolor=PARTLY_COLOR, edgecolor="none", label="blocks partly in it")]
+        scope += f"; drawn in blocks of {factors[0]} x {factors[1]} cells ({cells:,} cells on this plane)"
+    ax.imshow(image.T, origin="lower", extent=extent, interpolation="nearest", aspect="auto",
+              cmap=ListedColormap(colors), vmin=0, vmax=len(colors) - 1, gid="domain", zorder=0)
+    return handles, [f"domain: {scope}"]
 
+
+def _draw_regions(ax, setting: FigureSetting, base: np.ndarray, axes: tuple[int, int],
+                  window: Window) -> tuple[list, list[str]]:
+    """The state set and the specification's regions (target, safe set, obstacles) as boxes clipped to the
+    window; on a slice, only the boxes that meet it.
+
+    Returns
+    -------
+    handles : list
+        One legend entry per kind of box drawn.
+    lines : list of str
+        For the caption: the regions of which no box meets the plane.
+    """
+    grid = setting.grid
+    i, j = axes
+    sliced = grid.dim > 2
     box = Rectangle((grid.lb[i], grid.lb[j]), grid.ub[i] - grid.lb[i], grid.ub[j] - grid.lb[j], fill=False,
                     edgecolor="grey", linestyle=":", linewidth=1.0, gid="state_set", label="state set X", zorder=1)
     ax.add_patch(box)
-    handles.append(box)
+    handles: list = [box]
+    lines = []
     for key in REGION_NAMES:
         drawn = 0
         for k, (lb, ub) in enumerate(setting.regions.get(key, [])):
@@ -219,36 +279,28 @@ def phase_plane(
             drawn += 1
         if key in setting.regions and drawn == 0:
             lines.append(f"{key}: no box meets this {'slice' if sliced else 'plane'}")
-    lines += setting.notes
+    return handles, lines
 
-    handles += _draw_runs(ax, runs, i, j)
-    if setting.x0 is not None and not setting.x0_in_domain:
-        # x0 is drawn only where it lies: on a slice elsewhere its projection would sit over the domain cells of
-        # another slice, so the caption says where it is instead.
-        x0_cell, on_grid = grid.cell_of(np.asarray(setting.x0, dtype=float)[None, :])
-        others = [k for k in range(grid.dim) if k not in (i, j)]
-        away = sliced and not (on_grid[0] and np.array_equal(x0_cell[0][others], np.asarray(base)[others]))
-        if away:
-            lines.append(f"x0 = {vector(setting.x0)} (not in the domain) lies off this slice: not drawn")
-        else:
-            handles += ax.plot([setting.x0[i]], [setting.x0[j]], "x", color="crimson", markersize=10, mew=2.5,
-                               label="x0 (not in the domain)", gid="x0_outside", zorder=6)
-    n_init = sum(1 for origin, _, _ in runs if origin == "initial")
-    from_x0 = f"{n_init} from x0, " if setting.x0 is not None else ""
-    projected = ", projected on this plane" if sliced else ""
-    lines.append(f"runs: {from_x0}{len(runs) - n_init} from random domain states{projected}; "
-                 f"inputs: {CHOICES.get(setting.choice, setting.choice)}")
 
-    ax.set_xlim(window[0], window[1])
-    ax.set_ylim(window[2], window[3])
-    ri, rj = window[1] - window[0], window[3] - window[2]
-    if max(ri, rj) <= 3 * min(ri, rj):  # comparable ranges: distances read the same on both axes
-        ax.set_aspect("equal", adjustable="box")
-    ax.set_xlabel(setting.state_names[i])
-    ax.set_ylabel(setting.state_names[j])
-    ax.set_title("\n".join(textwrap.fill(t, 95) for t in lines), fontsize=8, loc="left")
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
-    return fig
+def _mark_x0_outside(ax, setting: FigureSetting, base: np.ndarray, axes: tuple[int, int]) -> tuple[list, list[str]]:
+    """An initial state outside the domain, marked where it lies (``gid="x0_outside"``); on a slice it does not
+    lie on, the caption says so instead: its projection would sit over the domain cells of another slice.
+
+    Returns
+    -------
+    handles, lines : list
+        Its legend entry, or the caption's line.
+    """
+    grid, x0 = setting.grid, setting.x0
+    assert x0 is not None
+    i, j = axes
+    x0_cell, on_grid = grid.cell_of(np.asarray(x0, dtype=float)[None, :])
+    others = [k for k in range(grid.dim) if k not in (i, j)]
+    away = grid.dim > 2 and not (on_grid[0] and np.array_equal(x0_cell[0][others], np.asarray(base)[others]))
+    if away:
+        return [], [f"x0 = {vector(x0)} (not in the domain) lies off this slice: not drawn"]
+    return ax.plot([x0[i]], [x0[j]], "x", color="crimson", markersize=10, mew=2.5, label="x0 (not in the domain)",
+                   gid="x0_outside", zorder=6), []
 
 
 def _draw_runs(ax, runs: Sequence[tuple[str, np.ndarray, Run]], i: int, j: int) -> list:
