@@ -17,7 +17,7 @@ import numpy as np
 from pipelines.spec.regions import AbstractRegion, abstract_region
 from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.relations import region
-from pipelines.symbolic.symbolic_model import Function
+from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
 from pipelines.synthesis.domain_bound import domain_bound
@@ -34,6 +34,7 @@ from pipelines.synthesis.quotient import Refinement, quotient
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
+    from pipelines.grid import UniformGrid
     from pipelines.interconnection import InterconnectionAbstraction
     from pipelines.network import Network
     from pipelines.spec.model import SpecificationSpec
@@ -83,7 +84,6 @@ def synthesize(
         before a large fixed point ends).
     """
     o = options if options is not None else SynthesisOptions()
-    local_games, refine_rounds = o.local_games, o.refine_rounds
     t0 = time.perf_counter()
     cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=o.order,
                                                 method=o.method, max_memory=o.max_memory, chain_order=o.chain_order,
@@ -92,7 +92,6 @@ def synthesize(
                                                 symmetry=o.symmetry,
                                                 say=None if progress is None else (lambda message: progress(0, message)))
     build = time.perf_counter() - t0
-    m = cpre.model
     t0 = time.perf_counter()
     try:
         game = quotient(cpre, o.quotient_level)
@@ -100,43 +99,64 @@ def synthesize(
         cpre.close()
         raise
     quotient_seconds = time.perf_counter() - t0
-    refine = Refinement(cpre, refine_rounds) if refine_rounds and game is not cpre else None
-    grid = network.composed_state_grid()
-
-    built: dict[str, Function] = {}
-
-    def states(name: str) -> Function:
-        # Targets and safe sets from inside, avoid sets from outside (docs/method.md §1): an abstract winning run then
-        # satisfies the concrete specification. Built once: the domain bound and the fixed points both read them.
-        if name not in built:
-            built[name] = region(m, abstract_region(getattr(specification, name), grid, f"specification.{name}",
-                                                    outer=(name == "avoid")))
-        return built[name]
-
-    layered = o.controller_form == "layered" or (o.controller_form == "auto" and cpre.method == "shared")
+    sets = _SpecificationSets(cpre.model, specification, network.composed_state_grid())
     kind = specification.kind
-    bound_report: dict[str, Any] | None = None
     try:
-        S = states("safe") if kind != "safe" and specification.safe is not None else None
-        bound_report = _domain_bound(cpre, kind, states("safe" if kind == "safe" else "target"), S,
-                                     states("avoid") if kind == "reach_avoid" else None, o.initial_cells, progress)
-        if kind == "safe":
-            results = {"safe": safe(game, states("safe"), layered=layered, progress=progress,
-                                    local_games=local_games, checkpoints=checkpoints, refine=refine)}
-        elif kind == "reach":
-            results = {"reach": reach(game, states("target"), layered=layered, safe=S, progress=progress)}
-        elif kind == "reach_avoid":
-            results = {"reach_avoid": reach_avoid(game, states("target"), states("avoid"), layered=layered, safe=S,
-                                                  progress=progress)}
-        else:
-            results = reach_and_stay(game, states("target"), o.reach_and_stay_methods, layered=layered, safe=S,
-                                     progress=progress, local_games=local_games, checkpoints=checkpoints,
-                                     refine=refine)
+        S = sets.get("safe") if kind != "safe" and specification.safe is not None else None
+        bound_report = _domain_bound(cpre, kind, sets.get("safe" if kind == "safe" else "target"), S,
+                                     sets.get("avoid") if kind == "reach_avoid" else None, o.initial_cells, progress)
+        results = _solve(cpre, game, kind, sets, S, o, progress, checkpoints)
     finally:
         if game is not cpre:
             game.close()
         cpre.close()
-    report = {
+    return cpre, results, _report(cpre, game, results, bound_report, build, quotient_seconds, o.refine_rounds)
+
+
+class _SpecificationSets:
+    """The specification's regions as BDDs over the composed state bits, each built once (the domain bound and
+    the fixed points both read them). Targets and safe sets from inside, avoid sets from outside (docs/method.md
+    §1): an abstract winning run then satisfies the concrete specification."""
+
+    def __init__(self, model: SymbolicModel, specification: SpecificationSpec, grid: UniformGrid) -> None:
+        self.model, self.specification, self.grid = model, specification, grid
+        self.built: dict[str, Function] = {}
+
+    def get(self, name: str) -> Function:
+        """The region ``name`` (``target``, ``safe`` or ``avoid``) of the specification."""
+        if name not in self.built:
+            self.built[name] = region(self.model, abstract_region(getattr(self.specification, name), self.grid,
+                                                                  f"specification.{name}", outer=(name == "avoid")))
+        return self.built[name]
+
+
+def _solve(cpre: ControllablePredecessor, game: ControllablePredecessor, kind: str, sets: _SpecificationSets,
+           S: Function | None, o: SynthesisOptions, progress: IterationProgress | None,
+           checkpoints: Checkpoints | None) -> dict[str, SynthesisResult]:
+    """The fixed point of the specification's kind on ``game`` (the fine game ``cpre`` or its quotient, refined
+    by ``o.refine_rounds`` rounds where it is one), within the safe set ``S`` (``None``: none besides a ``safe``
+    specification's own); the results by name as :func:`synthesize` returns them."""
+    refine = Refinement(cpre, o.refine_rounds) if o.refine_rounds and game is not cpre else None
+    layered = o.controller_form == "layered" or (o.controller_form == "auto" and cpre.method == "shared")
+    if kind == "safe":
+        return {"safe": safe(game, sets.get("safe"), layered=layered, progress=progress,
+                             local_games=o.local_games, checkpoints=checkpoints, refine=refine)}
+    if kind == "reach":
+        return {"reach": reach(game, sets.get("target"), layered=layered, safe=S, progress=progress)}
+    if kind == "reach_avoid":
+        return {"reach_avoid": reach_avoid(game, sets.get("target"), sets.get("avoid"), layered=layered, safe=S,
+                                           progress=progress)}
+    return reach_and_stay(game, sets.get("target"), o.reach_and_stay_methods, layered=layered, safe=S,
+                          progress=progress, local_games=o.local_games, checkpoints=checkpoints, refine=refine)
+
+
+def _report(cpre: ControllablePredecessor, game: ControllablePredecessor, results: Mapping[str, SynthesisResult],
+            bound_report: dict[str, Any] | None, build: float, quotient_seconds: float, refine_rounds: int
+            ) -> dict[str, Any]:
+    """:func:`synthesize`'s report (JSON-ready): the encoding ``cpre`` (its build took ``build`` seconds), the
+    game solved and its results, the domain bound's report, and a ``quotient`` entry where the game is one."""
+    m = cpre.model
+    report: dict[str, Any] = {
         "order": m.order,
         "method": cpre.method,
         "chain_order": cpre.chain_order,
@@ -156,7 +176,7 @@ def synthesize(
         report["quotient"] = {"level": game.level, "cells_per_block": 2 ** game.level,
                               "seconds": quotient_seconds, "relation_nodes": [t.dag_size for t in game.T],
                               "refine_rounds": refine_rounds, "maximal": False}
-    return cpre, results, report
+    return report
 
 
 def _domain_bound(
