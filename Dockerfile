@@ -20,6 +20,9 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 # /etc/dask is read by every Dask process of the image.
 COPY workers/dask.yaml /etc/dask/compabs.yaml
 
+# MONA translates 'ltl' specifications' formulas to automata (workers/automata.py): Debian's package.
+RUN apt-get update && apt-get install -y --no-install-recommends mona && rm -rf /var/lib/apt/lists/*
+
 WORKDIR /opt/compabs
 # The dependencies first, in a layer of their own: a change of compabs's code does not reinstall them.
 # --require-hashes: each file must match the lock's hash. ply and astutils (dd's) are published as source only;

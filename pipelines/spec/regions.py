@@ -108,19 +108,15 @@ def _broadcast(v, n: int, name: str) -> np.ndarray:
     return arr
 
 
-def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = False) -> AbstractRegion:
-    """Inner (default) or outer approximation of a region on the composed state grid.
-
-    Targets and safe sets are approximated from inside, so an abstract cell in them is wholly in the concrete
-    region; sets to avoid from outside (every cell that meets them), so avoiding the abstract set avoids the
-    concrete one.
+def concrete_boxes(region: Region, n: int, name: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The region as closed boxes ``(lb, ub)`` of the composed state (dimension ``n``; scalars broadcast, the
+    consensus region's windows listed).
 
     Raises
     ------
     SpecError
-        If the region contains no whole cell (an empty region cannot be a target or a safe set).
+        A box with ``lb > ub`` or of the wrong dimension, a consensus region that is not finite or too large.
     """
-    n = grid.dim
     concrete: list[tuple[np.ndarray, np.ndarray]] = []
     for i, b in enumerate(region.boxes):
         lb, ub = _broadcast(b.lb, n, f"{name}.boxes[{i}].lb"), _broadcast(b.ub, n, f"{name}.boxes[{i}].ub")
@@ -141,6 +137,22 @@ def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = 
             phi = first + k * step
             r = region.consensus.radius
             concrete.append((np.full(n, phi - r), np.full(n, phi + r)))
+    return concrete
+
+
+def abstract_region(region: Region, grid: UniformGrid, name: str, outer: bool = False) -> AbstractRegion:
+    """Inner (default) or outer approximation of a region on the composed state grid.
+
+    Targets and safe sets are approximated from inside, so an abstract cell in them is wholly in the concrete
+    region; sets to avoid from outside (every cell that meets them), so avoiding the abstract set avoids the
+    concrete one.
+
+    Raises
+    ------
+    SpecError
+        If the region contains no whole cell (an empty region cannot be a target or a safe set).
+    """
+    concrete = concrete_boxes(region, grid.dim, name)
     boxes = []
     for lb, ub in concrete:
         if outer:
