@@ -313,11 +313,9 @@ def commands(case: Case, jobs: dict[str, Path], rng: random.Random, out: Path) -
                 ["export", str(job), "--format", "json", "--controller", "reach_safe", "--out", str(out / "e.json")]]
     else:
         pick = [["control", str(job), "--x", x], ["export", str(job), "--format", "c", "--out", str(out / "ctl")],
-                ["export", str(job), "--format", "json", "--out", str(out / "e.json")]]
-        if case.what != f"{case.name}.json removed":
-            # Without its header a job reads as one without a controller: the audit then checks the abstraction
-            # alone and reports "no controller", vouching for none, so it is no entry point for that case.
-            pick.append(["audit", str(job), "--transitions", "50", "--runs", "0", "--seed", "1"])
+                ["export", str(job), "--format", "json", "--out", str(out / "e.json")],
+                # A header removed is refused too: the job's report records the controller the audit must find.
+                ["audit", str(job), "--transitions", "50", "--runs", "0", "--seed", "1"]]
     return [rng.choice(pick)]
 
 
@@ -587,6 +585,18 @@ def test_a_draw_tampers_and_restores(jobs, tmp_path):
         case.restore()
         assert all(p.read_bytes() == data for p, data in before.items()), case.what
     assert set(seen) == {"bdd", "layered", "array", "export"}
+
+
+def test_an_audit_refuses_a_job_whose_recorded_controller_is_gone(jobs, tmp_path, capsys):
+    """Without its header a job would read as one without synthesis: the report's record of the controller makes
+    the audit refuse it (exit 2, one line naming the file) instead of vouching for the abstraction alone."""
+    from service.cli import main
+
+    copies = private(jobs, tmp_path)
+    (copies["bdd"] / "controller.json").unlink()
+    assert main(["audit", str(copies["bdd"]), "--transitions", "50", "--runs", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "controller.json is missing" in err[0], err
 
 
 if __name__ == "__main__":

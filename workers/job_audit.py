@@ -40,6 +40,11 @@ def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | Non
     """The job's stored controller (``None`` without one), verified against its checksums and the job's spec hash
     before any file of it is read (:func:`pipelines.controller_loading.load_controller`)."""
     if not arts.has_controller:
+        recorded = (arts.report.get("controller") or {}).get("files") if isinstance(arts.report, dict) else None
+        if recorded:  # the report says synthesis saved one: its absence is damage, not a job without synthesis
+            raise jobdir.ArtifactError(f"{arts.directory}/{jobdir.CONTROLLER}.json is missing, but the job's "
+                                       f"report records a controller ({', '.join(map(str, recorded))}); run the "
+                                       "job again")
         return None
     controller = load_controller(arts.directory, jobdir.CONTROLLER, job_hash=spec_hash(arts.spec))
     if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - load_controller reads a job's
