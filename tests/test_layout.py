@@ -1,5 +1,6 @@
 """The package layout holds: ``service -> workers -> pipelines``, the method free of execution and storage; ``bench/``
-has no import cycle; the repository refers to no file outside itself; the prose of the three packages has no dates.
+and ``tests/`` have no import cycle; no function of the three packages is over 100 lines, no two modules share a
+name; the repository refers to no file outside itself; the prose of the three packages has no dates.
 
 The import graph is read from the source (``ast``), function-level and ``TYPE_CHECKING`` imports included, so a
 cycle cannot hide in a function body.
@@ -164,6 +165,60 @@ def test_the_date_finder_finds_dates():
     for undated in ("glibc 2.35", "N = 1024", "Meyer, Girard & Witrant 2017", "May 2x faster", "spacing 1.25",
                     "2·10^12 states", "issue 24"):
         assert not DATE.search(undated), undated
+
+
+def test_tests_have_no_import_cycle():
+    assert find_cycle(graph("tests")) is None
+
+
+def reachable(g: dict[str, set[str]], start: str) -> set[str]:
+    seen, todo = {start}, [start]
+    while todo:
+        for n in g.get(todo.pop(), ()):
+            if n not in seen:
+                seen.add(n)
+                todo.append(n)
+    return seen
+
+
+def test_controllers_do_not_import_their_exports():
+    """The exports are built from controllers: nothing a controller imports reaches ``pipelines.export`` (the
+    loader of every controller kind, ``pipelines.controller_loading``, sits above both)."""
+    g = graph("pipelines")
+    for start in ("pipelines.controller", "pipelines.array_controller", "pipelines.grid_controller"):
+        assert not {m for m in reachable(g, start) if m.startswith("pipelines.export")}, start
+
+
+#: The longest function of the three packages (lines from ``def`` to its end, docstring included).
+MAX_FUNCTION_LINES = 100
+#: The most parameters a job's entry points take (the rest travels in option objects).
+MAX_ENTRY_PARAMETERS = 8
+
+
+def functions(package: str):
+    for path in sorted((ROOT / package).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                yield path, node
+
+
+def test_no_function_is_over_100_lines():
+    long = {f"{p.relative_to(ROOT)}::{f.name}": n for package in PACKAGES for p, f in functions(package)
+            if (n := f.end_lineno - f.lineno + 1) > MAX_FUNCTION_LINES}  # type: ignore[operator]
+    assert not long, long
+
+
+def test_the_job_entry_points_take_at_most_8_parameters():
+    entry = {"pipelines/synthesis/synthesize.py": "synthesize", "workers/job.py": ("run_job", "abstract_job")}
+    counts = {}
+    for package in ("pipelines", "workers"):
+        for p, f in functions(package):
+            names = entry.get(str(p.relative_to(ROOT)), ())
+            if f.name in names:
+                a = f.args
+                counts[f.name] = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs)
+    assert set(counts) == {"synthesize", "run_job", "abstract_job"}, counts
+    assert max(counts.values()) <= MAX_ENTRY_PARAMETERS, counts
 
 
 def test_bench_has_no_import_cycle():

@@ -187,14 +187,8 @@ BINOPS: dict[type, tuple[str, Callable[[Value, Value], Value]]] = {
     ast.FloorDiv: ("//", np.floor_divide),
 }
 #: Binary operators that are rejected, by symbol (for messages).
-REJECTED_BINOPS: dict[type, str] = {
-    ast.BitAnd: "&",
-    ast.BitOr: "|",
-    ast.BitXor: "^",
-    ast.LShift: "<<",
-    ast.RShift: ">>",
-    ast.MatMult: "@",
-}
+REJECTED_BINOPS: dict[type, str] = {ast.BitAnd: "&", ast.BitOr: "|", ast.BitXor: "^", ast.LShift: "<<",
+                                    ast.RShift: ">>", ast.MatMult: "@"}
 #: Accepted comparison operators: symbol and numpy ufunc.
 COMPARISONS: dict[type, tuple[str, Callable[[Value, Value], np.ndarray]]] = {
     ast.Lt: ("<", np.less),

@@ -277,25 +277,13 @@ class SymbolicModel:
             "w": [f"w{j}" for j in s.reads],
         }
 
-    @property
-    def x_bits(self) -> list[str]:
-        return self.bits_of(self.x_digits())
-
-    @property
-    def xn_bits(self) -> list[str]:
-        return self.bits_of(self.xn_digits())
-
-    @property
-    def u_bits(self) -> list[str]:
-        return self.bits_of(self.u_digits())
-
-    @property
-    def w_bits(self) -> list[str]:
-        return self.bits_of(self.w_digits())
-
-    @property
-    def z_bits(self) -> list[str]:
-        return self.bits_of(list(self.z_sizes))
+    # The bits of each kind of variable (current and next state, inputs, internal variables, intermediate
+    # variables), in level order: bits_of over that kind's digits.
+    x_bits = property(lambda self: self.bits_of(self.x_digits()))
+    xn_bits = property(lambda self: self.bits_of(self.xn_digits()))
+    u_bits = property(lambda self: self.bits_of(self.u_digits()))
+    w_bits = property(lambda self: self.bits_of(self.w_digits()))
+    z_bits = property(lambda self: self.bits_of(list(self.z_sizes)))
 
     def var(self, name: str) -> Function:
         return self._vars[name]

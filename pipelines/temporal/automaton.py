@@ -55,7 +55,7 @@ class Automaton:
 
     @property
     def n_letters(self) -> int:
-        return int(self.delta.shape[1])
+        return 2 ** len(self.atoms)
 
     def run(self, letters: Sequence[int] | np.ndarray, start: int | None = None) -> np.ndarray:
         """The states after each letter of a trace (``start``: default :attr:`initial`)."""
