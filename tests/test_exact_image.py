@@ -142,3 +142,42 @@ def test_a_network_is_refused():
     data["interconnection"] = {"map": "[x[0]]", "internal": {"lb": -1.1, "ub": 1.1, "eta": 0.2}, "error": "linear"}
     with pytest.raises(NotAffine, match="single system without internal inputs"):
         exact_reference(parse_spec(data), None)
+
+
+def test_a_single_constant_below_the_maps_norm_is_refused_by_the_data():
+    """1.6 bounds every entry's slope (at most 0.95 along an axis) but not the norm, 1.889: diagonal neighbours of
+    the sample sub-grid, which move every coordinate at once, show a slope above it."""
+    from pipelines.errors import LipschitzError
+    from workers.job import run_abstraction
+
+    data = spec_of("hull", 1.6)
+    data["subsystems"][0]["lipschitz"]["on_violation"] = "fail"
+    with pytest.raises(LipschitzError, match=r"L_x = 1.6 is contradicted by the data: slope 1\.[789]"):
+        run_abstraction(parse_spec(data), audit=False)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_diagonal_pass_finds_the_largest_difference_of_diagonal_neighbours(seed):
+    """Against every pair of samples whose indices differ by exactly one along every moving axis and not at all
+    along the others."""
+    import itertools
+
+    from pipelines.abstraction.kernels import diagonal_pass
+
+    rng = np.random.default_rng(seed)
+    counts = tuple(int(c) for c in rng.integers(1, 4, size=int(rng.integers(2, 5))))
+    moving = [a for a in range(len(counts)) if counts[a] >= 2][: int(rng.integers(2, 4))]
+    if len(moving) < 2:
+        counts, moving = (2, 3) + counts[2:], [0, 1]
+    B, n = 5, 3
+    V = rng.normal(size=(int(np.prod(counts)), B, n))
+    expected = np.zeros(B)
+    points = list(itertools.product(*(range(c) for c in counts)))
+    for p, q in itertools.product(points, points):
+        delta = np.subtract(q, p)
+        if all(abs(delta[a]) == 1 for a in moving) and all(delta[a] == 0 for a in range(len(counts))
+                                                           if a not in moving):
+            i, j = np.ravel_multi_index(p, counts), np.ravel_multi_index(q, counts)
+            expected = np.maximum(expected, np.abs(V[j] - V[i]).max(axis=1))
+    got = diagonal_pass(V, np.asarray(counts, dtype=np.int64), np.asarray(moving, dtype=np.int64))
+    np.testing.assert_array_equal(got, expected)

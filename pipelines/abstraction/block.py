@@ -83,6 +83,31 @@ def _axis_slopes(Vg: np.ndarray, axes: range, counts: tuple[int, ...], h: np.nda
     return best
 
 
+def _diagonal_slopes(V: np.ndarray, counts: tuple[int, ...], axes: range, h: np.ndarray) -> np.ndarray:
+    """Largest slope ``||ΔV||_∞ / max_a h_a`` between diagonal neighbours of the sub-grid axes ``axes`` (a step of
+    one sample along every one of them with at least two points, in every sign pattern; the other axes fixed), per
+    triple: what a single constant in the infinity norm must bound beyond the axis-aligned quotients of
+    :func:`_axis_slopes` (a map whose norm is ``Σ_j |J_ij|`` shows only ``max_j |J_ij|`` along an axis). Zero with
+    fewer than two such axes. One compiled pass over the samples (:func:`compiled.diagonal_pass`).
+
+    Parameters
+    ----------
+    V : ndarray, shape (S, B, n)
+        Samples, row-major over the sub-grid ``counts`` (state axes, then internal-input axes).
+    h : ndarray, shape (B, len(axes))
+        Sample spacing along ``axes``.
+
+    Returns
+    -------
+    slope : ndarray, shape (B,)
+    """
+    moving = [a for a in axes if counts[a] >= 2]
+    if len(moving) < 2:
+        return np.zeros(V.shape[1])
+    best = compiled.diagonal_pass(V, np.asarray(counts, dtype=np.int64), np.asarray(moving, dtype=np.int64))
+    return _slope(best, h[:, [a - axes.start for a in moving]].max(axis=1))
+
+
 #: Samples (``S_x * S_w * B``) up to which :func:`_scalar_sample_pass` works on whole arrays (fewer calls, 2 MB
 #: temporaries at most) instead of row by row with small buffers (measured: faster up to about this size).
 SMALL_PASS = 1 << 18
@@ -337,12 +362,15 @@ class _Triples:
     def size(self) -> int:
         return int(self.xi.size)
 
-    def record(self, s: np.ndarray) -> SlopeRecord:
-        """The first largest slope of the block, overall and per entry; ``s`` of shape (B, n, d)."""
+    def record(self, s: np.ndarray, norm: np.ndarray | None = None) -> SlopeRecord:
+        """The first largest slope of the block, overall and per entry; ``s`` of shape (B, n, d); ``norm``, shape
+        (B,): slopes that count for the overall one only (:func:`_diagonal_slopes`)."""
         xi, ui, wi = self.xi, self.ui, self.wi
         if s.shape[2] == 0:  # no such argument: slope 0 at the first triple, no entries
             return SlopeRecord(0.0, int(xi[0]), int(ui[0]), int(wi[0]))
         overall = s.reshape(s.shape[0], -1).max(axis=1)
+        if norm is not None:
+            overall = np.maximum(overall, norm)
         k = int(np.argmax(overall))  # the first largest slope, as over the whole chunk
         first = np.argmax(s, axis=0)  # (n, d)
         entries = tuple(
@@ -463,9 +491,17 @@ def _generic_block(sub: Subsystem, tr: _Triples, bound: GrowthBound, sample: np.
             Vg = tr.V.reshape(cx + cw + (B, n))
             sx = _axis_slopes(Vg, range(len(cx)), cx, HX)
             sw = _axis_slopes(Vg, range(len(cx), len(cx) + len(cw)), cw, HW) if p else np.zeros((B, n, 0))
+    norm_x = norm_w = None
+    if not scalar:  # a single constant is checked on diagonal neighbours too (one axis each: nothing to add)
+        V = tr.V.reshape(-1, B, n)
+        if bound.L_x.is_scalar:
+            norm_x = _diagonal_slopes(V, cx + cw, range(len(cx)), HX)
+        if p and bound.L_w.is_scalar:
+            norm_w = _diagonal_slopes(V, cx + cw, range(len(cx), len(cx) + len(cw)), HW)
     order = [m for m in compiled.SCALAR_METHODS if m in counted] + [m for m in counted if m not in
                                                                    compiled.SCALAR_METHODS]
-    return _Block(lo, hi, blocking, {name: counted[name] for name in order}, tr.record(sx), tr.record(sw))
+    return _Block(lo, hi, blocking, {name: counted[name] for name in order}, tr.record(sx, norm_x),
+                  tr.record(sw, norm_w))
 
 
 def _cells_of(xg: UniformGrid, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -451,6 +451,52 @@ def box_sample_pass(V: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 @_jit
+def diagonal_pass(V: np.ndarray, counts: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """Largest ``||ΔV||_∞`` between diagonal neighbours of the sub-grid, per triple: a step of one sample along
+    every ``moving`` axis at once (the others fixed), in every sign pattern (the first moving axis forward: the
+    opposite pattern gives the same pairs). The compiled form of :func:`pipelines.abstraction.block._diagonal_slopes`'s
+    differences, without temporaries.
+
+    Parameters
+    ----------
+    V : ndarray, shape (S, B, n)
+        Successor samples, row-major over ``counts``.
+    counts : ndarray of int64, shape (d,)
+    moving : ndarray of int64, shape (k,)
+        The axes that move (each with at least two samples), ``k >= 2``.
+
+    Returns
+    -------
+    ndarray, shape (B,)
+    """
+    S, B, n = V.shape
+    d, k = counts.shape[0], moving.shape[0]
+    stride = np.ones(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):
+        stride[a] = stride[a + 1] * counts[a + 1]
+    best = np.zeros(B)
+    for pattern in range(1 << (k - 1)):
+        for s in range(S):
+            t = s
+            ok = True
+            for j in range(k):
+                a = moving[j]
+                position = (s // stride[a]) % counts[a]
+                step = 1 if j == 0 or (pattern >> (j - 1)) & 1 == 0 else -1
+                if position + step < 0 or position + step >= counts[a]:
+                    ok = False
+                    break
+                t += step * stride[a]
+            if not ok:
+                continue
+            row, nxt = V[s], V[t]
+            for b in range(B):
+                for i in range(n):
+                    best[b] = max(best[b], abs(nxt[b, i] - row[b, i]))
+    return best
+
+
+@_jit
 def box_block(
     V: np.ndarray,
     C: np.ndarray,
