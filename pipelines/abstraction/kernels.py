@@ -452,23 +452,10 @@ def box_sample_pass(V: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.n
 
 @_jit
 def diagonal_pass(V: np.ndarray, counts: np.ndarray, moving: np.ndarray) -> np.ndarray:
-    """Largest ``||ΔV||_∞`` between diagonal neighbours of the sub-grid, per triple: a step of one sample along
-    every ``moving`` axis at once (the others fixed), in every sign pattern (the first moving axis forward: the
-    opposite pattern gives the same pairs). The compiled form of :func:`pipelines.abstraction.block._diagonal_slopes`'s
-    differences, without temporaries.
-
-    Parameters
-    ----------
-    V : ndarray, shape (S, B, n)
-        Successor samples, row-major over ``counts``.
-    counts : ndarray of int64, shape (d,)
-    moving : ndarray of int64, shape (k,)
-        The axes that move (each with at least two samples), ``k >= 2``.
-
-    Returns
-    -------
-    ndarray, shape (B,)
-    """
+    """Largest ``||ΔV||_∞`` per triple (shape (B,)) between diagonal neighbours of the sub-grid: one sample along
+    every ``moving`` axis at once (each with two samples or more; the others fixed), in every sign pattern (the first
+    moving axis forward: the opposite pattern gives the same pairs). ``V``, shape (S, B, n), is row-major over
+    ``counts`` (int64, shape (d,)). The differences of :func:`pipelines.abstraction.block._diagonal_slopes`."""
     S, B, n = V.shape
     d, k = counts.shape[0], moving.shape[0]
     stride = np.ones(d, dtype=np.int64)
