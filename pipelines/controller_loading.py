@@ -16,16 +16,19 @@ from pipelines.controller import CONTROLLER_FILE, Controller, LayeredController
 from pipelines.controller_integrity import ControllerIntegrityError, job_spec_hash
 from pipelines.errors import CompabsError
 from pipelines.export.table import EXPORT_FORMAT, ExportedController, load_export
+from pipelines.product_controller import FORM as PRODUCT_FORM
+from pipelines.product_controller import ProductController, is_product_arrays
 from pipelines.symbolic.files import load_all
 
 
 def load_controller(
     directory: str | os.PathLike[str], name: str = CONTROLLER_FILE, job_hash: str | None = None
-) -> Controller | ArrayController | ExportedController:
+) -> Controller | ArrayController | ExportedController | ProductController:
     """Load a controller written by ``compabs run`` (``DIR/controller.json`` with ``DIR/controller.dddmp``, or
     with ``DIR/controller.npz`` for an explicit game's :class:`~.array_controller.ArrayController`), or a
     determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
-    ``inputs(x)`` (:class:`~.export.table.ExportedController`).
+    ``inputs(x)`` (:class:`~.export.table.ExportedController`). An ``ltl`` job's controller has memory
+    (:class:`~.product_controller.ProductController`, arrays or BDDs).
 
     Every file is verified before use (:mod:`.controller_integrity`): the checksums and the spec hash its header
     records, and that spec hash against ``job_hash`` (default: the spec hash of ``DIR/spec.json`` when the
@@ -49,7 +52,11 @@ def load_controller(
         job_hash = job_spec_hash(directory)
     if is_array_controller(head):
         return ArrayController.load(directory, name, job_hash)
+    if is_product_arrays(head):
+        return ProductController.load(directory, name, job_hash)
     model, roots, meta = load_all(base, job_hash=job_hash)
+    if meta.get("form") == PRODUCT_FORM:
+        return ProductController.from_roots(model, roots, meta, head)
     try:
         if meta.get("form") != "layered":
             (bdd,) = roots

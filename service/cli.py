@@ -164,7 +164,16 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from service.settings import local_caps
 
     result = validate_spec(_load(args), allowed_modules=None, caps=local_caps())
-    print("\n".join([*result.lines, "ok"]))
+    lines = list(result.lines)
+    specification = result.spec.specification
+    if specification.kind == "ltl":  # MONA's translation (a fraction of a second): refused here above its cap
+        from workers.automata import spec_automaton
+
+        automaton = spec_automaton(specification, result.spec.options.max_automaton_states)
+        lines.append(f"specification.automaton: {automaton.n_states} states ({int(automaton.accepting.sum())} "
+                     f"accepting), {automaton.n_letters} letters; options.max_automaton_states "
+                     f"{result.spec.options.max_automaton_states}")
+    print("\n".join([*lines, "ok"]))
     return 0
 
 
@@ -373,11 +382,14 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
 def cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.controller_loading import load_controller
     from pipelines.network import build_network
+    from pipelines.product_controller import ProductController, not_yet
     from pipelines.spec.model import parse_spec
     from pipelines.spec.regions import closed_loop_regions, spec_regions
     from pipelines.verification.closed_loop import simulate
 
     controller = load_controller(args.dir)
+    if isinstance(controller, ProductController):
+        raise not_yet("compabs simulate")
     spec = parse_spec(controller.meta["spec"])
     network = build_network(spec, None)
     try:

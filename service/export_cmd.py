@@ -52,8 +52,11 @@ def cmd_export(args: argparse.Namespace) -> int:
     from pipelines.controller_loading import load_controller
     from pipelines.export.c import write_c
     from pipelines.export.emit import export_controller, write_csv, write_json
+    from pipelines.product_controller import ProductController, not_yet
 
     ctrl = load_controller(args.dir, _name(args))
+    if isinstance(ctrl, ProductController):
+        raise not_yet("compabs export")
     if not isinstance(ctrl, Controller | ArrayController):
         raise CompabsError(f"{args.dir} is an exported controller; export reads a job's --out directory")
     form = args.form if args.format != "csv" else "bdd"  # a CSV lists cells: no need for a tree
@@ -98,8 +101,11 @@ def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobd
     from pipelines.controller_loading import load_controller
     from pipelines.export.determinize import determinized_at, resolve_rule
     from pipelines.export.table import RULES, ExportError
+    from pipelines.product_controller import ProductController, not_yet
 
     ctrl = load_controller(directory, name)
+    if isinstance(ctrl, ProductController):
+        raise not_yet("compabs control")
     if not isinstance(ctrl, Controller | ArrayController):
         raise CompabsError(f"{directory} is an exported controller; for its input at a state use 'compabs import "
                            f"{directory} --x ...'")

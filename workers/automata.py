@@ -14,10 +14,14 @@ import shutil
 import subprocess
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pipelines.errors import SpecError
 from pipelines.temporal.automaton import MAX_STATES, Automaton, from_mona
-from pipelines.temporal.formula import Formula
+from pipelines.temporal.formula import Formula, parse_formula
+
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.spec.model import SpecificationSpec
 
 #: Seconds MONA may take for one formula.
 TIME_LIMIT = 30.0
@@ -70,3 +74,16 @@ def translate(formula: Formula, max_states: int = MAX_STATES, time_limit: float 
         raise SpecError(f"specification.formula: MONA could not translate it ({reason}); it may be over MONA's "
                         f"memory limit of {MEMORY_LIMIT >> 20} MiB")
     return from_mona(done.stdout, formula.atoms, max_states)
+
+
+def spec_automaton(specification: SpecificationSpec, max_states: int = MAX_STATES) -> Automaton:
+    """The automaton of an ``ltl`` specification's formula (parsed against its regions, then :func:`translate`).
+
+    Raises
+    ------
+    SpecError
+        As :func:`~pipelines.temporal.formula.parse_formula` and :func:`translate`.
+    """
+    if specification.kind != "ltl" or specification.formula is None:
+        raise SpecError(f"a '{specification.kind}' specification has no formula to translate")
+    return translate(parse_formula(specification.formula, specification.regions or {}), max_states)

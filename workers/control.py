@@ -21,15 +21,21 @@ import numpy as np
 from pipelines.array_controller import ArrayController
 from pipelines.controller import controller_of
 from pipelines.errors import SpecError
+from pipelines.product_controller import ProductController
 from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.synthesis import explicit
 from pipelines.synthesis.explicit import ExplicitGame, ExplicitResult, choose_backend
 from pipelines.synthesis.fixed_points import IterationProgress, SynthesisResult
 from pipelines.synthesis.options import SynthesisOptions
+from pipelines.synthesis.product import ProductResult, reach_explicit
 from pipelines.synthesis.synthesize import synthesize
+from pipelines.temporal.automaton import Automaton
+from pipelines.temporal.labels import Labelling
 from pipelines.verification.closed_loop import run_closed_loop
 from pipelines.verification.empty_domain import explain_empty_domain
+from pipelines.verification.product_loop import run_product_loop
 from workers import checkpoint_store, jobdir
+from workers.automata import spec_automaton
 from workers.checkpoint_store import DirectoryCheckpoints, problem_key
 from workers.dask_cpre import on_cluster, parts_for
 from workers.figures import draw_figures
@@ -82,17 +88,22 @@ def run_synthesis(
         store.clear()  # the controller files hold what the iterates were kept for
 
     t0 = time.perf_counter()
-    loop = _closed_loop(abstraction, controller, main, runs, progress)
+    loop = (_closed_loop(abstraction, controller, main, runs, progress) if kind != "ltl" else
+            run_product_loop(network, controller, opts.initial_states, opts.closed_loop_runs if runs is None else runs,
+                             opts.closed_loop_steps, np.random.default_rng(opts.seed + 1),
+                             progress=lambda k, n: progress("closed_loop", k, n, "runs in lockstep")))
     seconds["closed_loop"] = time.perf_counter() - t0
 
-    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why.
-    figures = [] if out_dir is None else draw_figures(network, controller, loop, out_dir)
+    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why. A
+    # controller with memory has none yet (the trajectory coloured by automaton state is to come).
+    figures = [] if out_dir is None or kind == "ltl" else draw_figures(network, controller, loop, out_dir)
 
     return {
         "domain_states": main.domain_states,
         "domain_states_by_fixed_point": {k: r.domain_states for k, r in results.items()},
         "controller": {"fixed_point": main_key,
-                       "form": "layered" if isinstance(main, SynthesisResult) and main.layers else
+                       "form": "product" if kind == "ltl" else
+                       "layered" if isinstance(main, SynthesisResult) and main.layers else
                        "explicit" if isinstance(main, SynthesisResult) else "array",
                        "nodes": controller.nodes, "files": files},
         "synthesis": syn_report,
@@ -104,7 +115,7 @@ def run_synthesis(
                                        quotient=opts.synthesis_quotient)
         + ([] if store is None else store.warnings)
         + (explain_empty_domain(network, abstraction.relations, abstraction.interconnection, spec)
-           if main.domain_states == 0 else []),
+           if main.domain_states == 0 and kind != "ltl" else []),
     }
 
 
@@ -131,15 +142,22 @@ def _solve(
         progress("synthesis", events, events + 1, message)
 
     store: DirectoryCheckpoints | None = None
-    results: Mapping[str, SynthesisResult | ExplicitResult]
+    results: Mapping[str, Any]
+    automaton = None
+    if spec.specification.kind == "ltl":  # MONA, under its time cap (workers.automata)
+        t0 = time.perf_counter()
+        automaton = spec_automaton(spec.specification, opts.max_automaton_states)
+        progress("synthesis", 0, 1, f"automaton: {automaton.n_states} states over {len(automaton.atoms)} atoms in "
+                 f"{time.perf_counter() - t0:.2f} s")
     if backend == "explicit":
-        results, syn_report, make = _explicit_synthesis(abstraction, iteration)
+        results, syn_report, make = _explicit_synthesis(abstraction, iteration, automaton)
     else:
-        if out_dir is not None:  # a job stopped during a long safety fixed point resumes from its last iterate
+        # A job stopped during a long safety fixed point resumes from its last iterate (no product game has one).
+        if out_dir is not None and automaton is None:
             key = problem_key(spec.specification.model_dump(mode="json"), abstraction.relations,
                               abstraction.interconnection.nodes, quotient=opts.synthesis_quotient)
             store = DirectoryCheckpoints(Path(out_dir) / jobdir.CHECKPOINTS, key, every=checkpoint_store.EVERY)
-        results, syn_report, make = _bdd_synthesis(abstraction, iteration, store, client)
+        results, syn_report, make = _bdd_synthesis(abstraction, iteration, store, client, automaton)
     syn_report["backend"] = backend
     progress("synthesis", 1, 1, ", ".join(f"{k}: {r.domain_states}" for k, r in results.items()))
     return results, syn_report, make, store
@@ -194,39 +212,47 @@ def _closed_loop(
 
 def _bdd_synthesis(
     abstraction: Abstraction, progress: IterationProgress, store: DirectoryCheckpoints | None, client: Any,
-) -> tuple[dict[str, SynthesisResult], dict[str, Any], Any]:
+    automaton: Automaton | None = None,
+) -> tuple[dict[str, Any], dict[str, Any], Any]:
     """The BDD back end (:func:`pipelines.synthesis.synthesize.synthesize`, its parts where :func:`partitioning`
-    says), its results, its report and a maker of the controllers (explicit or layered BDDs)."""
+    says), its results, its report and a maker of the controllers (explicit or layered BDDs; with an ``ltl``
+    specification's ``automaton``, the product game and a :class:`~pipelines.product_controller.ProductController`)."""
     spec, network = abstraction.spec, abstraction.network
     opts = spec.options
     initial = np.asarray(opts.initial_states or [], dtype=float).reshape(-1, network.state_dim)
     first, last = network.composed_state_grid().cells_touching(initial, initial)
     parts = partitioning(opts, client)
     options = replace(SynthesisOptions.from_spec(opts, list(zip(first.tolist(), last.tolist()))),
-                      auto_parts=parts["auto_parts"])
+                      auto_parts=parts["auto_parts"], automaton=automaton)
     cpre, results, report = synthesize(network, abstraction.relations, abstraction.interconnection,
                                        spec.specification, options, partitioned=parts["partitioned"],
                                        progress=progress, checkpoints=store)
     if store is not None:
         report["checkpoints"] = store.describe()
 
-    def make(result: SynthesisResult, meta: dict[str, Any]) -> Any:
+    def make(result: Any, meta: dict[str, Any]) -> Any:
+        if automaton is not None:
+            labelling = Labelling.of(automaton.atoms, spec.specification.regions or {}, network.composed_state_grid())
+            return ProductController.from_symbolic(cpre.model, result, labelling, meta)
         return controller_of(cpre, result, meta)
 
     return results, report, make
 
 
 def _explicit_synthesis(
-    abstraction: Abstraction, progress: IterationProgress,
-) -> tuple[dict[str, ExplicitResult], dict[str, Any], Any]:
+    abstraction: Abstraction, progress: IterationProgress, automaton: Automaton | None = None,
+) -> tuple[dict[str, Any], dict[str, Any], Any]:
     """The explicit back end (:mod:`pipelines.synthesis.explicit`): the game on the relation's boxes, its fixed
-    points, and a maker of :class:`~pipelines.array_controller.ArrayController` objects; the report says what
-    building the predecessor lists and each fixed point took."""
+    points (with an ``ltl`` specification's ``automaton``, the product game: :func:`_explicit_product`), and a maker
+    of :class:`~pipelines.array_controller.ArrayController` objects; the report says what building the predecessor
+    lists and each fixed point took."""
     spec, network = abstraction.spec, abstraction.network
     grid = network.composed_state_grid()
     (relation,) = abstraction.relations.values()
     game = ExplicitGame.from_relation(relation, grid.shape)
     progress(0, f"predecessor lists: {game.transitions:,} transitions in {game.build_seconds:.2f} s")
+    if automaton is not None:
+        return _explicit_product(abstraction, game, automaton, progress)
     t0 = time.perf_counter()
     results = explicit.solve(game, spec.specification, grid, tuple(spec.options.fixed_points), progress=progress)
     report = {
@@ -241,6 +267,28 @@ def _explicit_synthesis(
         return ArrayController(result.admissible, result.layer, {**meta, "subsystem": subsystem})
 
     return results, report, make
+
+
+def _explicit_product(abstraction: Abstraction, game: ExplicitGame, automaton: Automaton, progress: IterationProgress,
+                      ) -> tuple[dict[str, ProductResult], dict[str, Any], Any]:
+    """An ``ltl`` specification on the explicit back end: every cell's class of letters
+    (:class:`~pipelines.temporal.labels.Labelling`), the product game (:func:`~pipelines.synthesis.product.reach_explicit`)
+    and a maker of :class:`~pipelines.product_controller.ProductController` objects."""
+    spec, network = abstraction.spec, abstraction.network
+    grid = network.composed_state_grid()
+    labelling = Labelling.of(automaton.atoms, spec.specification.regions or {}, grid)
+    classes, cell_class = np.unique(labelling.classes(grid.unravel(np.arange(game.n_x))), return_inverse=True)
+    result = reach_explicit(game, automaton, cell_class.reshape(-1), labelling.class_letters(classes))
+    progress(result.iterations, f"ltl product: {result.details['winning_product_states']:,} of "
+             f"{result.details['product_states']:,} product states winning, {result.domain_states:,} domain cells")
+    report = {"build_seconds": game.build_seconds, "fixed_point_seconds": result.seconds, "game": game.describe(),
+              "results": {"ltl": result.summary()}}
+    subsystem = network.subsystems[0].name
+
+    def make(r: ProductResult, meta: dict[str, Any]) -> ProductController:
+        return ProductController.from_explicit(r, labelling, {**meta, "subsystem": subsystem})
+
+    return {"ltl": result}, report, make
 
 
 def partitioning(options: Any, client: Any = None) -> dict[str, Any]:
@@ -297,7 +345,7 @@ def synthesis_warnings(
     out = []
     if domain_states[main_key] == 0:
         regions = {"safe": "safe set", "reach": "target", "reach_avoid": "target or a smaller avoid set",
-                   "reach_and_stay": "target"}[kind]
+                   "reach_and_stay": "target", "ltl": "formula's regions (or a weaker formula)"}[kind]
         if has_safe and kind != "safe":
             regions += " or safe set"
         line = EMPTY_DOMAIN.format(regions=regions)

@@ -29,6 +29,7 @@ from pipelines.figures import figure_setting, phase_plane, save_figure, time_plo
 from pipelines.figures.domain import plane_mask
 from pipelines.figures.phase_plane import check_axes
 from pipelines.network import Network, build_network
+from pipelines.product_controller import ProductController, not_yet
 from pipelines.spec.model import JobSpec, parse_spec
 from pipelines.spec.regions import closed_loop_regions
 from pipelines.verification.closed_loop import ClosedLoop, simulate, simulate_many
@@ -213,6 +214,8 @@ def redraw_figures(job_dir: str | os.PathLike[str], *, axes: tuple[int, int] = (
         raise CompabsError(f"{out} holds no controller ({jobdir.CONTROLLER}.json): the job ran without synthesis, "
                            "and its figures are those of a controller")
     controller = load_controller(out)
+    if isinstance(controller, ProductController):
+        raise not_yet("compabs figures")
     if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - a job's own controller
         raise CompabsError(f"{out}: {jobdir.CONTROLLER}.json is not a synthesized controller")
     initial = _initial_states(controller, spec)

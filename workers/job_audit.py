@@ -25,6 +25,7 @@ from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
 from pipelines.controller_loading import load_controller
 from pipelines.errors import CompabsError
+from pipelines.product_controller import ProductController, not_yet
 from pipelines.spec.costs import Caps, CostError, audit_evaluations
 from pipelines.spec.model import spec_hash
 from pipelines.spec.regions import closed_loop_regions, spec_regions
@@ -47,6 +48,8 @@ def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | Non
                                        "job again")
         return None
     controller = load_controller(arts.directory, jobdir.CONTROLLER, job_hash=spec_hash(arts.spec))
+    if isinstance(controller, ProductController):
+        raise not_yet("compabs audit")
     if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - load_controller reads a job's
         raise CompabsError(f"{arts.directory}/{jobdir.CONTROLLER}.json is not a synthesized controller")
     return controller

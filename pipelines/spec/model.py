@@ -34,6 +34,8 @@ from pipelines.errors import SpecError
 from pipelines.spec.loader import load_yaml
 from pipelines.spec.messages import format_validation_error
 from pipelines.spec.reading import read_spec_text
+from pipelines.temporal.automaton import MAX_STATES as MAX_AUTOMATON_STATES
+from pipelines.temporal.formula import check_ltl_fields
 
 Vector = float | list[float]
 #: Longest ``reads`` expression, in characters.
@@ -276,18 +278,33 @@ class SpecificationSpec(_Model):
     ``safe`` is required for ``safe`` and optional for the other kinds, where it restricts every run to ``S``
     until (``reach``, ``reach_avoid``) or forever (``reach_and_stay``): "reach T while staying in S", "reach and
     stay in T while staying in S". A region the kind does not use is refused rather than ignored.
+
+    ``ltl``: an LTLf formula over named regions (docs/spec.md, "Temporal-logic tasks"; its grammar is
+    :mod:`pipelines.temporal.formula`'s), in place of ``target``, ``safe`` and ``avoid``.
     """
 
-    kind: Literal["safe", "reach", "reach_avoid", "reach_and_stay"]
+    kind: Literal["safe", "reach", "reach_avoid", "reach_and_stay", "ltl"]
     target: Region | None = Field(default=None, description="T for reach, reach_avoid; phi for reach_and_stay")
     safe: Region | None = Field(
         default=None, description="S: required for safe; optional for the other kinds, whose runs must then never "
         "leave S (reach: T is reached inside S; reach_and_stay: the run stays in S and ends in phi within S)",
     )
     avoid: Region | None = Field(default=None, description="A for reach_avoid (a union of boxes: the obstacles)")
+    formula: str | None = Field(default=None, min_length=1, description="ltl: an LTLf formula over the names of "
+                                "'regions' (F a & G !o; !, &, |, ->, <->, X, F, G, U), checked by compabs validate")
+    regions: dict[str, Region] | None = Field(default=None, description="ltl: the formula's atoms, each a named "
+                                              "region (a lower-case name; boxes and consensus as for target)")
 
     @model_validator(mode="after")
     def _regions(self):
+        if self.kind == "ltl":  # no target, safe or avoid: they are written in the formula
+            check_ltl_fields([k for k in ("target", "safe", "avoid") if getattr(self, k) is not None], self.formula,
+                             self.regions)
+            return self
+        given = [k for k in ("formula", "regions") if getattr(self, k) is not None]
+        if given:
+            raise ValueError(f"{' and '.join(repr(k) for k in given)} belong to kind 'ltl'; a '{self.kind}' "
+                             "specification takes 'target', 'safe' and 'avoid'")
         need = {"safe": "safe", "reach": "target", "reach_avoid": "target", "reach_and_stay": "target"}[self.kind]
         if getattr(self, need) is None:
             raise ValueError(f"a '{self.kind}' specification needs '{need}'")
@@ -301,6 +318,13 @@ class SpecificationSpec(_Model):
             raise ValueError("a 'safe' specification has no 'target': use kind 'reach' or 'reach_and_stay' with "
                              "'target' and 'safe' to reach a target while staying safe")
         return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # formula and regions are left out of the other kinds' dump, so that their spec_hash does not change.
+        data = handler(self)
+        drop = ("target", "safe", "avoid") if self.kind == "ltl" else ("formula", "regions")
+        return {k: v for k, v in data.items() if k not in drop}
 
 
 def _both_fixed_points() -> list[Literal["cobuchi", "reach_safe"]]:
@@ -385,6 +409,18 @@ class OptionsSpec(_Model):
         "abstraction (safe and Reach(Safe)); each round a fine safety fixed point near the invariant, sound, "
         "slower than the quotient (the tanks at 1.25: 15 minutes, +79 %). Not part of the spec's hash",
     )
+
+    max_automaton_states: int = Field(default=MAX_AUTOMATON_STATES, ge=1, le=MAX_AUTOMATON_STATES, description=(
+        "ltl: the most states the formula's automaton may have (a larger one is refused, naming this cap); the "
+        "product game has that many copies of the abstraction. Not part of the spec's hash"))
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # Left out at its default, so that the dump and spec_hash of specs written before 'ltl' do not change.
+        data = handler(self)
+        if data.get("max_automaton_states") == MAX_AUTOMATON_STATES:
+            del data["max_automaton_states"]
+        return data
 
     @field_validator("synthesis_processes")
     @classmethod
@@ -542,7 +578,8 @@ def spec_hash(spec: JobSpec) -> str:
     # synthesis_quotient and synthesis_refine change the synthesis only: the stored abstraction is reused.
     timing_only = {"options": {"task_timeout", "time_limit", "memory_limit", "synthesis_processes", "synthesis_on",
                                "synthesis_parallel_after",
-                               "synthesis_quotient", "synthesis_refine", "synthesis_backend"}}
+                               "synthesis_quotient", "synthesis_refine", "synthesis_backend",
+                               "max_automaton_states"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 

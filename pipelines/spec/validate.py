@@ -13,7 +13,9 @@ names the field:
 3. ``cells``: every subsystem's ``(x, u, w)`` triples within ``options.max_cells``;
 4. ``options.initial_states``: each has the state dimension and finite components;
 5. ``specification.*``: every region of the specification contains a whole cell (targets and safe sets from
-   inside) or meets one (sets to avoid);
+   inside) or meets one (sets to avoid); for ``ltl``, the formula parses within its fragment, names only its
+   regions and uses each, and every region meets a cell (:func:`check_formula`; MONA's translation, which can take
+   seconds, is the job's and ``compabs validate``'s: :func:`workers.automata.translate`);
 6. ``caps``: every knob of the cost model (:mod:`pipelines.spec.costs`) within its cap: subsystems after
    ``replicate`` and expression lengths before the network is built (:func:`~pipelines.spec.costs.check_spec`),
    the rest after (:func:`~pipelines.spec.costs.check_costs`).
@@ -117,6 +119,46 @@ def _region_lines(regions: Mapping[str, AbstractRegion]) -> list[str]:
             for name, r in regions.items()]
 
 
+def check_formula(spec: JobSpec, network: Network) -> list[str]:
+    """An ``ltl`` specification's formula and regions (nothing for the other kinds): the formula parses, inside
+    its fragment, every atom a region (:func:`~pipelines.temporal.formula.parse_formula`), every region is an atom
+    of it (an unused region is a mistake, as for the other kinds), and each meets a grid cell; one line per region
+    with the cells wholly inside it and those on its edge (docs/spec.md, "Temporal-logic tasks").
+
+    Raises
+    ------
+    SpecError
+        Naming the token and its position, the operator, the atom, or the region.
+    """
+    specification = spec.specification
+    if specification.kind != "ltl":
+        return []
+    from pipelines.temporal.formula import parse_formula
+    from pipelines.temporal.labels import Labelling
+
+    if spec.options.synthesis_quotient:
+        raise SpecError("options.synthesis_quotient: an 'ltl' specification is solved on the exact product game; set "
+                        "synthesis_quotient to 0")
+    regions = specification.regions or {}
+    assert specification.formula is not None  # the model requires it for 'ltl'
+    formula = parse_formula(specification.formula, regions)
+    unused = sorted(set(regions) - set(formula.atoms))
+    if unused:
+        raise SpecError(f"specification.regions.{unused[0]}: the formula does not use this region; use it in the "
+                        "formula or remove it")
+    labelling = Labelling.of(formula.atoms, regions, network.composed_state_grid())
+    lines = [f"specification.formula: {len(formula.atoms)} atoms ({', '.join(formula.atoms)}), "
+             f"{2 ** len(formula.atoms)} letters"]
+    for atom, inside, meets in zip(formula.atoms, labelling.inside, labelling.meets):
+        if not meets.boxes:
+            raise SpecError(f"specification.regions.{atom}: the region meets no grid cell (it lies outside the state "
+                            "set)")
+        edge = meets.states - inside.states
+        lines.append(f"specification.regions.{atom}: {inside.states:,} abstract states wholly inside it, {edge:,} on "
+                     "its edge")
+    return lines
+
+
 def check_caps(spec: JobSpec, network: Network, caps: Caps | None = None) -> str:
     """Every knob of the cost model within its cap (:func:`pipelines.spec.costs.check_costs`; ``caps``: default
     the command line's, :meth:`~pipelines.spec.costs.Caps.local`).
@@ -166,9 +208,11 @@ def validate_spec(spec: JobSpec, *, allowed_modules: Sequence[str] | None = (), 
     lines.append(check_initial_states(spec, network))
     regions = spec_regions(spec, network)
     lines += _region_lines(regions)
+    lines += check_formula(spec, network)
     lines.append(check_caps(spec, network, caps))
     return Validation(spec, network, regions, tuple(lines))
 
 
-__all__ = ["Validation", "cap_synthesis_processes", "check_caps", "check_cells", "check_initial_states", "check_overrides",
+__all__ = ["Validation", "cap_synthesis_processes", "check_caps", "check_cells", "check_formula", "check_initial_states",
+           "check_overrides",
            "validate_spec", "with_options"]

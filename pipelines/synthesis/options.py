@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.spec.model import OptionsSpec
+    from pipelines.temporal.automaton import Automaton
 
 #: The forms of a BDD controller: ``explicit`` (one BDD over states and inputs), ``layered`` (the fixed point's
 #: iterates, evaluated at one state at a time) or ``auto`` (layered for the shared-``w`` CPre).
@@ -48,6 +49,9 @@ class SynthesisOptions:
     processes, parallel_after, auto_parts
         Parts of ``∃u.CPre`` (an int or ``'auto'``), how long one step must take in one process before they start,
         and what ``'auto'`` means when the parts run elsewhere (:class:`~.cpre.ControllablePredecessor`).
+    automaton : Automaton, optional
+        An ``ltl`` specification's automaton (``workers.automata.spec_automaton``, which runs MONA): its product
+        game with the abstraction is solved (:func:`~.product.reach_symbolic`).
     """
 
     order: str | None = None
@@ -64,6 +68,7 @@ class SynthesisOptions:
     processes: int | str = 1
     parallel_after: float = 1.0
     auto_parts: int | None = None
+    automaton: Automaton | None = None
 
     def __post_init__(self) -> None:
         if self.controller_form not in CONTROLLER_FORMS:

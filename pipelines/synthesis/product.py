@@ -32,12 +32,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numba import njit
 
+from pipelines.synthesis import results
 from pipelines.temporal.automaton import Automaton
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
-    from pipelines.symbolic.symbolic_model import Function
+    from pipelines.symbolic.symbolic_model import Function, SymbolicModel
     from pipelines.synthesis.cpre import ControllablePredecessor
     from pipelines.synthesis.explicit import ExplicitGame
+    from pipelines.temporal.labels import Labelling
 
 #: A pair that can never be chosen (blocking): its counter never reaches 0.
 NEVER = np.iinfo(np.int32).max // 2
@@ -69,6 +71,9 @@ class ProductResult:
     seconds: float
     details: dict[str, Any] = field(default_factory=dict)
 
+    kind = "ltl"
+    inner_iterations = 0
+
     @property
     def winning(self) -> np.ndarray:
         return self.layer >= 0
@@ -76,6 +81,12 @@ class ProductResult:
     @property
     def domain_states(self) -> int:
         return int(self.domain.sum())
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready numbers (:func:`.results.summary`): the automaton's and the product's sizes with them."""
+        return results.summary(self, controller_form="product arrays",
+                               controller_pairs=int(self.admissible[~self.automaton.accepting].sum()),
+                               automaton=self.automaton.summary())
 
 
 def first_states(automaton: Automaton, class_letters: np.ndarray) -> np.ndarray:
@@ -199,6 +210,32 @@ class SymbolicProductResult:
     seconds: float
     details: dict[str, Any] = field(default_factory=dict)
 
+    kind = "ltl"
+    inner_iterations = 0
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready numbers (:func:`.results.summary`), as :meth:`ProductResult.summary`'s."""
+        return results.summary(self, controller_form="product BDDs",
+                               controller_nodes=sum(c.dag_size for c in self.controller),
+                               automaton=self.automaton.summary())
+
+
+def letter_sets(model: SymbolicModel, labelling: Labelling) -> list[Function]:
+    """Per letter ``σ``, the cells that can carry it: ``∧_i (σ_i ? meets_i : ¬inside_i) ∧ x_domain``
+    (:class:`~pipelines.temporal.labels.Labelling`: an atom surely holds inside its region, surely fails outside the
+    cells that meet it)."""
+    from pipelines.symbolic.relations import region
+
+    inside = [region(model, r) for r in labelling.inside]
+    meets = [region(model, r) for r in labelling.meets]
+    out = []
+    for sigma in range(labelling.n_letters):
+        cells = model.x_domain
+        for i in range(len(labelling.atoms)):
+            cells &= meets[i] if (sigma >> i) & 1 else ~inside[i]
+        out.append(cells)
+    return out
+
 
 def letter_moves(automaton: Automaton, letter_sets: Sequence[Function], false: Function) -> list[list[Function]]:
     """``M[q][q']``: the cells on which the automaton can move from ``q`` to ``q'`` (the union of the cells of the
@@ -256,5 +293,7 @@ def reach_symbolic(cpre: ControllablePredecessor, automaton: Automaton, letter_s
     domain = _safe_after(moves[automaton.initial], W, top)
     from pipelines.symbolic.counting import count_states
 
+    details = {"product_states": n_q * count_states(m, top), "winning_product_states": sum(count_states(m, w)
+                                                                                          for w in W)}
     return SymbolicProductResult(automaton, W, controller, layers, domain, count_states(m, domain), iterations,
-                                 time.perf_counter() - t0)
+                                 time.perf_counter() - t0, details)

@@ -30,7 +30,9 @@ from pipelines.synthesis.fixed_points import (
     safe,
 )
 from pipelines.synthesis.options import SynthesisOptions
+from pipelines.synthesis.product import letter_sets, reach_symbolic
 from pipelines.synthesis.quotient import Refinement, quotient
+from pipelines.temporal.labels import Labelling
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
@@ -49,7 +51,7 @@ def synthesize(
     partitioned: PartitionedFactory | None = None,
     progress: IterationProgress | None = None,
     checkpoints: Checkpoints | None = None,
-) -> tuple[ControllablePredecessor, dict[str, SynthesisResult], dict[str, Any]]:
+) -> tuple[ControllablePredecessor, dict[str, Any], dict[str, Any]]:
     """Encode an abstraction, solve its specification, and report.
 
     Parameters
@@ -60,7 +62,8 @@ def synthesize(
         The job spec's ``specification`` section (kind and regions).
     options : SynthesisOptions, optional
         What is computed and how (:class:`~.options.SynthesisOptions`, e.g. ``SynthesisOptions.from_spec``;
-        ``None``: the defaults).
+        ``None``: the defaults); an ``ltl`` specification's automaton, whose product game is solved
+        (:func:`~.product.reach_symbolic`; the result under ``ltl``).
     partitioned : callable, optional
         ``partitioned(cpre, processes)``: the partitioned ``∃u.CPre`` (e.g.
         ``workers.processes.partitioned_cpre.PartitionedPredecessors``, or ``workers.dask_cpre.on_cluster(client)``
@@ -77,7 +80,8 @@ def synthesize(
         The model and the CPre ingredients the controllers are made of (:func:`pipelines.controller.controller_of`):
         the fine game's, also with a quotient (its ``CPre`` holds the quotient's, see :mod:`~.quotient`).
     results : dict of str to SynthesisResult
-        One entry (``safe``, ``reach``, ``reach_avoid``) or one per reach-and-stay method.
+        One entry (``safe``, ``reach``, ``reach_avoid``; ``ltl``: a :class:`~.product.SymbolicProductResult`) or one
+        per reach-and-stay method.
     report : dict
         JSON-ready: build times and node counts, per-result summaries; ``domain_bound`` names the initial states
         (``options.initial_cells``) :mod:`~.domain_bound` proves outside the domain (also a progress line, long
@@ -102,6 +106,12 @@ def synthesize(
     sets = _SpecificationSets(cpre.model, specification, network.composed_state_grid())
     kind = specification.kind
     try:
+        if kind == "ltl":  # the product game: no target, safe or avoid set to bound the domain with
+            if o.automaton is None:
+                raise ValueError("an 'ltl' specification is solved with its automaton (SynthesisOptions.automaton)")
+            labelling = Labelling.of(o.automaton.atoms, specification.regions or {}, network.composed_state_grid())
+            product = reach_symbolic(game, o.automaton, letter_sets(cpre.model, labelling), progress)
+            return cpre, {"ltl": product}, _report(cpre, game, {"ltl": product}, None, build, quotient_seconds, 0)
         S = sets.get("safe") if kind != "safe" and specification.safe is not None else None
         bound_report = _domain_bound(cpre, kind, sets.get("safe" if kind == "safe" else "target"), S,
                                      sets.get("avoid") if kind == "reach_avoid" else None, o.initial_cells, progress)
@@ -150,7 +160,7 @@ def _solve(cpre: ControllablePredecessor, game: ControllablePredecessor, kind: s
                           progress=progress, local_games=o.local_games, checkpoints=checkpoints, refine=refine)
 
 
-def _report(cpre: ControllablePredecessor, game: ControllablePredecessor, results: Mapping[str, SynthesisResult],
+def _report(cpre: ControllablePredecessor, game: ControllablePredecessor, results: Mapping[str, Any],
             bound_report: dict[str, Any] | None, build: float, quotient_seconds: float, refine_rounds: int
             ) -> dict[str, Any]:
     """:func:`synthesize`'s report (JSON-ready): the encoding ``cpre`` (its build took ``build`` seconds), the

@@ -93,6 +93,30 @@ def check_region_name(name: str, where: str) -> None:
                         "followed by lower-case letters, digits or '_' (not true, false, last or end)")
 
 
+def check_ltl_fields(others: list[str], formula: str | None, regions: Collection[str] | None) -> None:
+    """The fields of an ``ltl`` specification (``pipelines.spec.model.SpecificationSpec``): a formula, at least one
+    region, each name an atom, none of ``others`` (the given ``target``/``safe``/``avoid``: a safe set ``s`` is
+    written ``G s``, an obstacle ``o`` ``G !o``). The formula itself is parsed by :func:`parse_formula`.
+
+    Raises
+    ------
+    ValueError
+        For the spec model to name the field.
+    """
+    if others:
+        raise ValueError(f"an 'ltl' specification has no {' or '.join(repr(k) for k in others)}: name the region in "
+                         "'regions' and write it in the formula (a safe set s: G s; a target t: F t; an obstacle o: "
+                         "G !o)")
+    if formula is None or not regions:
+        missing = "'formula'" if formula is None else "'regions' (at least one named region)"
+        raise ValueError(f"an 'ltl' specification needs {missing}")
+    for name in regions:
+        try:
+            check_region_name(name, f"specification.regions.{name}")
+        except SpecError as exc:
+            raise ValueError(str(exc).split(": ", 1)[1]) from None
+
+
 def parse_formula(text: str, regions: Collection[str], where: str = "specification.formula") -> Formula:
     """Parse ``text`` and check it: inside the fragment, every atom one of ``regions``.
 

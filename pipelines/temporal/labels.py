@@ -99,14 +99,20 @@ class Labelling:
     def letters_at(self, x: np.ndarray) -> np.ndarray:
         """The letter of each concrete state of ``x`` (shape (B, n)): bit ``i`` set iff the state lies in atom
         ``i``'s closed region; int64 (B,)."""
-        x = np.atleast_2d(np.asarray(x, dtype=float))
-        out = np.zeros(x.shape[0], dtype=np.int64)
-        for i, boxes in enumerate(self.concrete):
-            hit = np.zeros(x.shape[0], dtype=bool)
-            for lb, ub in boxes:
-                hit |= np.all((x >= lb) & (x <= ub), axis=1)
-            out |= hit.astype(np.int64) << i
-        return out
+        return letters_at(self.concrete, x)
+
+
+def letters_at(concrete: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]], x: np.ndarray) -> np.ndarray:
+    """:meth:`Labelling.letters_at` of the atoms' closed boxes ``concrete`` (also what a controller with memory
+    keeps of its labelling, :class:`~pipelines.product_controller.ProductController`)."""
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    out = np.zeros(x.shape[0], dtype=np.int64)
+    for i, boxes in enumerate(concrete):
+        hit = np.zeros(x.shape[0], dtype=bool)
+        for lb, ub in boxes:
+            hit |= np.all((x >= np.asarray(lb)) & (x <= np.asarray(ub)), axis=1)
+        out |= hit.astype(np.int64) << i
+    return out
 
 
 def successor_states(delta: np.ndarray, class_letters: np.ndarray) -> np.ndarray:
