@@ -30,7 +30,7 @@ def test_the_cudd_replica_computes_the_synthesis_domain(problem, tmp_path):
     assert row["iterations"] > 1 and row["peak_rss_mb"] > 0
 
 
-@pytest.mark.skipif(not oxidd_available(), reason="oxidd is not installed (optional: pip install oxidd); "
+@pytest.mark.skipif(not oxidd_available(), reason="oxidd is not installed (the test extra installs it: pip install -e .[test]); "
                                                   "the engine comparison needs it")
 @pytest.mark.parametrize(("name", "threads"), [("oxidd.bdd", 1), ("oxidd.bcdd", 1), ("oxidd.bcdd", 2)])
 def test_oxidd_gives_the_same_domain_set(problem, tmp_path, name, threads):
