@@ -14,8 +14,9 @@ Two forms, after the back end that solved the game:
   layers, the domain; on disk ``NAME.json`` (``format`` :data:`PRODUCT_FORMAT`) and ``NAME.npz``;
 * BDDs (any network): per automaton state a :class:`~.controller.Controller` (the pairs ``(x̂, û)`` of ``C_q``)
   and the domain, in one manager; on disk a symbolic dump (:func:`~.symbolic.files.dump`) whose ``meta`` says
-  ``form: product``. The layers are kept in memory only (the job's closed loop reads them); a loaded BDD form
-  bounds a run by the game's iterations instead.
+  ``form: product``. Its layers are saved as the binary digits of each winning product state's layer, per
+  automaton state ``meta["layer_bits"]`` BDDs after the domain (:func:`layer_digits`), so a loaded controller
+  bounds each run as the job's own does.
 
 Both headers record the automaton (:meth:`~pipelines.temporal.automaton.Automaton.to_json`) and the atoms'
 closed boxes in ``meta``, and carry the integrity record every controller has (:mod:`.controller_integrity`).
@@ -52,12 +53,6 @@ FORM = "product"
 Boxes = list[tuple[np.ndarray, np.ndarray]]
 
 
-def not_yet(what: str) -> CompabsError:
-    """The one error of a code path that does not handle controllers with memory yet (``what``: the path)."""
-    return CompabsError(f"{what} is not yet for ltl controllers (controllers with memory): the job's own closed "
-                        "loop in report.json checks it")
-
-
 class ProductController(GridController):
     """A controller with memory ``C_q(x̂) ⊆ Û`` (module docstring).
 
@@ -75,11 +70,15 @@ class ProductController(GridController):
         ``state_grid``, ``input_grids``, ``kind``, ``automaton``, ``regions`` and what the job recorded.
     layers : ndarray (n_q, n_x), or per state a list of Function, or None
         The product layers (arrays), or per state the winning sets after each iteration (BDDs); ``None``: a
-        loaded BDD form (:meth:`layer_of` then answers the game's iterations).
+        loaded BDD form, whose ``digits`` give the layers.
+    digits : per state a list of Function, optional
+        A loaded BDD form's layers as binary digits (:func:`layer_digits`); without them (and without
+        ``layers``) :meth:`layer_of` answers the game's iterations.
     """
 
     def __init__(self, automaton: Automaton, regions: Sequence[Boxes], per_state: Sequence[ArrayController | Controller],
-                 domain: np.ndarray | Function, meta: Mapping[str, Any], layers: Any = None) -> None:
+                 domain: np.ndarray | Function, meta: Mapping[str, Any], layers: Any = None,
+                 digits: Sequence[Sequence[Function]] | None = None) -> None:
         super().__init__(meta, {**meta, "form": FORM})
         if len(per_state) != automaton.n_states or len(regions) != len(automaton.atoms):
             raise CompabsError(f"a product controller has one controller per automaton state ({automaton.n_states}) "
@@ -90,6 +89,7 @@ class ProductController(GridController):
         self._per_state = list(per_state)
         self._domain = domain
         self._layers = layers
+        self._digits = None if digits is None else [list(d) for d in digits]
         self._domain_table: Any = None
 
     # ------------------------------------------------------------------ built from a product game
@@ -178,16 +178,19 @@ class ProductController(GridController):
 
     def layer_of(self, idx: np.ndarray, q: int) -> int | None:
         """The product layer of ``(q, x̂)``: a run from it accepts within that many steps; ``None`` if losing. A
-        loaded BDD form, which keeps no layers, answers the game's iterations for every winning product state."""
+        loaded BDD form reads it from its saved digits (one without them answers the game's iterations)."""
         idx = np.asarray(idx, dtype=np.int64).reshape(1, -1)
         if not self.winning(idx, q)[0]:
             return None
-        if self._layers is None:
+        if self._layers is None and self._digits is None:
             return int(self._meta.get("iterations", 0))
         if not self.is_symbolic:
             return int(self._layers[q, self._state_grid.ravel(idx)[0]])
         model = self._per_state[0].model  # type: ignore[union-attr]
         state = model.state_assignment([int(v) for v in idx[0]])
+        if self._layers is None:
+            assert self._digits is not None
+            return sum(1 << b for b, f in enumerate(self._digits[int(q)]) if model.bdd.let(state, f) == model.bdd.true)
         for k, layer in enumerate(self._layers[q]):
             if model.bdd.let(state, layer) == model.bdd.true:
                 return k
@@ -233,7 +236,11 @@ class ProductController(GridController):
             from pipelines.symbolic.files import dump
 
             model = self._per_state[0].model  # type: ignore[union-attr]
+            digits = self._digits if self._layers is None else layer_digits(model, self._layers)
             roots = [c.relation for c in self._per_state] + [self._domain]  # type: ignore[union-attr]
+            if digits is not None:
+                meta["layer_bits"] = len(digits[0]) if digits else 0
+                roots += [f for per_q in digits for f in per_q]
             return dump(model, Path(directory) / name, roots, meta)
         base = Path(directory) / name
         arrays, head = base.with_name(base.name + ".npz"), base.with_name(base.name + ".json")
@@ -281,17 +288,44 @@ class ProductController(GridController):
     @classmethod
     def from_roots(cls, model: SymbolicModel, roots: Sequence[Function], meta: Mapping[str, Any],
                    where: str | os.PathLike[str]) -> ProductController:
-        """The BDD form from the roots of its (verified) symbolic dump: one per automaton state, then the domain."""
+        """The BDD form from the roots of its (verified) symbolic dump: one per automaton state, the domain, then
+        per automaton state ``meta["layer_bits"]`` digits of the layers (:func:`layer_digits`)."""
         automaton, regions = _read_meta(meta, where)
-        if len(roots) != automaton.n_states + 1:
-            raise ControllerIntegrityError(f"{where}: {len(roots)} BDD files for an automaton of {automaton.n_states} "
-                                           "states (one per state and the domain)")
+        n_q = automaton.n_states
+        bits = meta.get("layer_bits")
+        if bits is not None and (not isinstance(bits, int) or isinstance(bits, bool) or not 0 <= bits <= 64):
+            raise ControllerIntegrityError(f"{where}: its layer_bits {bits!r} is not a count of digits")
+        if len(roots) != n_q + 1 + n_q * (bits or 0):
+            raise ControllerIntegrityError(f"{where}: {len(roots)} BDD files for an automaton of {n_q} states (one "
+                                           f"per state, the domain and {bits or 0} layer digits per state)")
         try:
-            per_state = [Controller(model, c, dict(meta)) for c in roots[:-1]]
-            return cls(automaton, regions, per_state, roots[-1], meta)
+            per_state = [Controller(model, c, dict(meta)) for c in roots[:n_q]]
+            digits = None if bits is None else [list(roots[n_q + 1 + q * bits:n_q + 1 + (q + 1) * bits])
+                                                for q in range(n_q)]
+            return cls(automaton, regions, per_state, roots[n_q], meta, digits=digits)
         except (KeyError, TypeError, ValueError, CompabsError) as exc:
             raise ControllerIntegrityError(f"{where}: not a readable product controller ({type(exc).__name__}: "
                                            f"{exc})") from None
+
+
+def layer_digits(model: SymbolicModel, layers: Sequence[Sequence[Function]]) -> list[list[Function]]:
+    """Per automaton state, the binary digits of its winning cells' layers: digit ``b`` holds on the cells whose
+    layer has bit ``b`` set (``layers[q][k]``: the winning set after ``k`` iterations, nested). As many digits
+    per state as the largest layer needs; the winning sets themselves say which cells have a layer."""
+    width = max(len(per_q) for per_q in layers) - 1 if layers else 0
+    bits = max(1, int(width).bit_length())
+    false = model.bdd.false
+    out = []
+    with model.guard("writing the product controller's layers"):
+        for per_q in layers:
+            digits = [false] * bits
+            for k in range(1, len(per_q)):  # the layers of one automaton state: as many as the game's iterations
+                new = per_q[k] & ~per_q[k - 1]
+                if new == false:
+                    continue
+                digits = [d | new if (k >> b) & 1 else d for b, d in enumerate(digits)]
+            out.append(digits)
+    return out
 
 
 def _product_meta(meta: Mapping[str, Any], automaton: Automaton, regions: Sequence[Boxes]) -> dict[str, Any]:

@@ -56,7 +56,7 @@ def simulate_product(network: Network, controller: ProductController, x0: np.nda
     bound = np.array([-1 if b is None else int(b) for b in bound], dtype=np.int64)
     horizon = int(bound.max(initial=0)) if steps is None else int(steps)
     lb, ub = np.asarray(controller.state_grid.lb), np.asarray(controller.state_grid.ub)
-    states: list[list[np.ndarray]] = [[x] for x in X]
+    states: list[list[np.ndarray]] = [[x.copy()] for x in X]  # X advances in place
     inputs: list[list[np.ndarray]] = [[] for _ in range(R)]
     automaton: list[list[int]] = [[int(v)] for v in q]
     violation: list[str | None] = [None] * R
