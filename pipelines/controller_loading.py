@@ -10,25 +10,30 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pipelines.array_controller import ArrayController, is_array_controller
 from pipelines.controller import CONTROLLER_FILE, Controller, LayeredController
 from pipelines.controller_integrity import ControllerIntegrityError, job_spec_hash
 from pipelines.errors import CompabsError
-from pipelines.export.table import EXPORT_FORMAT, ExportedController, load_export
+from pipelines.export.table import EXPORT_FORMAT, PRODUCT_EXPORT_FORMAT, ExportedController, load_export
 from pipelines.product_controller import FORM as PRODUCT_FORM
 from pipelines.product_controller import ProductController, is_product_arrays
 from pipelines.symbolic.files import load_all
 
+if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
+    from pipelines.export.memory import ExportedProductController
+
 
 def load_controller(
     directory: str | os.PathLike[str], name: str = CONTROLLER_FILE, job_hash: str | None = None
-) -> Controller | ArrayController | ExportedController | ProductController:
+) -> Controller | ArrayController | ExportedController | ProductController | ExportedProductController:
     """Load a controller written by ``compabs run`` (``DIR/controller.json`` with ``DIR/controller.dddmp``, or
     with ``DIR/controller.npz`` for an explicit game's :class:`~.array_controller.ArrayController`), or a
     determinized one exported as JSON (``compabs export --format json``: pass the file), answering ``input(x)`` /
     ``inputs(x)`` (:class:`~.export.table.ExportedController`). An ``ltl`` job's controller has memory
-    (:class:`~.product_controller.ProductController`, arrays or BDDs).
+    (:class:`~.product_controller.ProductController`, arrays or BDDs; its JSON export reads back as
+    :class:`~.export.memory.ExportedProductController`).
 
     Every file is verified before use (:mod:`.controller_integrity`): the checksums and the spec hash its header
     records, and that spec hash against ``job_hash`` (default: the spec hash of ``DIR/spec.json`` when the
@@ -43,6 +48,10 @@ def load_controller(
     if path.is_file():
         if _is_export(path):
             return load_export(path)
+        if _is_export(path, PRODUCT_EXPORT_FORMAT):
+            from pipelines.export.memory import load_product_export  # the export package's heavier half
+
+            return load_product_export(path)
         directory, name = path.parent, path.name.removesuffix(".json").removesuffix(".dddmp").removesuffix(".npz")
     base = Path(directory) / name
     head = base.with_name(base.name + ".json")
@@ -73,8 +82,8 @@ def load_controller(
                                        ) from None
 
 
-def _is_export(path: Path) -> bool:
-    """Whether a file is a JSON export (its ``format``; the first bytes are enough)."""
+def _is_export(path: Path, fmt: str = EXPORT_FORMAT) -> bool:
+    """Whether a file is a JSON export of format ``fmt`` (its ``format``; the first bytes are enough)."""
     with open(path, "rb") as f:
         head = f.read(4096)
-    return re.search(rb'"format"\s*:\s*"' + re.escape(EXPORT_FORMAT.encode()) + rb'"', head) is not None
+    return re.search(rb'"format"\s*:\s*"' + re.escape(fmt.encode()) + rb'"', head) is not None

@@ -52,11 +52,11 @@ def cmd_export(args: argparse.Namespace) -> int:
     from pipelines.controller_loading import load_controller
     from pipelines.export.c import write_c
     from pipelines.export.emit import export_controller, write_csv, write_json
-    from pipelines.product_controller import ProductController, not_yet
+    from pipelines.product_controller import ProductController
 
     ctrl = load_controller(args.dir, _name(args))
     if isinstance(ctrl, ProductController):
-        raise not_yet("compabs export")
+        return _export_product(ctrl, args)
     if not isinstance(ctrl, Controller | ArrayController):
         raise CompabsError(f"{args.dir} is an exported controller; export reads a job's --out directory")
     form = args.form if args.format != "csv" else "bdd"  # a CSV lists cells: no need for a tree
@@ -71,6 +71,27 @@ def cmd_export(args: argparse.Namespace) -> int:
     else:
         files = list(write_c(export, out))
     summary = {"rule": export.rule, **export.sizes, "files": [str(f) for f in files]}
+    if args.format == "c":
+        summary["c_bytes"] = sum(f.stat().st_size for f in files)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def _export_product(ctrl: Any, args: argparse.Namespace) -> int:
+    """``compabs export`` of an ``ltl`` job's controller with memory (:mod:`pipelines.export.memory`)."""
+    from pipelines.export.memory import export_product, write_product_csv, write_product_json
+    from pipelines.export.memory_c import write_product_c
+
+    export = export_product(ctrl, form=args.form, rule=args.rule)
+    out = Path(args.out) if args.out else Path(args.dir) / f"{_name(args)}_export"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if args.format == "json":
+        files = [write_product_json(export, out if args.out else out.with_suffix(".json"))]
+    elif args.format == "csv":
+        files = write_product_csv(export, out if args.out else out.with_suffix(".csv"), args.max_rows)
+    else:
+        files = list(write_product_c(export, out))
+    summary: dict[str, Any] = {"rule": export.rule, **export.sizes, "files": [str(f) for f in files]}
     if args.format == "c":
         summary["c_bytes"] = sum(f.stat().st_size for f in files)
     print(json.dumps(summary, indent=1))
@@ -94,18 +115,24 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobdir.CONTROLLER) -> dict[str, Any]:
-    """What ``compabs control`` reports at a state: its cell, the admissible inputs, the determinized one."""
+def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobdir.CONTROLLER,
+               q: int | None = None) -> dict[str, Any]:
+    """What ``compabs control`` reports at a state: its cell, the admissible inputs, the determinized one; for a
+    controller with memory also the letter and the automaton state ``q`` (default ``δ(q₀, σ(x))``: the run
+    starts at ``x``)."""
     from pipelines.array_controller import ArrayController
     from pipelines.controller import Controller, LayeredController
     from pipelines.controller_loading import load_controller
     from pipelines.export.determinize import determinized_at, resolve_rule
     from pipelines.export.table import RULES, ExportError
-    from pipelines.product_controller import ProductController, not_yet
+    from pipelines.product_controller import ProductController
 
     ctrl = load_controller(directory, name)
     if isinstance(ctrl, ProductController):
-        raise not_yet("compabs control")
+        return _product_control_at(ctrl, x_text, rule, q)
+    if q is not None:
+        raise CompabsError("--q is the automaton state of an 'ltl' job's controller (a controller with memory); "
+                           f"{directory}'s controller has none")
     if not isinstance(ctrl, Controller | ArrayController):
         raise CompabsError(f"{directory} is an exported controller; for its input at a state use 'compabs import "
                            f"{directory} --x ...'")
@@ -146,9 +173,60 @@ def control_at(directory: str, x_text: str, rule: str = "auto", name: str = jobd
     return out
 
 
+def _product_control_at(ctrl: Any, x_text: str, rule: str, q: int | None) -> dict[str, Any]:
+    """:func:`control_at` for a :class:`~pipelines.product_controller.ProductController`: ``C_q`` at ``x``'s cell.
+    Its determinized input is the smallest admissible input index (what ``compabs export`` writes): every input
+    of ``C_q`` makes progress in the product, so the rule is ``smallest_index`` whatever ``rule`` asks."""
+    from pipelines.controller import Controller
+    from pipelines.export.determinize import determinized_at
+    from pipelines.export.table import RULES, ExportError
+
+    if rule not in ("auto", "smallest_index"):
+        raise ExportError(f"an 'ltl' controller is determinized by the smallest admissible input index (every input "
+                          f"makes progress in the product); rule {rule!r} is not for it (one of {', '.join(RULES)})")
+    automaton = ctrl.automaton
+    x = parse_state(x_text, ctrl.state_grid.dim)
+    letter = int(ctrl.letters_at(x[None, :])[0])
+    if q is None:
+        q = int(ctrl.initial_state(x[None, :])[0])
+    elif not 0 <= q < automaton.n_states:
+        raise SpecError(f"--q {q}: the automaton has states 0 .. {automaton.n_states - 1}")
+    out: dict[str, Any] = {"x": x.tolist(), "letter": letter,
+                           "atoms": [a for i, a in enumerate(automaton.atoms) if (letter >> i) & 1],
+                           "q": q, "accepting": bool(automaton.accepting[q]), "cell": None, "cell_centre": None,
+                           "in_domain": False, "inputs": [], "determinized": None, "rule": "smallest_index",
+                           "fixed_point": ctrl.meta.get("fixed_point")}
+    idx = ctrl.cell(x)
+    if idx is None:
+        out["reason"] = "outside the state box"
+        return out
+    out["cell"] = [int(v) for v in idx]
+    out["cell_centre"] = ctrl.state_grid.points(idx[None, :])[0].tolist()
+    out["layer"] = ctrl.layer_of(idx, q)
+    inputs = ctrl.inputs(x, q)
+    out["inputs"] = inputs.tolist()
+    out["in_domain"] = bool(inputs.shape[0])
+    if not out["in_domain"]:
+        out["reason"] = f"outside the controller's winning set in automaton state {q}"
+        return out
+    per_state = ctrl.per_state[q]
+    if not isinstance(per_state, Controller):  # an array controller lists its inputs by index
+        out["determinized"] = inputs[0].tolist()
+        return out
+    codes = determinized_at(per_state, idx, "smallest_index")
+    assert codes is not None
+    parts = [g.points(g.unravel(codes[s:s + 1])) for s, g in enumerate(ctrl.input_grids)]
+    out["determinized"] = np.concatenate(parts, axis=1)[0].tolist()
+    return out
+
+
 def format_control(r: dict[str, Any], limit: int) -> str:
     """The report of :func:`control_at` as a short table."""
     lines = [f"x = {r['x']}"]
+    if "q" in r:
+        atoms = ", ".join(r["atoms"]) or "none"
+        lines.append(f"automaton state {r['q']}{' (accepting)' if r['accepting'] else ''}; atoms holding at x: "
+                     f"{atoms}")
     if r["cell"] is None:
         return "\n".join(lines + [f"no input: x is {r['reason']}"])
     layer = f", layer {r['layer']}" if r.get("layer") is not None else ""
@@ -168,7 +246,7 @@ def format_control(r: dict[str, Any], limit: int) -> str:
 
 def cmd_control(args: argparse.Namespace) -> int:
     """Print the inputs at ``--x``: 0 if there is one, 1 outside the domain or the box (2 for a user error)."""
-    r = control_at(args.dir, args.x, args.rule, _name(args))
+    r = control_at(args.dir, args.x, args.rule, _name(args), args.q)
     print(json.dumps(r) if args.json else format_control(r, args.limit))
     return 0 if r["in_domain"] else NO_INPUT
 
@@ -198,6 +276,8 @@ def add_parser(sub: Any) -> None:
     c.add_argument("--x", required=True, help="the state, comma-separated")
     c.add_argument("--rule", choices=RULES, default="auto", help="rule of the determinized input")
     c.add_argument("--controller", default=None, metavar="FIXED_POINT", help="as for export")
+    c.add_argument("--q", type=count(0), default=None, help="an 'ltl' controller's automaton state at x (default: "
+                   "the one a run starting at x is in)")
     c.add_argument("--json", action="store_true", help="print JSON")
     c.add_argument("--limit", type=count(1), default=20, help="admissible inputs listed in the table")
     c.set_defaults(func=cmd_control)

@@ -9,6 +9,8 @@
 * :mod:`.emit` — the export (the smaller of the two forms) as JSON and CSV; its domain's cells listed, counted and
   sampled uniformly from the BDD table.
 * :mod:`.c` — the export as a C99 header and source (``compabs_control``).
+* :mod:`.memory`, :mod:`.memory_c` — an ``ltl`` job's controller with memory: the automaton, the atoms' boxes and
+  per automaton state its determinized controller, as JSON, CSV and C (``compabs_step``).
 
 This ``__init__`` imports nothing. The package sits above :mod:`pipelines.controller` (:mod:`.determinize` and
 :mod:`.emit` import it, never the reverse); :mod:`pipelines.controller_loading` sits above both.

@@ -21,7 +21,7 @@ import numpy as np
 
 from pipelines.export.emit import Export, int_type
 from pipelines.export.table import FORMS, RULES, ExportError
-from pipelines.grid import SNAP_RTOL
+from pipelines.grid import SNAP_RTOL, UniformGrid
 
 PER_LINE = 16
 #: What a word from the controller's header must be to be written into a C comment.
@@ -69,7 +69,7 @@ static int quantize(const double *x, int64_t *idx)
 }
 """
 
-BDD_EVAL = """
+BDD_WALK = """
 /* Value of the BDD edge e at the cell idx: edge = node << 1 | complemented, node 0 the constant TRUE. */
 static int evaluate(uint32_t e, const int64_t *idx)
 {
@@ -81,7 +81,9 @@ static int evaluate(uint32_t e, const int64_t *idx)
     }
     return !(e & 1u);
 }
+"""
 
+BDD_EVAL = BDD_WALK + """
 static int choose(const int64_t *idx, int64_t *code)
 {
     if (!evaluate(ROOT_DOMAIN, idx))
@@ -163,25 +165,8 @@ def c_sources(export: Export, name: str = "compabs_controller") -> tuple[str, st
               "/* Writes the chosen input u[0 .. COMPABS_INPUT_DIM-1] and returns 1 when x[0 .. COMPABS_STATE_DIM-1]\n"
               "   is in the controller's domain; returns 0 (u untouched) otherwise. No allocation, reentrant. */\n"
               "int compabs_control(const double *x, double *u);\n\n#endif\n")
-    points, offset, out, dims = [], [], [], []
-    at = pos = 0
-    for ig in export.input_grids:
-        offset.append(at)
-        out.append(pos)
-        dims.append(ig.dim)
-        p = ig.all_points()
-        points.append(p.ravel())
-        at += p.size
-        pos += ig.dim
     parts = [f"/* {about} */\n#include <math.h>\n#include <stdint.h>\n\n#include \"{name}.h\"\n\n",
-             f"#define NX {n}\n#define NS {len(export.input_grids)}\n",
-             f"static const double SNAP_RTOL = {float(SNAP_RTOL).hex()};\n",
-             _array("ORIGIN", np.asarray(g.origin, dtype=float)), _array("ETA", np.asarray(g.eta, dtype=float)),
-             _array("LB", np.asarray(g.lb, dtype=float)), _array("UB", np.asarray(g.ub, dtype=float)),
-             _array("K_LO", g.k_lo, "int64_t"), _array("SHAPE", g.shape, "int64_t"),
-             _array("N_INPUTS", [ig.size for ig in export.input_grids], "int64_t"),
-             _array("U_DIM", dims, "int"), _array("U_OUT", out, "int"), _array("U_OFFSET", offset, "int64_t"),
-             _array("U_POINTS", np.concatenate(points).astype(float)), QUANTIZE]
+             *grid_parts(g, export.input_grids)]
     if export.form == "bdd":
         t = export.bdd
         parts += [f"static const uint32_t ROOT_DOMAIN = {int(t.domain)}u;\n", _array("OUTPUT", t.outputs, "uint32_t"),
@@ -195,6 +180,29 @@ def c_sources(export: Export, name: str = "compabs_controller") -> tuple[str, st
                   _array("RIGHT", tr.right), _array("LEAF", tr.leaf), _array("CHOICES", export.choices), TREE_EVAL]
     parts.append(CONTROL)
     return header, "".join(parts)
+
+
+def grid_parts(g: UniformGrid, input_grids: list[UniformGrid]) -> list[str]:
+    """The C of the state grid and the quantizer (``NX``, ``quantize``), and of the input grids (``NS``, the
+    inputs' points and where each subsystem's input goes): what every C export starts with."""
+    points, offset, out, dims = [], [], [], []
+    at = pos = 0
+    for ig in input_grids:
+        offset.append(at)
+        out.append(pos)
+        dims.append(ig.dim)
+        p = ig.all_points()
+        points.append(p.ravel())
+        at += p.size
+        pos += ig.dim
+    return [f"#define NX {g.dim}\n#define NS {len(input_grids)}\n",
+            f"static const double SNAP_RTOL = {float(SNAP_RTOL).hex()};\n",
+            _array("ORIGIN", np.asarray(g.origin, dtype=float)), _array("ETA", np.asarray(g.eta, dtype=float)),
+            _array("LB", np.asarray(g.lb, dtype=float)), _array("UB", np.asarray(g.ub, dtype=float)),
+            _array("K_LO", g.k_lo, "int64_t"), _array("SHAPE", g.shape, "int64_t"),
+            _array("N_INPUTS", [ig.size for ig in input_grids], "int64_t"),
+            _array("U_DIM", dims, "int"), _array("U_OUT", out, "int"), _array("U_OFFSET", offset, "int64_t"),
+            _array("U_POINTS", np.concatenate(points).astype(float)), QUANTIZE]
 
 
 def write_c(export: Export, out: str | os.PathLike[str]) -> tuple[Path, Path]:

@@ -43,6 +43,8 @@ CSV_MAX_ROWS = 100_000
 
 #: ``format`` of a JSON export.
 EXPORT_FORMAT = "compabs-controller/1"
+#: ``format`` of a controller with memory's JSON export (:mod:`pipelines.export.memory`).
+PRODUCT_EXPORT_FORMAT = "compabs-product-export/1"
 
 
 class ExportError(CompabsError):
