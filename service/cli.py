@@ -29,7 +29,7 @@ import time
 import traceback
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn, cast
+from typing import TYPE_CHECKING, Any, NoReturn, cast
 
 import numpy as np
 
@@ -108,6 +108,8 @@ class _Bars:
 EMPTY_DOMAIN_STATUS = 4
 #: Environment variable that makes an internal error print its traceback and keeps the workers' task-error logs.
 DEBUG_ENV = "COMPABS_DEBUG"
+#: Steps of ``compabs simulate`` unless --steps says (an ``ltl`` job: its run's bound).
+SIMULATE_STEPS = 50
 #: Log levels of the embedded cluster's worker processes (Dask's ``logging`` setting, handed to them through
 #: the environment): a failing task, e.g. a black box's NaN, is reported once as the ``error:`` line, not also
 #: as the worker's "Compute Failed" record and its traceback. Memory warnings still show.
@@ -381,15 +383,17 @@ def summary_lines(report: dict, out: Path, total_seconds: float | None = None) -
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.controller_loading import load_controller
+    from pipelines.export.memory import ExportedProductController
     from pipelines.network import build_network
-    from pipelines.product_controller import ProductController, not_yet
+    from pipelines.product_controller import ProductController
     from pipelines.spec.model import parse_spec
     from pipelines.spec.regions import closed_loop_regions, spec_regions
     from pipelines.verification.closed_loop import simulate
 
     controller = load_controller(args.dir)
-    if isinstance(controller, ProductController):
-        raise not_yet("compabs simulate")
+    if isinstance(controller, ExportedProductController):
+        raise CompabsError(f"{args.dir} is the export of a controller with memory; simulate reads a job's --out "
+                           "directory")
     spec = parse_spec(controller.meta["spec"])
     network = build_network(spec, None)
     try:
@@ -398,12 +402,41 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise SpecError(f"--x0 expects comma-separated numbers, got {args.x0!r}") from None
     if x0.size != network.state_dim:
         raise SpecError(f"--x0 has {x0.size} components; the system has {network.state_dim}")
+    if isinstance(controller, ProductController):
+        return _simulate_product(network, controller, x0, args)
     regions = spec_regions(spec, network)
-    run = simulate(network, None if args.free else controller, x0, args.steps,
+    run = simulate(network, None if args.free else controller, x0, args.steps or SIMULATE_STEPS,
                    np.random.default_rng(args.seed), spec.specification.kind,
                    **closed_loop_regions(spec, network, regions), choose=args.choose)
     print(json.dumps(run.as_dict()))
     return 0 if run.violation is None or args.free else 4
+
+
+def _simulate_product(network: Any, controller: Any, x0: np.ndarray, args: argparse.Namespace) -> int:
+    """``compabs simulate`` of an ``ltl`` job: the run tracks the automaton state and stops when it accepts
+    (:func:`~pipelines.verification.product_loop.simulate_product`; ``--steps`` default: the bound its first
+    product state's layer gives). The JSON adds per state of the run its automaton state, whether it accepts,
+    and the bound."""
+    from pipelines.verification.product_loop import simulate_product
+
+    if args.free:
+        raise SpecError("--free runs the system without a controller, and an 'ltl' job's trace is checked under its "
+                        "controller with memory; leave --free out")
+    if args.choose == "steady":
+        raise SpecError("--choose steady is not for an 'ltl' controller (its admissible inputs change with the "
+                        "automaton state); use random or first")
+    idx = controller.cell(x0)
+    q0 = int(controller.initial_state(x0[None, :])[0])
+    if idx is None or not controller.winning(idx[None, :], q0)[0]:
+        raise SpecError(f"--x0 {x0.tolist()} is outside the controller's winning set (automaton state {q0} after its "
+                        "letter): no run under it is guaranteed")
+    (run,) = simulate_product(network, controller, x0[None, :], args.steps, np.random.default_rng(args.seed),
+                              args.choose)
+    automaton = run.extra["automaton_states"]
+    out = {**run.as_dict(), "automaton_states": automaton, "accepting": run.in_target.tolist(),
+           "accepted_at": run.settled_at, "bound": run.extra["bound"]}
+    print(json.dumps(out))
+    return 0 if run.violation is None else 4
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
@@ -466,7 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("simulate", help="run the concrete system under a saved controller; prints JSON")
     m.add_argument("dir", help="output directory of 'compabs run'")
     m.add_argument("--x0", required=True, help="initial state, comma-separated")
-    m.add_argument("--steps", type=count(1), default=50)
+    m.add_argument("--steps", type=count(1), default=None, help=f"steps (default {SIMULATE_STEPS}; an 'ltl' job: "
+                   "the bound of the run's first product state)")
     m.add_argument("--seed", type=count(0), default=0)
     m.add_argument("--choose", choices=["random", "first", "steady"], default="random",
                    help="which admissible input: random, the first, or steady (the previous one while admissible)")

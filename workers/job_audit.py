@@ -9,7 +9,9 @@ Always against what the job *stored* (:func:`workers.jobdir.load_job`: ``relatio
 * the integrity of the stored relations: every chunk against the checksum in its done-marker (a damaged
   chunk, missing, unreadable or not matching, is one violation, named by group and chunk);
 * the controller, if the job has one: closed-loop runs of the concrete system under it from random states of its
-  domain and from the spec's initial states inside it (:func:`pipelines.verification.closed_loop.run_closed_loop`).
+  domain and from the spec's initial states inside it (:func:`pipelines.verification.closed_loop.run_closed_loop`;
+  an ``ltl`` job's controller with memory tracks the automaton state and each run must accept within its bound,
+  :func:`pipelines.verification.product_loop.run_product_loop`).
 """
 
 from __future__ import annotations
@@ -25,19 +27,20 @@ from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
 from pipelines.controller_loading import load_controller
 from pipelines.errors import CompabsError
-from pipelines.product_controller import ProductController, not_yet
+from pipelines.product_controller import ProductController
 from pipelines.spec.costs import Caps, CostError, audit_evaluations
 from pipelines.spec.model import spec_hash
 from pipelines.spec.regions import closed_loop_regions, spec_regions
 from pipelines.verification.audit import audit_abstraction
 from pipelines.verification.closed_loop import run_closed_loop
+from pipelines.verification.product_loop import run_product_loop
 from workers import jobdir
 
 #: ``progress(part, done, total)`` for long audits.
 AuditProgress = Callable[[str, int, int], None]
 
 
-def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | None:
+def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | ProductController | None:
     """The job's stored controller (``None`` without one), verified against its checksums and the job's spec hash
     before any file of it is read (:func:`pipelines.controller_loading.load_controller`)."""
     if not arts.has_controller:
@@ -48,17 +51,24 @@ def _controller(arts: jobdir.JobArtifacts) -> Controller | ArrayController | Non
                                        "job again")
         return None
     controller = load_controller(arts.directory, jobdir.CONTROLLER, job_hash=spec_hash(arts.spec))
-    if isinstance(controller, ProductController):
-        raise not_yet("compabs audit")
-    if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - load_controller reads a job's
+    if not isinstance(controller, Controller | ArrayController | ProductController):  # pragma: no cover - load_controller reads a job's
         raise CompabsError(f"{arts.directory}/{jobdir.CONTROLLER}.json is not a synthesized controller")
     return controller
 
 
-def _closed_loop(arts: jobdir.JobArtifacts, controller: Controller | ArrayController, runs: int,
+def _closed_loop(arts: jobdir.JobArtifacts, controller: Controller | ArrayController | ProductController, runs: int,
                  rng: np.random.Generator) -> dict[str, Any]:
     """Closed-loop runs of the concrete system under the job's stored controller."""
     spec, network = arts.spec, arts.network
+    if isinstance(controller, ProductController):
+        t0 = time.perf_counter()
+        product = run_product_loop(network, controller, spec.options.initial_states, runs,
+                                   spec.options.closed_loop_steps, rng)
+        random_runs = sum(1 for origin, _, _ in product.runs if origin == "random")
+        return {"runs": len(product.runs), "violations": product.violations,
+                "first_violation": product.first_violation, "steps": product.steps, "form": "product",
+                "accepted": product.accepted, "domain_empty": random_runs == 0 and runs > 0,
+                "seconds": time.perf_counter() - t0}
     checked = closed_loop_regions(spec, network, spec_regions(spec, network))
     steps = (arts.report.get("closed_loop") or {}).get("steps") or spec.options.closed_loop_steps or 60
     t0 = time.perf_counter()
