@@ -94,9 +94,8 @@ def run_synthesis(
                              progress=lambda k, n: progress("closed_loop", k, n, "runs in lockstep")))
     seconds["closed_loop"] = time.perf_counter() - t0
 
-    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why. A
-    # controller with memory has none yet (the trajectory coloured by automaton state is to come).
-    figures = [] if out_dir is None or kind == "ltl" else draw_figures(network, controller, loop, out_dir)
+    # The figures (workers.figures): drawn also for an empty domain, where the phase plane shows why.
+    figures = [] if out_dir is None else draw_figures(network, controller, loop, out_dir)
 
     return {
         "domain_states": main.domain_states,

@@ -8,6 +8,11 @@ chatter between extremes where several are admissible (inside a target); any adm
 specification (Theorem 4.2), so the figure shows a run the guarantee covers. The time plot draws the run from the spec's first initial state
 when it is in the domain, else the longest of the random runs drawn. The starts are kept in
 ``closed_loop_example.json`` with the run drawn, and a redraw runs the concrete system again from them.
+
+An ``ltl`` job's controller has memory: its runs track the automaton state and stop at acceptance
+(:func:`~pipelines.verification.product_loop.simulate_product`, the first admissible input of the state's
+controller), the trajectory figure colours the run by automaton state and names the formula's regions
+(:func:`~pipelines.figures.automaton_plot.product_trajectory`), and the phase plane draws those regions.
 """
 
 from __future__ import annotations
@@ -26,13 +31,15 @@ from pipelines.controller import Controller
 from pipelines.controller_loading import load_controller
 from pipelines.errors import CompabsError
 from pipelines.figures import figure_setting, phase_plane, save_figure, time_plot
+from pipelines.figures.automaton_plot import product_trajectory
 from pipelines.figures.domain import plane_mask
 from pipelines.figures.phase_plane import check_axes
 from pipelines.network import Network, build_network
-from pipelines.product_controller import ProductController, not_yet
+from pipelines.product_controller import ProductController
 from pipelines.spec.model import JobSpec, parse_spec
 from pipelines.spec.regions import closed_loop_regions
 from pipelines.verification.closed_loop import ClosedLoop, simulate, simulate_many
+from pipelines.verification.product_loop import simulate_product
 from workers import jobdir
 from workers.jobdir import ArtifactError
 
@@ -86,7 +93,38 @@ def _draw(network: Network, controller: Controller | ArrayController, starts: Se
     return paths
 
 
-def draw_figures(network: Network, controller: Controller | ArrayController, loop: ClosedLoop, out_dir: str | os.PathLike[str], *,
+#: How a controller with memory's drawn runs choose (deterministic; the previous input is no guide once the
+#: automaton state, and with it the controller, changes).
+PRODUCT_CHOICE = "first"
+
+
+def _draw_product(network: Network, controller: ProductController, starts: Sequence[Start], steps: int,
+                  initial_states: Sequence[dict], out_dir: Path, axes: Sequence[int]) -> list[Path]:
+    """:func:`_draw` for a controller with memory (module docstring)."""
+    chosen = _figure_starts(starts)
+    X0 = np.array([x0 for _, x0 in chosen]).reshape(len(chosen), network.state_dim)
+    runs = simulate_product(network, controller, X0, steps, np.random.default_rng(0), PRODUCT_CHOICE)
+    drawn = [(origin, x0, run) for (origin, x0), run in zip(chosen, runs)]
+    setting = figure_setting(network, initial_states, PRODUCT_CHOICE)
+    paths = []
+    if drawn:
+        first = 0 if drawn[0][0] == "initial" else max(range(len(drawn)), key=lambda r: drawn[r][2].inputs.shape[0])
+        origin, x0, run = drawn[first]
+        fig = product_trajectory(setting, run, run.extra["automaton_states"], controller.automaton, setting.atoms,
+                                 axes=axes, origin=origin)
+        paths.append(save_figure(fig, jobdir.figure(out_dir, "trajectory")))
+        jobdir.write_example_run(out_dir, {
+            "controlled": {**run.as_dict(), **run.extra}, "origin": origin, "x0": x0.tolist(),
+            "choose": PRODUCT_CHOICE, "steps": steps, "starts": [{"origin": o, "x0": x.tolist()} for o, x in chosen],
+        })
+    if network.state_dim >= 2:
+        fig = phase_plane(setting, controller.in_domain, drawn, axes=axes)
+        paths.append(save_figure(fig, jobdir.figure(out_dir, "phase_plane")))
+    return paths
+
+
+def draw_figures(network: Network, controller: Controller | ArrayController | ProductController, loop: ClosedLoop,
+                 out_dir: str | os.PathLike[str], *,
                  axes: Sequence[int] = (0, 1)) -> list[str]:
     """Draw the job's figures after its closed loop (:func:`workers.control.run_synthesis`).
 
@@ -111,7 +149,11 @@ def draw_figures(network: Network, controller: Controller | ArrayController, loo
     if network.state_dim >= 2:
         check_axes(axes, network.state_dim)
     starts = [(origin, x0) for origin, x0, _ in loop.runs]
-    paths = _draw(network, controller, starts, loop.steps, loop.initial_states, Path(out_dir), axes)
+    if isinstance(controller, ProductController):
+        paths = _draw_product(network, controller, starts, max(1, loop.steps), loop.initial_states, Path(out_dir),
+                              axes)
+    else:
+        paths = _draw(network, controller, starts, loop.steps, loop.initial_states, Path(out_dir), axes)
     return [p.name for p in paths]
 
 
@@ -150,7 +192,7 @@ def _stored_starts(out: Path, n: int) -> tuple[list[Start], int] | None:
     return starts, steps
 
 
-def _initial_states(controller: Controller | ArrayController, spec: JobSpec) -> list[dict]:
+def _initial_states(controller: Controller | ArrayController | ProductController, spec: JobSpec) -> list[dict]:
     """``x0`` and ``in_domain`` per initial state of the spec (as :attr:`ClosedLoop.initial_states`)."""
     out = []
     for x in spec.options.initial_states:
@@ -160,7 +202,7 @@ def _initial_states(controller: Controller | ArrayController, spec: JobSpec) -> 
     return out
 
 
-def _seeded_starts(controller: Controller | ArrayController, spec: JobSpec, initial: list[dict], report: dict) -> tuple[list[Start], int]:
+def _seeded_starts(controller: Controller | ArrayController | ProductController, spec: JobSpec, initial: list[dict], report: dict) -> tuple[list[Start], int]:
     """The starts the job's closed loop drew (:func:`run_closed_loop` with the generator of
     :func:`workers.control.run_synthesis`, ``seed + 1``), for a job whose example run does not keep them."""
     starts: list[Start] = [("initial", np.asarray(r["x0"], dtype=float)) for r in initial if r["in_domain"]]
@@ -214,13 +256,13 @@ def redraw_figures(job_dir: str | os.PathLike[str], *, axes: tuple[int, int] = (
         raise CompabsError(f"{out} holds no controller ({jobdir.CONTROLLER}.json): the job ran without synthesis, "
                            "and its figures are those of a controller")
     controller = load_controller(out)
-    if isinstance(controller, ProductController):
-        raise not_yet("compabs figures")
-    if not isinstance(controller, Controller | ArrayController):  # pragma: no cover - a job's own controller
+    if not isinstance(controller, Controller | ArrayController | ProductController):  # pragma: no cover
         raise CompabsError(f"{out}: {jobdir.CONTROLLER}.json is not a synthesized controller")
     initial = _initial_states(controller, spec)
     stored = _stored_starts(out, network.state_dim)
     if stored is None:
         stored = _seeded_starts(controller, spec, initial, _read_json(jobdir.report_path(out), "report"))
     starts, steps = stored
+    if isinstance(controller, ProductController):
+        return _draw_product(network, controller, starts, steps, initial, out, axes)
     return _draw(network, controller, starts, steps, initial, out, axes)

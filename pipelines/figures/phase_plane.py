@@ -27,6 +27,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
 from pipelines.errors import SpecError
+from pipelines.figures.automaton_plot import draw_atoms
 from pipelines.figures.domain import MAX_PLANE_CELLS, block_factors, block_levels
 from pipelines.figures.setting import CHOICES, REGION_NAMES, FigureSetting, vector
 from pipelines.grid import UniformGrid
@@ -147,7 +148,7 @@ def phase_plane(
     Figure
         Artists carry ``gid``s: ``domain`` (the image of the domain, one pixel per cell, or per block of cells:
         then its values are those of :func:`.domain.block_levels`), ``target:k``, ``safe:k``, ``avoid:k`` (the
-        boxes), ``state_set``, ``run:r``, ``start:r`` and ``end:r``.
+        boxes), ``atom:NAME:k`` and ``atom_label:NAME:k`` (an ``ltl`` spec's regions, named), ``state_set``, ``run:r``, ``start:r`` and ``end:r``.
     """
     grid = setting.grid
     i, j = check_axes(axes, grid.dim)
@@ -279,6 +280,9 @@ def _draw_regions(ax, setting: FigureSetting, base: np.ndarray, axes: tuple[int,
             drawn += 1
         if key in setting.regions and drawn == 0:
             lines.append(f"{key}: no box meets this {'slice' if sliced else 'plane'}")
+    atoms = {name: [(lb, ub) for lb, ub in boxes if not sliced or _meets_slice(lb, ub, grid, base, i, j)]
+             for name, boxes in setting.atoms.items()}
+    handles += draw_atoms(ax, atoms, (i, j))
     return handles, lines
 
 

@@ -171,6 +171,10 @@ class FigureSetting:
         Whether its cell is in the controller's domain.
     choice : str
         How the drawn runs choose their inputs (a key of :data:`CHOICES`).
+    atoms : dict of str to list of Box
+        An ``ltl`` spec's named regions (its formula's atoms) as concrete boxes.
+    formula : str or None
+        An ``ltl`` spec's formula.
     """
 
     name: str
@@ -185,6 +189,8 @@ class FigureSetting:
     x0: np.ndarray | None = None
     x0_in_domain: bool | None = None
     choice: str = "first"
+    atoms: dict[str, list[Box]] = field(default_factory=dict)
+    formula: str | None = None
 
     def initial_state_line(self) -> str:
         """The caption line every figure carries: the spec kind, the initial state and whether it is in the domain."""
@@ -223,13 +229,15 @@ def figure_setting(network: Network, initial_states: Sequence[dict], choice: str
                 consensus[key] = consensus_of(region)
             if note:
                 notes.append(f"{key}: {note}")
+    atoms = {name: concrete_boxes(region, n)[0] for name, region in (spec.specification.regions or {}).items()}
     states, inputs = _names(network)
     first = initial_states[0] if initial_states else None
     return FigureSetting(
         name=spec.name, kind=spec.specification.kind, grid=network.composed_state_grid(), state_names=states,
         input_names=inputs, regions=regions, bands=bands, consensus=consensus, notes=notes,
         x0=None if first is None else np.asarray(first["x0"], dtype=float),
-        x0_in_domain=None if first is None else bool(first["in_domain"]), choice=choice,
+        x0_in_domain=None if first is None else bool(first["in_domain"]), choice=choice, atoms=atoms,
+        formula=spec.specification.formula,
     )
 
 
