@@ -6,7 +6,7 @@ JSON.
     python bench/run.py                      # every case but consensus, general and synthesis
     python bench/run.py --quick              # small sizes, minutes (what tests/test_bench.py runs)
     python bench/run.py --cases tanks,consensus,scalability,floor,scp,workers,bdd
-    python bench/run.py --cases tanks,scp    # some cases; consensus, general and synthesis run only when named
+    python bench/run.py --cases tanks,scp    # some cases; consensus, general, synthesis and ltl run only when named
     python bench/run.py --json out.json      # also write the results as JSON
 
 Cases (``--cases``), each in a module of its own that says what it measures:
@@ -24,6 +24,8 @@ Cases (``--cases``), each in a module of its own that says what it measures:
     the field's benchmarks beside SCOTS (:mod:`bench.general`)
 ``synthesis`` (only when named, never under ``--quick``)
     consensus synthesis in every mode, one process against Dask workers (:mod:`bench.synthesis`)
+``ltl`` (only when named; under ``--quick`` the robot alone)
+    temporal-logic tasks: the automaton, the product and its game on both back ends (:mod:`bench.ltl`)
 
 How each child process is measured, and what the table's columns mean: :mod:`bench.harness`.
 """
@@ -40,20 +42,20 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import bdd, end_to_end, floor, general, scalability, scp, synthesis, two_workers
+from bench import bdd, end_to_end, floor, general, ltl, scalability, scp, synthesis, two_workers
 from bench.harness import ROOT, baseline_progress, child_main, fmt, jsonable, stage_line
 from service.arguments import count
 
 ALL_CASES = ("tanks", "tanks_fine", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general",
-             "synthesis")
-DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general", "synthesis"))
+             "synthesis", "ltl")
+DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general", "synthesis", "ltl"))
 #: Cases too large for ``--quick``.
 NOT_QUICK = ("tanks_fine", "consensus", "general", "synthesis")
 #: The baselines by case name: one child per spec or worker count, a ratio each.
 BASELINES = {"floor": floor, "scp": scp, "workers": two_workers, "bdd": bdd}
 #: The child cases by kind (``--child``), from every case module.
 CHILDREN = {**end_to_end.CHILDREN, **scalability.CHILDREN, **floor.CHILDREN, **scp.CHILDREN, **two_workers.CHILDREN,
-            **bdd.CHILDREN, **general.CHILDREN}
+            **bdd.CHILDREN, **general.CHILDREN, **ltl.CHILDREN}
 #: The paper's figures, in the JSON output.
 PAPER = {**end_to_end.PAPER, "scalability": scalability.PAPER}
 
@@ -72,6 +74,8 @@ def run_case(case: str, args: Any, results: dict[str, Any]) -> None:
         results["cases"]["general"] = general.run(args)
     elif case == "synthesis":
         results["cases"]["synthesis"] = synthesis.run(args)
+    elif case == "ltl":
+        results["cases"]["ltl"] = ltl.run(args)
     else:
         rec = BASELINES[case].run(args)
         results["cases"][case] = rec
@@ -96,6 +100,8 @@ def targets(results: dict) -> dict[str, tuple]:
         general.targets(c["general"], put)
     if "synthesis" in c:
         synthesis.targets(c["synthesis"], put)
+    if "ltl" in c:
+        ltl.targets(c["ltl"], put)
     return out
 
 
@@ -150,6 +156,8 @@ def print_table(results: dict, out: Any = None) -> None:
         lines += scalability.lines(cases["scalability"])
     if "general" in cases:
         lines += general.lines(cases["general"])
+    if "ltl" in cases:
+        lines += ltl.lines(cases["ltl"])
     if "synthesis" in cases:
         s = cases["synthesis"]
         lines += synthesis.lines(s) if s.get("status") == "ok" else [f"  synthesis: {s.get('status')}"]
@@ -204,7 +212,8 @@ def parser() -> argparse.ArgumentParser:
                    "or synthesis")
     p.add_argument("--json", metavar="OUT", help="write the results as JSON")
     p.add_argument("--cases", default=",".join(DEFAULT_CASES),
-                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus, general and synthesis)")
+                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus, general, synthesis "
+                   "and ltl)")
     p.add_argument("--consensus-timeout", type=float, default=1800.0, metavar="S")
     p.add_argument("--tanks-timeout", type=float, default=1200.0, metavar="S")
     p.add_argument("--point-timeout", type=float, default=900.0, metavar="S",

@@ -411,3 +411,31 @@ def test_the_latency_bench_runs_and_prints_its_lines(tmp_path):
         assert rec["route"] == route and rec["n"] == 5 and rec["within"] == int(within)
         assert 0 < rec["median"] <= rec["p99"] <= rec["max"] and float(median) <= float(p99) <= float(most)
         assert abs(float(most) - rec["max"] * 1e3) <= 0.051
+
+
+def test_the_ltl_case_solves_the_robot_on_both_back_ends_and_prints_it():
+    """The ``ltl`` child (in this process) on examples/robot_ltl.yaml: the automaton's and the product's sizes,
+    each back end's times, the same winning product states and domain; the case's lines and target."""
+    from types import SimpleNamespace
+
+    from bench import ltl
+
+    events: list[dict] = []
+    ltl.child_ltl({"spec": str(ROOT / "examples" / "robot_ltl.yaml")}, events.append)
+    rows = {e["row"]["backend"]: e["row"] for e in events if e["type"] == "row"}
+    e, b = rows["explicit"], rows["bdd"]
+    assert e["automaton"]["states"] == 5 and len(e["automaton"]["atoms"]) == 3
+    assert e["automaton"]["product_states"] == 5 * 441
+    assert e["winning_product_states"] == b["winning_product_states"] > 0 and e["iterations"] == b["iterations"]
+    assert b["same_winning"] and b["same_domain"] and e["domain_states"] == b["domain_states"] > 0
+    assert {s["stage"] for s in events if s["type"] == "stage"} == {"abstraction", "automaton", "explicit", "bdd"}
+    fake = {"status": "ok", "error": None, "events": events, "wall": 1.0, "cpu": 1.0, "peak_rss_mb": 1.0,
+            "others_cores": 0.0}
+    case = ltl.bench_ltl(SimpleNamespace(quick=True, point_timeout=1, mem_limit_gb=1),
+                         run_child=lambda *_a, **_k: fake)
+    assert [r["case"] for r in case["runs"]] == ["ltl robot_ltl"] and case["status"] == "ok"
+    text = "\n".join(ltl.lines(case))
+    assert "automaton 5 states, 3 atoms" in text and "product 5 x 441 = 2,205" in text and "same on both" in text
+    put: dict = {}
+    ltl.targets(case, lambda k, v, t, ok: put.setdefault(k, ok))
+    assert put == {"ltl same product on both back ends": True}
