@@ -46,9 +46,9 @@ def load_controller(
     """
     path = Path(directory)
     if path.is_file():
-        if _is_export(path):
+        if is_export(path):
             return load_export(path)
-        if _is_export(path, PRODUCT_EXPORT_FORMAT):
+        if is_export(path, PRODUCT_EXPORT_FORMAT):
             from pipelines.export.memory import load_product_export  # the export package's heavier half
 
             return load_product_export(path)
@@ -82,7 +82,7 @@ def load_controller(
                                        ) from None
 
 
-def _is_export(path: Path, fmt: str = EXPORT_FORMAT) -> bool:
+def is_export(path: Path, fmt: str = EXPORT_FORMAT) -> bool:
     """Whether a file is a JSON export of format ``fmt`` (its ``format``; the first bytes are enough)."""
     with open(path, "rb") as f:
         head = f.read(4096)

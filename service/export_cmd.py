@@ -100,8 +100,13 @@ def _export_product(ctrl: Any, args: argparse.Namespace) -> int:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Read a JSON export back; print its summary, or its input at ``--x`` (exit 1 outside its domain)."""
-    from pipelines.export.table import load_export
+    from pipelines.controller_loading import is_export
+    from pipelines.export.table import PRODUCT_EXPORT_FORMAT, load_export
 
+    if Path(args.file).is_file() and is_export(Path(args.file), PRODUCT_EXPORT_FORMAT):
+        raise CompabsError(f"{args.file} is the export of an 'ltl' controller (a controller with memory), which "
+                           "'compabs import' does not query: ask the job with 'compabs control DIR --x ... --q Q', or "
+                           "read it with pipelines.load_controller")
     ctrl = load_export(args.file)
     if args.x is None:
         print(json.dumps({**ctrl.meta, "state_dim": ctrl.state_grid.dim, "input_dim": ctrl.input_dim}, indent=1))

@@ -196,6 +196,9 @@ def test_the_cli_exports_controls_simulates_and_audits(jobs, capsys):
         assert main(["export", job, "--format", fmt]) == 0
     assert main(["export", job, "--format", "c", "--form", "tree"]) == 2
     assert "BDD form only" in capsys.readouterr().err
+    assert main(["import", str(jobs["bdd"] / "controller_export.json"), "--x", "1,1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the export of an 'ltl' controller" in err[0]
     ctrl = load_controller(jobs["bdd"])
     assert isinstance(ctrl, ProductController)
     assert main(["control", job, "--x", "0.5,0.5", "--json"]) == 0
