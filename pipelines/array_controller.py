@@ -22,7 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.controller_integrity import ControllerIntegrityError, read_header, seal, verify_header
+from pipelines.controller_integrity import (
+    ControllerIntegrityError,
+    read_arrays_header,
+    seal,
+)
 from pipelines.errors import CompabsError
 from pipelines.grid_controller import GridController
 
@@ -184,18 +188,7 @@ class ArrayController(GridController):
         ``job_hash``, the job's spec hash too: :func:`~.controller_integrity.verify_header`)."""
         base = Path(directory) / name
         head_path = base.with_name(base.name + ".json")
-        header = read_header(head_path, "array controller header")
-        if header.get("format") != ARRAY_FORMAT:
-            raise ControllerIntegrityError(f"{head_path}: format {header.get('format')!r}, expected {ARRAY_FORMAT!r}")
-        try:
-            (root,) = header["roots"]
-            arrays = head_path.with_name(root)
-            shape = tuple(int(k) for k in header["shape"])
-            meta = dict(header["meta"])
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ControllerIntegrityError(f"{head_path}: not a readable array controller header "
-                                           f"({type(exc).__name__}: {exc})") from None
-        verify_header(header, head_path, [root], job_hash)
+        header, arrays, shape, meta = read_arrays_header(head_path, "array controller", ARRAY_FORMAT, job_hash)
         try:
             with np.load(arrays, allow_pickle=False) as data:
                 admissible = np.unpackbits(data["admissible"], axis=1, count=shape[1]).astype(bool)

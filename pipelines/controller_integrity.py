@@ -205,6 +205,38 @@ def verify_header(head: Mapping[str, Any], path: str | os.PathLike, payload: Ite
             f"the controller belongs to another job; {RERUN}")
 
 
+class ArraysHeader(NamedTuple):
+    """A verified header of a controller stored as one array file: the header, that file, its shape and meta."""
+
+    header: dict[str, Any]
+    arrays: Path
+    shape: tuple[int, ...]
+    meta: dict[str, Any]
+
+
+def read_arrays_header(head_path: Path, what: str, expected_format: str, job_hash: str | None) -> ArraysHeader:
+    """The header of a controller whose payload is one array file (``roots``: its name), its ``format`` checked
+    and its integrity record verified (:func:`verify_header`) before the payload is read.
+
+    Raises
+    ------
+    ControllerIntegrityError
+        A missing or malformed header, another format, or a record that does not match, naming the file.
+    """
+    header = read_header(head_path, f"{what} header")
+    if header.get("format") != expected_format:
+        raise ControllerIntegrityError(f"{head_path}: format {header.get('format')!r}, expected {expected_format!r}")
+    try:
+        (root,) = header["roots"]
+        shape = tuple(int(k) for k in header["shape"])
+        meta = dict(header["meta"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ControllerIntegrityError(f"{head_path}: not a readable {what} header ({type(exc).__name__}: {exc})"
+                                       ) from None
+    verify_header(header, head_path, [root], job_hash)
+    return ArraysHeader(header, head_path.with_name(root), shape, meta)
+
+
 def seal_export(data: dict[str, Any]) -> dict[str, Any]:
     """A JSON export with its integrity record (its spec's hash and its own checksum)."""
     body = {k: v for k, v in data.items() if k != INTEGRITY}

@@ -34,7 +34,11 @@ import numpy as np
 
 from pipelines.array_controller import ArrayController
 from pipelines.controller import Controller
-from pipelines.controller_integrity import ControllerIntegrityError, read_header, seal, verify_header
+from pipelines.controller_integrity import (
+    ControllerIntegrityError,
+    read_arrays_header,
+    seal,
+)
 from pipelines.errors import CompabsError
 from pipelines.grid_controller import GridController
 from pipelines.temporal.automaton import Automaton
@@ -257,18 +261,7 @@ class ProductController(GridController):
         """Read the arrays form written by :meth:`save`, its integrity record verified first
         (:func:`~.controller_integrity.verify_header`)."""
         head_path = Path(directory) / f"{name}.json"
-        header = read_header(head_path, "product controller header")
-        if header.get("format") != PRODUCT_FORMAT:
-            raise ControllerIntegrityError(f"{head_path}: format {header.get('format')!r}, expected {PRODUCT_FORMAT!r}")
-        try:
-            (root,) = header["roots"]
-            shape = tuple(int(k) for k in header["shape"])
-            meta = dict(header["meta"])
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ControllerIntegrityError(f"{head_path}: not a readable product controller header "
-                                           f"({type(exc).__name__}: {exc})") from None
-        verify_header(header, head_path, [root], job_hash)
-        arrays = head_path.with_name(root)
+        _, arrays, shape, meta = read_arrays_header(head_path, "product controller", PRODUCT_FORMAT, job_hash)
         try:
             with np.load(arrays, allow_pickle=False) as data:
                 admissible = np.unpackbits(data["admissible"], axis=2, count=shape[2]).astype(bool)

@@ -349,6 +349,27 @@ class ClosedLoop:
         }
 
 
+def closed_loop_starts(network: Network, controller: Any, initial_states: Sequence[Sequence[float]], runs: int,
+                       rng: np.random.Generator) -> tuple[list[tuple[str, np.ndarray]], list[dict[str, Any]], np.ndarray]:
+    """Where the closed-loop runs start: each initial state in the controller's domain, then ``runs`` random states,
+    uniform in cells drawn uniformly from the domain. Returns the starts (origin, state), one record per initial
+    state (``x0``, ``in_domain``) and the starts as one array (R, n)."""
+    starts: list[tuple[str, np.ndarray]] = []
+    initial: list[dict[str, Any]] = []
+    for x in initial_states:
+        x0 = np.asarray(x, dtype=float)
+        idx = controller.cell(x0)
+        inside = idx is not None and bool(controller.in_domain(idx[None, :])[0])
+        initial.append({"x0": x0.tolist(), "in_domain": inside})
+        if inside:
+            starts.append(("initial", x0))
+    cells = controller.sample_cells(runs, rng) if runs else np.zeros((0, network.state_dim), dtype=np.int64)
+    if cells.shape[0]:
+        lo, hi = controller.state_grid.clipped_cells(cells)
+        starts += [("random", x) for x in rng.uniform(lo, hi)]
+    return starts, initial, np.array([x0 for _, x0 in starts]).reshape(len(starts), network.state_dim)
+
+
 def run_closed_loop(
     network: Network,
     controller: Any,
@@ -370,20 +391,7 @@ def run_closed_loop(
     draws one admissible input directly) is what chooses the inputs. ``target``, ``avoid``, ``safe``: as in
     :func:`simulate`.
     """
-    starts: list[tuple[str, np.ndarray]] = []
-    initial = []
-    for x in initial_states:
-        x0 = np.asarray(x, dtype=float)
-        idx = controller.cell(x0)
-        inside = idx is not None and bool(controller.in_domain(idx[None, :])[0])
-        initial.append({"x0": x0.tolist(), "in_domain": inside})
-        if inside:
-            starts.append(("initial", x0))
-    cells = controller.sample_cells(runs, rng) if runs else np.zeros((0, network.state_dim), dtype=np.int64)
-    if cells.shape[0]:
-        lo, hi = controller.state_grid.clipped_cells(cells)
-        starts += [("random", x) for x in rng.uniform(lo, hi)]
-    X0 = np.array([x0 for _, x0 in starts]).reshape(len(starts), network.state_dim)
+    starts, initial, X0 = closed_loop_starts(network, controller, initial_states, runs, rng)
     done = simulate_many(network, controller if policy is None else policy, X0, steps, rng, kind, target, avoid,
                          progress=progress, safe=safe)
     records = [(origin, x0, run) for (origin, x0), run in zip(starts, done)]

@@ -14,13 +14,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from pipelines.network import Network
 from pipelines.product_controller import ProductController
-from pipelines.verification.closed_loop import ClosedLoop, Run, input_dim, step
+from pipelines.verification.closed_loop import ClosedLoop, Run, closed_loop_starts, input_dim, step
 
 
 @dataclass
@@ -112,20 +111,7 @@ def run_product_loop(network: Network, controller: ProductController, initial_st
     ``runs`` random states, uniform in cells drawn uniformly from the domain (as
     :func:`~.closed_loop.run_closed_loop`); ``steps``: ``options.closed_loop_steps`` (``None``: every run's own
     bound)."""
-    starts: list[tuple[str, np.ndarray]] = []
-    initial: list[dict[str, Any]] = []
-    for x in initial_states:
-        x0 = np.asarray(x, dtype=float)
-        idx = controller.cell(x0)
-        inside = idx is not None and bool(controller.in_domain(idx[None, :])[0])
-        initial.append({"x0": x0.tolist(), "in_domain": inside})
-        if inside:
-            starts.append(("initial", x0))
-    cells = controller.sample_cells(runs, rng) if runs else np.zeros((0, network.state_dim), dtype=np.int64)
-    if cells.shape[0]:
-        lo, hi = controller.state_grid.clipped_cells(cells)
-        starts += [("random", x) for x in rng.uniform(lo, hi)]
-    X0 = np.array([x0 for _, x0 in starts]).reshape(len(starts), network.state_dim)
+    starts, initial, X0 = closed_loop_starts(network, controller, initial_states, runs, rng)
     done = simulate_product(network, controller, X0, steps, rng, choose, progress)
     records = [(origin, x0, run) for (origin, x0), run in zip(starts, done)]
     for rec in initial:
