@@ -76,9 +76,7 @@ def _draw(network: Network, controller: Controller | ArrayController, starts: Se
     setting = figure_setting(network, initial_states, CHOICE)
     paths = []
     if drawn:
-        # The time plot: the run from the spec's x0, else the longest of those drawn (the first may take no step).
-        first = 0 if drawn[0][0] == "initial" else max(range(len(drawn)), key=lambda r: drawn[r][2].inputs.shape[0])
-        origin, x0, run = drawn[first]
+        origin, x0, run = _shown(drawn)
         horizon = run.inputs.shape[0] or steps
         free = simulate(network, None, x0, horizon, rng, kind, target, avoid, safe=safe)
         fig = time_plot(setting, run, origin=origin, free=free, steps=horizon)
@@ -91,6 +89,13 @@ def _draw(network: Network, controller: Controller | ArrayController, starts: Se
         fig = phase_plane(setting, controller.in_domain, drawn, axes=axes, plane=partial(plane_mask, controller))
         paths.append(save_figure(fig, jobdir.figure(out_dir, "phase_plane")))
     return paths
+
+
+def _shown(drawn: list[tuple[str, np.ndarray, Any]]) -> tuple[str, np.ndarray, Any]:
+    """The run the time plot shows: the one from the spec's x0, else the longest of those drawn (the first may take
+    no step)."""
+    first = 0 if drawn[0][0] == "initial" else max(range(len(drawn)), key=lambda r: drawn[r][2].inputs.shape[0])
+    return drawn[first]
 
 
 #: How a controller with memory's drawn runs choose (deterministic; the previous input is no guide once the
@@ -108,8 +113,7 @@ def _draw_product(network: Network, controller: ProductController, starts: Seque
     setting = figure_setting(network, initial_states, PRODUCT_CHOICE)
     paths = []
     if drawn:
-        first = 0 if drawn[0][0] == "initial" else max(range(len(drawn)), key=lambda r: drawn[r][2].inputs.shape[0])
-        origin, x0, run = drawn[first]
+        origin, x0, run = _shown(drawn)
         fig = product_trajectory(setting, run, run.extra["automaton_states"], controller.automaton, setting.atoms,
                                  axes=axes, origin=origin)
         paths.append(save_figure(fig, jobdir.figure(out_dir, "trajectory")))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +113,15 @@ static int choose(const int64_t *idx, int64_t *code)
 }
 """
 
+#: The end of a control function: each subsystem's input point of its code written to ``u``.
+WRITE_INPUT = """    for (int s = 0; s < NS; ++s) {
+        for (int d = 0; d < U_DIM[s]; ++d)
+            u[U_OUT[s] + d] = U_POINTS[U_OFFSET[s] + code[s] * U_DIM[s] + d];
+    }
+    return 1;
+}
+"""
+
 CONTROL = """
 int compabs_control(const double *x, double *u)
 {
@@ -123,13 +133,7 @@ int compabs_control(const double *x, double *u)
         if (code[s] < 0 || code[s] >= N_INPUTS[s])
             return 0;
     }
-    for (int s = 0; s < NS; ++s) {
-        for (int d = 0; d < U_DIM[s]; ++d)
-            u[U_OUT[s] + d] = U_POINTS[U_OFFSET[s] + code[s] * U_DIM[s] + d];
-    }
-    return 1;
-}
-"""
+""" + WRITE_INPUT
 
 
 def _identifier(value: object) -> str:
@@ -207,10 +211,16 @@ def grid_parts(g: UniformGrid, input_grids: list[UniformGrid]) -> list[str]:
 
 def write_c(export: Export, out: str | os.PathLike[str]) -> tuple[Path, Path]:
     """Write ``<out>.h`` and ``<out>.c`` (``out`` without suffix; a ``.c`` or ``.h`` suffix is dropped)."""
+    return write_sources(out, lambda name: c_sources(export, name))
+
+
+def write_sources(out: str | os.PathLike[str], sources: Callable[[str], tuple[str, str]]) -> tuple[Path, Path]:
+    """Write the header and source ``sources(name)`` gives as ``<out>.h`` and ``<out>.c`` (a ``.c`` or ``.h``
+    suffix of ``out`` is dropped; ``name`` is the base name, which the header's guard and include use)."""
     base = Path(out)
     if base.suffix in (".c", ".h"):
         base = base.with_suffix("")
-    header, source = c_sources(export, base.name)
+    header, source = sources(base.name)
     h, c = base.with_name(base.name + ".h"), base.with_name(base.name + ".c")
     h.write_text(header)
     c.write_text(source)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from pipelines.array_controller import ArrayController
-from pipelines.controller_integrity import seal_export, verify_export
+from pipelines.controller_integrity import seal_export
 from pipelines.errors import CompabsError
 from pipelines.export.determinize import bdd_table, determinize
 from pipelines.export.emit import as_bdd, bdd_bytes, domain_cells, domain_count
@@ -34,7 +34,10 @@ from pipelines.export.table import (
     RULE_TEXT,
     ExportError,
     bdd_table_from_dict,
+    check_format,
     codes_from_bits,
+    export_meta,
+    read_export,
 )
 from pipelines.grid_controller import GridController
 from pipelines.product_controller import ProductController
@@ -159,12 +162,9 @@ class ExportedProductController(GridController):
     atoms' boxes, and per automaton state one input per cell of its domain."""
 
     def __init__(self, data: dict[str, Any]) -> None:
-        if not isinstance(data, dict) or data.get("format") != PRODUCT_EXPORT_FORMAT:
-            got = data.get("format") if isinstance(data, dict) else type(data).__name__
-            raise ExportError(f"not a {PRODUCT_EXPORT_FORMAT} export (format {got!r})")
+        check_format(data, PRODUCT_EXPORT_FORMAT)
         try:
-            super().__init__(data, {k: data[k] for k in ("kind", "fixed_point", "rule", "form", "sizes", "spec")
-                                    if k in data})
+            super().__init__(data, export_meta(data))
             self.widths = [int(w) for w in data["input_bits"]]
             if len(self.widths) != len(self._input_grids):
                 raise ExportError("export file: input_bits and input_grids differ in length")
@@ -218,17 +218,7 @@ class ExportedProductController(GridController):
 
 def load_product_export(path: str | os.PathLike[str]) -> ExportedProductController:
     """Read a controller with memory's JSON export back, its integrity record verified first."""
-    try:
-        data = json.loads(Path(path).read_bytes())
-    except ValueError as exc:
-        raise ExportError(f"{path} is not JSON ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != PRODUCT_EXPORT_FORMAT:
-        return ExportedProductController(data)  # refused there, naming the format
-    verify_export(data, path)
-    try:
-        return ExportedProductController(data)
-    except ExportError as exc:
-        raise ExportError(f"{path}: {exc}") from None
+    return read_export(path, PRODUCT_EXPORT_FORMAT, ExportedProductController)
 
 
 def write_product_json(export: ProductExport, path: str | os.PathLike[str]) -> Path:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.export.c import BDD_WALK, FILE_NAME, _array, _identifier, grid_parts
+from pipelines.export.c import BDD_WALK, FILE_NAME, WRITE_INPUT, _array, _identifier, grid_parts, write_sources
 from pipelines.export.memory import ProductExport
 from pipelines.export.table import ExportError
 
@@ -65,13 +65,7 @@ int compabs_step(const double *x, int q, double *u, int *q_next)
         if (code[s] < 0 || code[s] >= N_INPUTS[s])
             return 0;
     }
-    for (int s = 0; s < NS; ++s) {
-        for (int d = 0; d < U_DIM[s]; ++d)
-            u[U_OUT[s] + d] = U_POINTS[U_OFFSET[s] + code[s] * U_DIM[s] + d];
-    }
-    return 1;
-}
-"""
+""" + WRITE_INPUT
 
 
 def product_c_sources(export: ProductExport, name: str = "compabs_controller") -> tuple[str, str]:
@@ -117,11 +111,4 @@ def product_c_sources(export: ProductExport, name: str = "compabs_controller") -
 
 def write_product_c(export: ProductExport, out: str | os.PathLike[str]) -> tuple[Path, Path]:
     """Write ``<out>.h`` and ``<out>.c`` (a ``.c`` or ``.h`` suffix of ``out`` is dropped)."""
-    base = Path(out)
-    if base.suffix in (".c", ".h"):
-        base = base.with_suffix("")
-    header, source = product_c_sources(export, base.name)
-    h, c = base.with_name(base.name + ".h"), base.with_name(base.name + ".c")
-    h.write_text(header)
-    c.write_text(source)
-    return h, c
+    return write_sources(out, lambda name: product_c_sources(export, name))

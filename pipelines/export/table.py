@@ -17,15 +17,18 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from pipelines.errors import CompabsError
 from pipelines.grid_controller import GridController
 from pipelines.symbolic.node_table import BDDTable
+
+T = TypeVar("T")
 
 #: The determinization rules (:mod:`pipelines.export.determinize`), ``auto`` first, and what each does.
 RULES = ("auto", "earliest_layer", "smallest_index")
@@ -159,12 +162,9 @@ class ExportedController(GridController):
     """
 
     def __init__(self, data: dict[str, Any]) -> None:
-        if not isinstance(data, dict) or data.get("format") != EXPORT_FORMAT:
-            got = data.get("format") if isinstance(data, dict) else type(data).__name__
-            raise ExportError(f"not a {EXPORT_FORMAT} export (format {got!r})")
+        check_format(data, EXPORT_FORMAT)
         try:
-            super().__init__(data, {k: data[k] for k in ("kind", "fixed_point", "rule", "form", "sizes", "spec")
-                                    if k in data})
+            super().__init__(data, export_meta(data))
             self.widths = [int(w) for w in data["input_bits"]]
             self.kind, self.rule, self.form = str(data["kind"]), str(data["rule"]), str(data["form"])
             self.sizes = dict(data.get("sizes", {}))
@@ -226,19 +226,48 @@ class ExportedController(GridController):
         return [U[r] if ok[r] else None for r in range(len(ok))]
 
 
+def check_format(data: Any, expected: str) -> None:
+    """Refuse an export of another format, naming it.
+
+    Raises
+    ------
+    ExportError
+    """
+    if not isinstance(data, dict) or data.get("format") != expected:
+        got = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise ExportError(f"not a {expected} export (format {got!r})")
+
+
+def export_meta(data: dict[str, Any]) -> dict[str, Any]:
+    """What an export says of its controller (kind, fixed point, rule, form, sizes, spec): its ``meta``."""
+    return {k: data[k] for k in ("kind", "fixed_point", "rule", "form", "sizes", "spec") if k in data}
+
+
 def load_export(path: str | os.PathLike[str]) -> ExportedController:
     """Read a JSON export (``compabs export --format json``) back, its integrity record verified first
     (:func:`~pipelines.controller_integrity.verify_export`: its checksum and its spec's hash)."""
+    return read_export(path, EXPORT_FORMAT, ExportedController)
+
+
+def read_export(path: str | os.PathLike[str], expected_format: str, make: Callable[[Any], T]) -> T:
+    """``make(data)`` of the JSON export at ``path``: its integrity record verified first where its format is
+    ``expected_format``; another format goes to ``make`` as it is, which refuses it naming the format.
+
+    Raises
+    ------
+    ExportError
+        Not JSON, or what ``make`` refuses, prefixed with the file.
+    """
     from pipelines.controller_integrity import verify_export
 
     try:
         data = json.loads(Path(path).read_bytes())
     except ValueError as exc:
         raise ExportError(f"{path} is not JSON ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != EXPORT_FORMAT:
-        return ExportedController(data)  # refused there, naming the format
+    if not isinstance(data, dict) or data.get("format") != expected_format:
+        return make(data)  # refused there, naming the format
     verify_export(data, path)
     try:
-        return ExportedController(data)
+        return make(data)
     except ExportError as exc:
         raise ExportError(f"{path}: {exc}") from None
