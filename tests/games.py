@@ -81,6 +81,25 @@ def random_net(rng: np.random.Generator, shared: bool) -> Net:
     return Net(layouts, relations, w_sizes, nodes, shape, n_u)
 
 
+def ring_net(rng: np.random.Generator) -> Net:
+    """A ring of 3 subsystems, each reading the internal variables of both neighbours (the rooms' structure): every
+    ``w_j`` a random node of ``x_j`` (sometimes of ``x_j`` and the next state too) read by two subsystems."""
+    N = 3
+    shape = tuple(int(k) for k in rng.integers(3, 5, size=N))
+    n_u = (2,) * N
+    p_empty = 0.05 if rng.random() < 0.5 else 0.0
+    w_sizes = [int(k) for k in rng.integers(2, 4, size=N)]
+    nodes = []
+    for j in range(N):
+        sup = [j] if rng.random() < 0.7 else sorted({j, (j + 1) % N})
+        nodes.append(random_node(rng, f"w{j}", w_sizes[j], [f"x{k}" for k in sup], [shape[k] for k in sup], p_empty))
+    reads = [((i - 1) % N, (i + 1) % N) for i in range(N)]
+    layouts = [SubsystemLayout(i, (shape[i],), n_u[i], reads[i], f"k{i}", i) for i in range(N)]
+    relations = {f"k{i}": drifting_relation(rng, shape[i], n_u[i], w_sizes[reads[i][0]] * w_sizes[reads[i][1]], 0.1)
+                 for i in range(N)}
+    return Net(layouts, relations, w_sizes, nodes, shape, n_u)
+
+
 # ============================================================================ the explicit solver
 class Explicit:
     """Explicit-state game: every (x̂, û, ŵ ∈ M̂(x̂)) row with its successor box, CPre by box sums."""

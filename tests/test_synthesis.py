@@ -39,6 +39,7 @@ from .games import (
     layered_matrix,
     random_net,
     random_set,
+    ring_net,
     states_vector,
 )
 from .strategies import grid
@@ -206,15 +207,16 @@ def test_small_example_end_to_end_against_the_explicit_solver():
 
     meta = {"state_grid": res.network.composed_state_grid().describe(),
             "input_grids": [s.input_grid.describe() for s in subs]}
-    for order, form in (("shared_top", "auto"), ("interleaved", "explicit")):
+    for order, form, method in (("shared_top", "auto", "auto"), ("interleaved", "explicit", "auto"),
+                                ("interleaved", "auto", "chained")):
         game, results, report = synthesize(res.network, res.relations, res.interconnection, res.spec.specification,
-                                           SynthesisOptions(order=order, controller_form=form))
-        assert game.method == "shared" and report["order"] == order
+                                           SynthesisOptions(order=order, controller_form=form, method=method))
+        assert game.method == ("shared" if method == "auto" else method) and report["order"] == order
         for name, r in results.items():
             dom = states_vector(game.model, r.domain, ex)
             np.testing.assert_array_equal(dom, expected, err_msg=name)
             assert r.domain_states == report["results"][name]["domain_states"] == int(expected.sum())
-            # auto = layered for the shared-w CPre (the co-Büchi controller is always explicit)
+            # auto = layered for a shared-w CPre (the co-Büchi controller is always explicit)
             assert bool(r.layers) == (form == "auto" and name == "reach_safe")
             C = layered_matrix(controller_of(game, r, meta), ex) if r.layers else \
                 controller_matrix(game.model, r.controller, ex)
@@ -346,3 +348,66 @@ def test_greedy_schedule_is_the_greedy_rule(seed):
     got = schedule(chain, start, bdd, "greedy")
     assert [x for _, x in got] == [x for _, x in want]
     del chain, got, want
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_chained_cpre_matches_the_explicit_solver(seed):
+    """The chained CPre (each part of M̂ a link of the chain, ŵ_j quantified after its last reader) is exact: on rings
+    whose internal variables are each read by two subsystems (the rooms' structure), and on both kinds of random
+    network, in every conjunction schedule; so is the shared one on the rings."""
+    rng = np.random.default_rng(3000 + seed)
+    net = [ring_net(rng), random_net(rng, True), random_net(rng, False)][seed % 3]
+    ex = Explicit(net)
+    order = ["interleaved", "shared_top"][seed // 3 % 2]
+    games = [build(net, order, "chained", chain) for chain in CHAIN_ORDERS]
+    if seed % 3 == 0:
+        games.append(build(net, order, "shared"))
+    S, T, phi = (random_set(rng, ex, p) for p in (0.8, 0.2, 0.6))
+    for g in games:
+        m = g.model
+        for _ in range(3):
+            Z = random_set(rng, ex, 0.6)
+            bZ = state_set(m, np.array(ex.states)[Z])
+            C = controller_matrix(m, g.cpre(bZ), ex)
+            np.testing.assert_array_equal(C, ex.cpre(Z))
+            np.testing.assert_array_equal(states_vector(m, g.predecessors(bZ), ex), C.any(axis=1))
+        bS, bT, bphi = (state_set(m, np.array(ex.states)[v]) for v in (S, T, phi))
+        np.testing.assert_array_equal(states_vector(m, safe(g, bS).domain, ex), ex.safe(S))
+        r = reach(g, bT)
+        dom = states_vector(m, r.domain, ex)
+        np.testing.assert_array_equal(dom, ex.reach(T))
+        check_progress(ex, controller_matrix(m, r.controller, ex), dom, T)
+        rs = reach_and_stay(g, bphi, methods=("reach_safe",))["reach_safe"]
+        np.testing.assert_array_equal(states_vector(m, rs.domain, ex), ex.reach(ex.safe(phi)))
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_per_reader_cpre_is_sound_and_exact_where_each_variable_has_one_reader(seed):
+    """The per-reader CPre lets every reader of a shared ŵ see its own value: it gives the environment more choices,
+    so its CPre and domains lie inside the exact ones and its controllers win the exact game; with one reader per
+    variable it is the per-subsystem CPre, exact."""
+    rng = np.random.default_rng(4000 + seed)
+    net = [ring_net(rng), random_net(rng, True), random_net(rng, False)][seed % 3]
+    ex = Explicit(net)
+    g = build(net, ["interleaved", "shared_top"][seed // 3 % 2], "per_reader")
+    m = g.model
+    exact = seed % 3 == 2
+    S, T = random_set(rng, ex, 0.8), random_set(rng, ex, 0.2)
+    for _ in range(3):
+        Z = random_set(rng, ex, 0.6)
+        C = controller_matrix(m, g.cpre(state_set(m, np.array(ex.states)[Z])), ex)
+        assert not np.any(C & ~ex.cpre(Z))
+        if exact:
+            np.testing.assert_array_equal(C, ex.cpre(Z))
+    r = safe(g, state_set(m, np.array(ex.states)[S]))
+    dom = states_vector(m, r.domain, ex)
+    assert not np.any(dom & ~ex.safe(S))
+    C = controller_matrix(m, r.controller, ex)
+    assert not np.any(C & ~ex.cpre(dom))  # every input it allows keeps the exact game in its domain
+    assert np.all(C.any(axis=1)[dom])
+    r = reach(g, state_set(m, np.array(ex.states)[T]))
+    dom = states_vector(m, r.domain, ex)
+    assert not np.any(dom & ~ex.reach(T))
+    check_progress(ex, controller_matrix(m, r.controller, ex), dom, T)
+    if exact:
+        np.testing.assert_array_equal(dom, ex.reach(T))

@@ -112,7 +112,10 @@ def reading(cpre: ControllablePredecessor) -> tuple[dict[int, tuple[Function, li
     next_bits = [set(m.bits_of(m.subsystem_digits(s)["xn"])) for s in subs]
     owner_of_xn = {b: k for k, bits in enumerate(next_bits) for b in bits}
     entry = {}
-    for rel, xn_bits in cpre.chain:
+    # the chained CPre's chain also holds the parts of M̂ (and quantifies ŵ along it): its games take the relations
+    chain = cpre.chain if cpre.method != "chained" else [(t, m.bits_of(m.subsystem_digits(s)["xn"]))
+                                                         for s, t in zip(subs, cpre.T)]
+    for rel, xn_bits in chain:
         k = owner_of_xn.get(xn_bits[0]) if xn_bits else None
         if k is not None and set(xn_bits) == next_bits[k]:
             entry[k] = (rel, list(xn_bits))
@@ -121,7 +124,7 @@ def reading(cpre: ControllablePredecessor) -> tuple[dict[int, tuple[Function, li
     reads_of: dict[int, set[int]] = {}
     for k, s in enumerate(subs):
         support = set(bdd.support(entry[k][0]))
-        if cpre.M is not None:  # shared CPre: subsystem k is coupled through the parts of M̂ it reads
+        if cpre.M is not None or cpre.method == "chained":  # ŵ shared: k is coupled through the parts it reads
             for j in s.reads:
                 support |= set(bdd.support(cpre.parts[j]))
         reads_of[k] = {owner_of_x[b] for b in support if b in owner_of_x} - {k}
@@ -139,7 +142,7 @@ def make_group(cpre: ControllablePredecessor, members: tuple[int, ...],
     M: Function | None = None
     w_bits: tuple[str, ...] = ()
     read: set[str] = set().union(*(bdd.support(rel) for rel, _ in chain))
-    if cpre.M is not None:
+    if cpre.M is not None or cpre.method == "chained":
         reads = sorted({j for i in members for j in subs[i].reads})
         M = bdd.true
         for j in reads:

@@ -72,3 +72,43 @@ def _greedy_plain(chain: Sequence[tuple[Function, list[str]]], supports: list[se
         running = (running | supports[k]) - quantified[k]
         out.append(chain[k])
     return out
+
+
+def schedule_joint(items: Sequence[tuple[Function, list[str]]], start: set[str], late: set[str], bdd: Any,
+                   how: str = "greedy") -> Chain:
+    """Order relations whose product also quantifies variables several of them read (``late``: the ``ŵ`` bits of
+    the chained CPre, read by ``M̂_j`` and every reader of ``w_j``), each such variable right after the last
+    relation in the order that reads it.
+
+    ``items`` are (relation, the bits it alone quantifies: its next-state bits, or none). Each entry of the result
+    quantifies its own bits and the ``late`` bits no later entry reads. ``greedy`` picks next the relation that
+    leaves the running support smallest, counting the ``late`` bits it would close; ``widest_last`` and ``network``
+    as in :func:`schedule`. Exact for any order: a variable is quantified only once nothing after it reads it.
+    """
+    supports = [set(bdd.support(rel)) for rel, _ in items]
+    if how == "network":
+        order = list(range(len(items)))
+    elif how == "widest_last":
+        order = sorted(range(len(items)), key=lambda k: len(supports[k]))
+    else:
+        order = []
+        left = set(range(len(items)))
+        running = set(start)
+        while left:
+            costs = {}
+            for k in left:
+                others = set().union(*(supports[j] for j in left if j != k))
+                closes = {v for v in supports[k] & late if v not in others} | set(items[k][1])
+                costs[k] = (len((running | supports[k]) - closes), len(supports[k]), k)
+            k = min(left, key=costs.__getitem__)
+            left.remove(k)
+            others = set().union(*(supports[j] for j in left))
+            running = (running | supports[k]) - set(items[k][1]) - {v for v in running | supports[k] if v in late
+                                                                    and v not in others}
+            order.append(k)
+    out: Chain = []
+    for pos, k in enumerate(order):
+        later = set().union(*(supports[j] for j in order[pos + 1:]))
+        closing = sorted(v for v in supports[k] & late if v not in later)
+        out.append((items[k][0], list(items[k][1]) + closing))
+    return out

@@ -147,7 +147,7 @@ def _solve(cpre: ControllablePredecessor, game: ControllablePredecessor, kind: s
     by ``o.refine_rounds`` rounds where it is one), within the safe set ``S`` (``None``: none besides a ``safe``
     specification's own); the results by name as :func:`synthesize` returns them."""
     refine = Refinement(cpre, o.refine_rounds) if o.refine_rounds and game is not cpre else None
-    layered = o.controller_form == "layered" or (o.controller_form == "auto" and cpre.method == "shared")
+    layered = o.controller_form == "layered" or (o.controller_form == "auto" and cpre.method in ("shared", "chained"))
     if kind == "safe":
         return {"safe": safe(game, sets.get("safe"), layered=layered, progress=progress,
                              local_games=o.local_games, checkpoints=checkpoints, refine=refine)}
