@@ -176,10 +176,3 @@ def test_the_other_kinds_dump_and_hash_as_before():
     assert "max_automaton_states" not in dumped["options"]
     assert spec_hash(spec) == "72aa26fe4f3f6986"
     assert spec_hash(with_options(spec, max_automaton_states=10)) == spec_hash(spec)
-
-
-@pytest.mark.slow
-def test_vehicle_ltl_on_both_back_ends(tmp_path):
-    """The vehicle around its obstacles, through `a`, then to `b`: the same domain and product on both back ends,
-    SCOTS's initial state in it, >= 100 concrete runs that all satisfy the formula (a minute or two)."""
-    check_both(solve_both("vehicle_ltl.yaml", tmp_path), tmp_path)

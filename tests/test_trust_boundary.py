@@ -317,7 +317,7 @@ def cost_named(message: str, knob: str, field: str, value: int | None) -> bool:
 
 def test_costs_through_post_jobs(api):
     rng, row = rng_for("costs-api"), tally("costs: random over-cap values of each knob (POST /jobs)")
-    for _ in range(36):  # each a full estimate of a job's costs (seconds for some): CI's 30 minutes bound the count
+    for _ in range(24):  # each a full estimate of a job's costs (seconds for some): CI's 30 minutes bound the count
         for knob in KNOBS:
             data, field, value = over_cap(rng, knob)
             status, body = post(api, json.dumps(data))

@@ -55,11 +55,11 @@ from .trust_log import record
 ROOT = Path(__file__).resolve().parents[1]
 SEED = int(os.environ.get("COMPABS_TRUST_SEED", "23"))
 #: Cases of the fast share and of the slow share (each case: one tampering, two or three attempts).
-FAST_CASES, SLOW_CASES = 80, 2500
+FAST_CASES, SLOW_CASES = 80, 1000
 #: API downloads of tampered controllers, fast and slow share.
 FAST_API, SLOW_API = 40, 600
 #: Real ``python -m service.cli`` runs, fast and slow share (a second or two each).
-FAST_CLI, SLOW_CLI = 4, 24
+FAST_CLI, SLOW_CLI = 4, 8
 #: C code a header's text carries.
 PAYLOAD = '*/ system("x"); /*\n#include <stdlib.h>\nint evil(void) { return system("x"); }'
 #: Names of the states the commands are asked for, per job.
