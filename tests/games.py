@@ -183,13 +183,15 @@ class Explicit:
                 return Z
             Z = Zn
 
-    def cobuchi(self, phi):
+    def cobuchi(self, phi, S=None):
+        """``μX. νY. (φ ∧ S ∧ Pre(Y)) ∨ (S ∧ Pre(X))`` (``S``: every state unless given)."""
+        S = np.ones(self.nX, bool) if S is None else S
         X = np.zeros(self.nX, bool)
         while True:
-            preX = self.pre(X)
-            Y = np.ones(self.nX, bool)
+            preX = self.pre(X) & S
+            Y = S.copy()
             while True:
-                Yn = (phi & self.pre(Y)) | preX
+                Yn = (phi & S & self.pre(Y)) | preX
                 if np.array_equal(Yn, Y):
                     break
                 Y = Yn

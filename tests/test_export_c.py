@@ -45,6 +45,11 @@ int main(void)
     return 0;
 }}
 """)
+    return build_driver(where, source)
+
+
+def build_driver(where: Path, source: Path) -> Path:
+    """Compile an export's C ``source`` with the driver ``where/main.c`` (warnings are errors) into ``where/drv``."""
     exe = where / "drv"
     assert CC is not None
     subprocess.run([CC, "-std=c99", "-Wall", "-Werror", "-O2", "-o", str(exe), str(source), str(where / "main.c"),

@@ -70,11 +70,15 @@ def test_a_token_with_jobs_running_waits_for_those_without():
     assert fair_order([]) == []
 
 
+def users_settings(data_dir) -> Settings:
+    """A server of two users (Alice, Bob) and the operator, one job at a time, in-process jobs."""
+    return Settings(data_dir=data_dir, in_process=True, token=OPERATOR, tokens=[ALICE, BOB], max_running=1,
+                    stop_grace=2.0)
+
+
 @pytest.fixture
 def client(tmp_path) -> Iterator[TestClient]:
-    settings = Settings(data_dir=tmp_path / "data", in_process=True, token=OPERATOR, tokens=[ALICE, BOB],
-                        max_running=1, stop_grace=2.0)
-    with TestClient(create_app(settings)) as c:
+    with TestClient(create_app(users_settings(tmp_path / "data"))) as c:
         yield c
 
 

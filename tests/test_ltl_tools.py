@@ -28,6 +28,7 @@ from pipelines.verification.product_loop import simulate_product
 from service.cli import main
 
 from .conftest import EXAMPLES
+from .test_export_c import build_driver
 
 CC = shutil.which("cc")
 BACKENDS = ("explicit", "bdd")
@@ -117,11 +118,7 @@ int main(void)
     return 0;
 }}
 """)
-    exe = header_dir / "drv"
-    assert CC is not None
-    subprocess.run([CC, "-std=c99", "-Wall", "-Werror", "-O2", "-o", str(exe), str(source), str(header_dir / "main.c"),
-                    "-lm"], check=True, capture_output=True)
-    return exe
+    return build_driver(header_dir, source)
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")

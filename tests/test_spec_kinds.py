@@ -132,22 +132,6 @@ def test_reach_avoid_with_several_obstacle_boxes_on_a_plane():
 
 
 # ============================================================================ against the explicit solver
-def explicit_cobuchi(ex: Explicit, phi: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """``μX. νY. (φ ∧ S ∧ Pre(Y)) ∨ (S ∧ Pre(X))``, written from its definition."""
-    X = np.zeros(ex.nX, bool)
-    while True:
-        preX = ex.pre(X) & S
-        Y = S.copy()
-        while True:
-            Yn = (phi & S & ex.pre(Y)) | preX
-            if np.array_equal(Yn, Y):
-                break
-            Y = Yn
-        if np.array_equal(Y, X):
-            return X
-        X = Y
-
-
 @pytest.mark.parametrize("shared", [True, False], ids=["shared_w", "per_subsystem_w"])
 @pytest.mark.parametrize("seed", range(12))
 def test_fixed_points_within_a_safe_set_match_the_explicit_solver(seed, shared):
@@ -174,7 +158,7 @@ def test_fixed_points_within_a_safe_set_match_the_explicit_solver(seed, shared):
     results = reach_and_stay(game, bphi, safe=bS)
     co, rs = results["cobuchi"], results["reach_safe"]
     dom_co, dom_rs = states_vector(m, co.domain, ex), states_vector(m, rs.domain, ex)
-    np.testing.assert_array_equal(dom_co, explicit_cobuchi(ex, phi, S))
+    np.testing.assert_array_equal(dom_co, ex.cobuchi(phi, S))
     np.testing.assert_array_equal(dom_rs, ex.reach(ex.safe(phi & S), ~S))
     assert not np.any(dom_rs & ~dom_co) and not np.any(dom_co & ~S)
     # Staying in the domain, which lies in S, is staying in S; no cycle outside φ: eventually in φ ∩ S.
@@ -248,7 +232,7 @@ def test_closed_loop_runs_keep_the_safe_set_and_avoid_the_obstacles(specificatio
     S = masks.get("safe", np.ones(ex.nX, bool))
     A = masks.get("avoid", np.zeros(ex.nX, bool))
     if spec.specification.kind == "reach_and_stay":
-        want = {"cobuchi": explicit_cobuchi(ex, masks["target"], S),
+        want = {"cobuchi": ex.cobuchi(masks["target"], S),
                 "reach_safe": ex.reach(ex.safe(masks["target"] & S), ~S)}
     else:
         want = {spec.specification.kind: ex.reach(masks["target"], A | ~S)}

@@ -19,30 +19,16 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.settings import Settings
 
-from .test_service_processes import TOKEN as OPERATOR
+from .test_fair_queue import ALICE, BOB, OPERATOR, auth, submit, users_settings
 from .test_service_processes import ended, long_in, small, wait_until
 
 pytestmark = pytest.mark.timeout(600)
 
-ALICE, BOB = "alice-token", "bob-token"
-
-
-def auth(token: str) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"}
-
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory) -> Iterator[TestClient]:
-    settings = Settings(data_dir=tmp_path_factory.mktemp("isolation") / "data", in_process=True, token=OPERATOR,
-                        tokens=[ALICE, BOB], max_running=1, stop_grace=2.0)
-    with TestClient(create_app(settings)) as c:
+    with TestClient(create_app(users_settings(tmp_path_factory.mktemp("isolation") / "data"))) as c:
         yield c
-
-
-def submit(c: TestClient, spec: dict[str, Any], token: str) -> str:
-    r = c.post("/jobs", json=spec, headers=auth(token))
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
 
 
 @pytest.fixture(scope="module")
