@@ -336,6 +336,28 @@ def integrators(shape: tuple[int, ...], steps: tuple[int, ...] = (-1, 0, 1)) -> 
     return Net(layouts, relations, [1], [node], shape, (len(steps),) * len(shape))
 
 
+def ring_integrators(N: int = 3, K: int = 9) -> Net:
+    """A ring of ``N`` integrators ``x' = x + u`` (``u`` in -2..2) on cells ``0..K-1``, each reading both
+    neighbours' cells (``w_j = x_j``): a neighbour below ``K // 3`` may pull it one cell down, one above
+    ``2K // 3`` one cell up; leaving the grid blocks. Holding two cells needs calm neighbours, holding three does
+    not: the contracts' chain has two levels (the rooms' structure, small enough for :class:`Explicit`)."""
+    cold, hot = K // 3, 2 * K // 3
+    steps = np.arange(-2, 3)
+    w = np.arange(K)
+    wl, wr = np.meshgrid(w, w, indexing="ij")
+    down = ((wl < cold) | (wr < cold)).reshape(-1).astype(int)
+    up = ((wl > hot) | (wr > hot)).reshape(-1).astype(int)
+    x = np.arange(K)[:, None, None] + steps[None, :, None]
+    lo, hi = x - down[None, None, :], x + up[None, None, :]
+    blocking = (lo < 0) | (hi >= K)
+    lo, hi = np.where(blocking, 0, lo), np.where(blocking, -1, hi)
+    rel = SubsystemRelation("test", lo[..., None].astype(np.int32), hi[..., None].astype(np.int32), blocking, 1, 1)
+    nodes = [NodeRelation(f"w{j}", grid(K), (f"x{j}",), (grid(K),), None, np.arange(K, dtype=np.int32),
+                          np.arange(K, dtype=np.int32), 0.0) for j in range(N)]
+    layouts = [SubsystemLayout(i, (K,), len(steps), ((i - 1) % N, (i + 1) % N), "room", i) for i in range(N)]
+    return Net(layouts, {"room": rel}, [K] * N, nodes, (K,) * N, (len(steps),) * N)
+
+
 def cells(game, *xs: int):
     return state_set(game.model, np.array(xs).reshape(-1, 1))
 

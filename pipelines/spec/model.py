@@ -327,7 +327,10 @@ class SpecificationSpec(_Model):
         return {k: v for k, v in data.items() if k not in drop}
 
 
-def _both_fixed_points() -> list[Literal["cobuchi", "reach_safe"]]:
+FixedPoint = Literal["cobuchi", "reach_safe", "contracts"]
+
+
+def _both_fixed_points() -> list[FixedPoint]:
     return ["cobuchi", "reach_safe"]
 
 
@@ -341,12 +344,15 @@ class OptionsSpec(_Model):
         "max_cells applies too, and the smaller is named (pipelines.spec.costs)",
     )
     synthesis: bool = Field(default=True, description="synthesize a controller after the abstraction")
-    controller: Literal["cobuchi", "reach_safe"] = Field(
+    controller: FixedPoint = Field(
         default="cobuchi", description="reach_and_stay: which fixed point's controller is saved as 'controller'"
     )
-    fixed_points: list[Literal["cobuchi", "reach_safe"]] = Field(
+    fixed_points: list[FixedPoint] = Field(
         default_factory=_both_fixed_points, min_length=1,
-        description="reach_and_stay: which fixed points to compute (co-Büchi can cost 20x Reach(Safe))",
+        description="reach_and_stay: which fixed points to compute (co-Büchi can cost 20x Reach(Safe)); 'contracts' "
+        "(networks, box-shaped target and safe set): one small game per subsystem, chained by assume-guarantee "
+        "contracts (pipelines/synthesis/contracts.py), for networks whose exact game is too large; a sound "
+        "controller whose domain, a product of per-subsystem sets, may be smaller than the maximal one",
     )
     initial_states: list[list[float]] = Field(
         default_factory=list, max_length=100, description="concrete initial states for closed-loop runs and figures"

@@ -33,7 +33,7 @@ from pipelines.errors import SpecError
 from pipelines.network import Network, build_network
 from pipelines.spec.costs import Caps, check_costs, check_spec
 from pipelines.spec.model import JobSpec, check_overrides, parse_spec
-from pipelines.spec.regions import AbstractRegion, spec_regions
+from pipelines.spec.regions import AbstractRegion, spec_regions, union_count
 
 
 @dataclass(frozen=True)
@@ -159,6 +159,42 @@ def check_formula(spec: JobSpec, network: Network) -> list[str]:
     return lines
 
 
+def check_contracts(spec: JobSpec, network: Network, regions: Mapping[str, AbstractRegion]) -> list[str]:
+    """``options.fixed_points: [contracts]`` (reach-and-stay only; nothing otherwise): a network of at least two
+    subsystems, the exact game (no quotient), and a target and safe set that are products of one set per subsystem
+    (:mod:`pipelines.synthesis.contracts`): a union of boxes is one exactly when it holds as many cells as the
+    product of its projections.
+
+    Raises
+    ------
+    SpecError
+        Naming the field and what to change.
+    """
+    if spec.specification.kind != "reach_and_stay" or "contracts" not in spec.options.fixed_points:
+        return []
+    if len(network.subsystems) < 2:
+        raise SpecError("options.fixed_points: 'contracts' split a network into one game per subsystem, and this "
+                        "system has one subsystem: use reach_safe or cobuchi (its exact game is small)")
+    if spec.options.synthesis_quotient:
+        raise SpecError("options.synthesis_quotient: 'contracts' solve one exact game per subsystem; set "
+                        "synthesis_quotient to 0 or leave contracts out of options.fixed_points")
+    for name in ("target", "safe"):
+        region = regions.get(name)
+        if region is None:
+            continue
+        projections = 1
+        for s in network.subsystems:
+            cut = slice(s.state_offset, s.state_offset + s.n)
+            projections *= union_count([(lo[cut], hi[cut]) for lo, hi in region.boxes])
+        if projections != region.states:
+            raise SpecError(f"specification.{name}: 'contracts' need a set that is a product of one set per "
+                            f"subsystem, and this one holds {region.states:,} of the {projections:,} cells of the "
+                            "product of its projections: give one box, or boxes that differ in one subsystem's "
+                            "coordinates only, or leave contracts out of options.fixed_points")
+    return [f"options.fixed_points: contracts, {len(network.subsystems)} local games on products of per-subsystem "
+            "sets"]
+
+
 def check_caps(spec: JobSpec, network: Network, caps: Caps | None = None) -> str:
     """Every knob of the cost model within its cap (:func:`pipelines.spec.costs.check_costs`; ``caps``: default
     the command line's, :meth:`~pipelines.spec.costs.Caps.local`).
@@ -209,10 +245,12 @@ def validate_spec(spec: JobSpec, *, allowed_modules: Sequence[str] | None = (), 
     regions = spec_regions(spec, network)
     lines += _region_lines(regions)
     lines += check_formula(spec, network)
+    lines += check_contracts(spec, network, regions)
     lines.append(check_caps(spec, network, caps))
     return Validation(spec, network, regions, tuple(lines))
 
 
-__all__ = ["Validation", "cap_synthesis_processes", "check_caps", "check_cells", "check_formula", "check_initial_states",
+__all__ = ["Validation", "cap_synthesis_processes", "check_caps", "check_cells", "check_contracts", "check_formula",
+           "check_initial_states",
            "check_overrides",
            "validate_spec", "with_options"]

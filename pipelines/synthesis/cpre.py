@@ -37,6 +37,10 @@ Two more, chosen by name only:
   reader per variable it is ``per_subsystem``. On the rooms ring (N = 3) its iterates equalled the exact ones at
   spacing 0.25 (all 7) and 0.1 (the 3 the exact solver reached), 10x faster at 0.25.
 
+And ``local`` prepares no composed ``CPre`` at all: only the subsystems' relations, non-blocking sets and
+interconnection parts, from which :mod:`.contracts` builds one game per subsystem; every composed ``CPre`` call then
+refuses.
+
 The fixed points (:mod:`.fixed_points`) that need the controller only at convergence use
 :meth:`ControllablePredecessor.predecessors` (``∃u.CPre`` in one ``and_exists``, never materialising ``CPre``).
 That call may run in parts at once (:mod:`.partitioned`) through a ``partitioned`` factory the caller injects
@@ -73,7 +77,7 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.network import Network
 
 
-METHODS = ("auto", "per_subsystem", "shared", "chained", "per_reader")
+METHODS = ("auto", "per_subsystem", "shared", "chained", "per_reader", "local")
 #: Networks above this many subsystems are not searched for interchangeable ones (each candidate pair renames the
 #: relations, ``M̂`` and the admissible pairs once; the scalability case's ``M̂`` has 10^5 nodes at N = 1024).
 SYMMETRY_MAX_SUBSYSTEMS = 64
@@ -208,10 +212,10 @@ class ControllablePredecessor:
         ``T_i(x_i, u_i, w_i, x'_i)`` and ``NB_i(x_i, u_i, w_i)`` (:func:`~.symbolic.relations.subsystem_relations`).
     interconnection : mapping of int to Function
         ``M̂_j(x, w_j)`` per internal variable (:func:`~.symbolic.relations.interconnection_parts`).
-    method : {'auto', 'per_subsystem', 'shared', 'chained', 'per_reader'}
+    method : {'auto', 'per_subsystem', 'shared', 'chained', 'per_reader', 'local'}
         ``auto`` picks ``per_subsystem`` exactly when every internal variable is read by at most one
         subsystem. Both are exact; ``shared`` and ``chained`` are exact for every network; ``per_reader`` is sound
-        and exact only where ``per_subsystem`` applies (module docstring).
+        and exact only where ``per_subsystem`` applies; ``local`` prepares no composed CPre (module docstring).
     chain_order : {'greedy', 'widest_last', 'network'}
         Order in which the relations are conjoined into ``¬Z'`` (see :func:`schedule`).
     processes : int or 'auto'
@@ -296,7 +300,7 @@ class ControllablePredecessor:
         elif method == "per_subsystem" and not separable:
             raise ValueError("per_subsystem CPre needs every internal variable read by at most one subsystem")
         self.method = method
-        if processes == "auto" and method in ("per_subsystem", "chained", "per_reader"):
+        if processes == "auto" and method in ("per_subsystem", "chained", "per_reader", "local"):
             self.processes = 1
         elif processes == "auto" and auto_parts is not None:
             self.processes = max(1, int(auto_parts))
@@ -316,6 +320,9 @@ class ControllablePredecessor:
                 self._prepare_per_subsystem()
             elif method == "chained":
                 self._prepare_chained()
+            elif method == "local":
+                self.chain: Chain = []
+                self.admissible = model.x_domain & model.u_domain
             else:
                 self._prepare_shared()
         self.setup_seconds = time.perf_counter() - t0
@@ -342,8 +349,8 @@ class ControllablePredecessor:
         building them goes (:data:`~.symbolic.tree.Say`); ``options`` are the
         constructor's (:class:`Options`).
         """
-        if order is None:  # the chained CPre's products follow the couplings: the blocks' order keeps them short
-            order = "interleaved" if options.get("method") == "chained" else default_order(network.subsystems)
+        if order is None:  # the chained CPre's products and the local games follow the couplings: the blocks' order
+            order = "interleaved" if options.get("method") in ("chained", "local") else default_order(network.subsystems)
         model = SymbolicModel.from_network(network, interconnection, order=order, max_memory=max_memory)
         T, NB = subsystem_relations(model, relations, share=share, say=say)
         parts = interconnection_parts(model, interconnection.nodes)
@@ -419,6 +426,7 @@ class ControllablePredecessor:
         (the safety fixed point) pass it: on the 10 tanks it made the safety fixed point nearly twice as fast
         (the projections of a box are boxes; restricting to the projections of each iterate instead was slower).
         """
+        self._composed()
         bdd, m = self.bdd, self.model
         x_bits = set(m.x_bits)
         chain = []
@@ -433,6 +441,7 @@ class ControllablePredecessor:
 
         ``within``: :meth:`within` ``(S)`` to compute it on ``S`` only (default: everywhere).
         """
+        self._composed()
         chain, admissible = (self.chain, self.admissible) if within is None else within
         with self.model.guard("computing CPre"):
             return admissible & ~bad_inputs(self.model, chain, self.M, self.w_bits, Z)
@@ -444,9 +453,15 @@ class ControllablePredecessor:
         over next-state bits (``model.to_next(Z)``; callers cache it per set). The chain's cofactors are kept
         across calls (:class:`~.at_state.ChainAtStates`) until :meth:`close`.
         """
+        self._composed()
         if self._at is None:
             self._at = ChainAtStates(self.model, self.chain)
         return cpre_at_state(self.model, self.chain, self.admissible, self.M, state, Z_next, self._at)
+
+    def _composed(self) -> None:
+        if self.method == "local":
+            raise ValueError("the 'local' method prepares no composed CPre (module docstring): build the "
+                             "ControllablePredecessor with another method")
 
     def pre(self, cpre: Function) -> Function:
         """``∃u. cpre``: states with some good input."""
@@ -474,6 +489,7 @@ class ControllablePredecessor:
         once a call here took ``parallel_after`` seconds (0: from the first). If a part fails
         (:class:`PartitionFailed`), this call and the later ones run here (:attr:`parallel` ``["stopped"]`` says
         why); any other error (CUDD out of memory in a part: a BDDMemoryError) is raised, as it would be here."""
+        self._composed()
         if states is not None and part is None:  # a whole call finds its own symmetry
             raise ValueError("predecessors: states are taken with a part only")
         if (part is None and self._pool is None and self.parallel_after <= 0 and self.processes > 1

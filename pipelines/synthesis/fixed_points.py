@@ -101,7 +101,8 @@ class SynthesisResult:
         )
 
 
-def _peak_live_nodes(model: SymbolicModel) -> int:
+def peak_live_nodes(model: SymbolicModel) -> int:
+    """CUDD's peak of live nodes since the manager was made."""
     with warnings.catch_warnings():  # dd warns that 'mem' is now in bytes
         warnings.simplefilter("ignore")
         return int(model.bdd.statistics()["peak_live_nodes"])
@@ -185,7 +186,7 @@ def _result(
     cpre: ControllablePredecessor, kind: str, domain: Function, controller: Function | None, meter: _Meter,
     layers: Sequence[Function] = (), stay: bool = False, **details: Any,
 ) -> SynthesisResult:
-    meter.peak = max(meter.peak, _peak_live_nodes(cpre.model))
+    meter.peak = max(meter.peak, peak_live_nodes(cpre.model))
     return SynthesisResult(
         kind=kind,
         domain=domain,

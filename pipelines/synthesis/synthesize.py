@@ -18,6 +18,7 @@ from pipelines.spec.regions import AbstractRegion, abstract_region
 from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.relations import region
 from pipelines.symbolic.symbolic_model import Function, SymbolicModel
+from pipelines.synthesis import contracts
 from pipelines.synthesis.checkpoints import Checkpoints
 from pipelines.synthesis.cpre import ControllablePredecessor, PartitionedFactory
 from pipelines.synthesis.domain_bound import domain_bound
@@ -89,8 +90,10 @@ def synthesize(
     """
     o = options if options is not None else SynthesisOptions()
     t0 = time.perf_counter()
+    local_only = specification.kind == "reach_and_stay" and set(o.reach_and_stay_methods) == {"contracts"}
+    method = "local" if local_only and o.method == "auto" else o.method
     cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=o.order,
-                                                method=o.method, max_memory=o.max_memory, chain_order=o.chain_order,
+                                                method=method, max_memory=o.max_memory, chain_order=o.chain_order,
                                                 processes=o.processes, partitioned=partitioned,
                                                 auto_parts=o.auto_parts, parallel_after=o.parallel_after,
                                                 symmetry=o.symmetry,
@@ -113,8 +116,9 @@ def synthesize(
             product = reach_symbolic(game, o.automaton, letter_sets(cpre.model, labelling), progress)
             return cpre, {"ltl": product}, _report(cpre, game, {"ltl": product}, None, build, quotient_seconds, 0)
         S = sets.get("safe") if kind != "safe" and specification.safe is not None else None
-        bound_report = _domain_bound(cpre, kind, sets.get("safe" if kind == "safe" else "target"), S,
-                                     sets.get("avoid") if kind == "reach_avoid" else None, o.initial_cells, progress)
+        bound_report = None if cpre.method == "local" else _domain_bound(
+            cpre, kind, sets.get("safe" if kind == "safe" else "target"), S,
+            sets.get("avoid") if kind == "reach_avoid" else None, o.initial_cells, progress)
         results = _solve(cpre, game, kind, sets, S, o, progress, checkpoints)
     finally:
         if game is not cpre:
@@ -156,8 +160,12 @@ def _solve(cpre: ControllablePredecessor, game: ControllablePredecessor, kind: s
     if kind == "reach_avoid":
         return {"reach_avoid": reach_avoid(game, sets.get("target"), sets.get("avoid"), layered=layered, safe=S,
                                            progress=progress)}
-    return reach_and_stay(game, sets.get("target"), o.reach_and_stay_methods, layered=layered, safe=S,
-                          progress=progress, local_games=o.local_games, checkpoints=checkpoints, refine=refine)
+    exact = tuple(m for m in o.reach_and_stay_methods if m != "contracts")
+    results = reach_and_stay(game, sets.get("target"), exact, layered=layered, safe=S, progress=progress,
+                             local_games=o.local_games, checkpoints=checkpoints, refine=refine) if exact else {}
+    if "contracts" in o.reach_and_stay_methods:
+        results["contracts"] = contracts.solve(cpre, sets.get("target"), S, progress)
+    return results
 
 
 def _report(cpre: ControllablePredecessor, game: ControllablePredecessor, results: Mapping[str, Any],
