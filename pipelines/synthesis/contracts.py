@@ -86,6 +86,8 @@ class LocalGame:
     u_bits: list[str]
     reads: tuple[int, ...]
     read_bits: list[str]
+    #: ``(r, renaming)`` where this game is subsystem ``r``'s with its bits renamed (:func:`_correspondence`)
+    image_of: tuple[int, dict[str, str]] | None = None
 
     def good(self, Y: Function) -> Function:
         """``adm_i ∧ ∀x̂'_i. T̃_i → Y'``: the pairs (neighbours' cells, own cell, input) that keep ``i`` in ``Y``."""
@@ -120,24 +122,76 @@ class LocalGame:
 
 def local_games(cpre: ControllablePredecessor) -> list[LocalGame]:
     """One :class:`LocalGame` per subsystem from the relations, non-blocking sets and interconnection parts of
-    ``cpre`` (any CPre method: the per-reader relations are built here)."""
+    ``cpre`` (any CPre method: the per-reader relations are built here). A subsystem identical to an earlier one
+    whose neighbours correspond as well (:func:`_correspondence`: the rooms of a ring, the cars of a platoon) gets
+    that one's game renamed, which costs a fraction of building it (a ring of 100 rooms: one build)."""
     m, bdd = cpre.model, cpre.bdd
     own = {b: i for i, s in enumerate(m.subsystems) for b in m.bits_of(m.subsystem_digits(s)["x"])}
-    games = []
+    games: list[LocalGame] = []
+    first: dict[str, int] = {}
     for i, (s, t, nb) in enumerate(zip(m.subsystems, cpre.T, cpre.NB)):
         dg = m.subsystem_digits(s)
-        wb = m.bits_of([f"w{j}" for j in s.reads])
-        Mi = bdd.true
-        for j in s.reads:
-            Mi &= cpre.parts[j]
-        t_tilde = and_exists(Mi, t, wb)
-        adm = bdd.exist(wb, Mi) & ~and_exists(Mi, ~nb, wb) & m.domain(dg["u"])
+        rep = first.setdefault(s.key, i)
+        ren = _correspondence(cpre, own, rep, i) if rep != i else None
+        if ren is not None:
+            g = games[rep]
+            t_tilde, adm = bdd.let(ren, g.t_tilde), bdd.let(ren, g.admissible)
+        else:
+            wb = m.bits_of([f"w{j}" for j in s.reads])
+            Mi = bdd.true
+            for j in s.reads:
+                Mi &= cpre.parts[j]
+            t_tilde = and_exists(Mi, t, wb)
+            adm = bdd.exist(wb, Mi) & ~and_exists(Mi, ~nb, wb) & m.domain(dg["u"])
         support = bdd.support(t_tilde) | bdd.support(adm)
         reads = tuple(sorted({own[b] for b in support if b in own} - {i}))
         read_bits = [b for j in reads for b in m.bits_of(m.subsystem_digits(m.subsystems[j])["x"])]
         games.append(LocalGame(i, m, t_tilde, adm, dg["x"], m.bits_of(dg["x"]), m.bits_of(dg["xn"]),
-                               m.bits_of(dg["u"]), reads, read_bits))
+                               m.bits_of(dg["u"]), reads, read_bits, None if ren is None else (rep, ren)))
     return games
+
+
+def _correspondence(cpre: ControllablePredecessor, own: dict[str, int], a: int, b: int) -> dict[str, str] | None:
+    """The renaming of bits that maps subsystem ``a``'s local game onto ``b``'s, or ``None``.
+
+    Identical subsystems (one key) have relations that are renamings of each other; their local games are too when
+    every internal variable ``b`` reads is computed from one subsystem, as the matching one of ``a`` is, by the
+    same relation up to renaming (checked: ``M̂`` parts, ``T`` and ``NB``, each a BDD comparison).
+    """
+    m, bdd = cpre.model, cpre.bdd
+    sa, sb = m.subsystems[a], m.subsystems[b]
+    if len(sa.reads) != len(sb.reads):
+        return None
+    sigma = {a: b}
+    for ja, jb in zip(sa.reads, sb.reads):
+        pa = {own[x] for x in bdd.support(cpre.parts[ja]) if x in own}
+        pb = {own[x] for x in bdd.support(cpre.parts[jb]) if x in own}
+        if len(pa) != 1 or len(pb) != 1:
+            return None
+        p, q = pa.pop(), pb.pop()
+        if sigma.setdefault(p, q) != q:
+            return None
+    if len(set(sigma.values())) != len(sigma):
+        return None
+    ren: dict[str, str] = {}
+
+    def pair(da: list[str], db: list[str]) -> None:
+        for x, y in zip(m.bits_of(da), m.bits_of(db)):
+            if x != y:
+                ren[x] = y
+
+    for p, q in sigma.items():
+        dp, dq = m.subsystem_digits(m.subsystems[p]), m.subsystem_digits(m.subsystems[q])
+        if len(m.bits_of(dp["x"])) != len(m.bits_of(dq["x"])):
+            return None
+        pair(dp["x"], dq["x"])
+        pair(dp["xn"], dq["xn"])
+    pair(m.subsystem_digits(sa)["u"], m.subsystem_digits(sb)["u"])
+    pair([f"w{j}" for j in sa.reads], [f"w{j}" for j in sb.reads])
+    same = all(bdd.let(ren, cpre.parts[ja]) == cpre.parts[jb] for ja, jb in zip(sa.reads, sb.reads))
+    if not same or bdd.let(ren, cpre.T[a]) != cpre.T[b] or bdd.let(ren, cpre.NB[a]) != cpre.NB[b]:
+        return None
+    return ren
 
 
 def factors(model: SymbolicModel, games: Sequence[LocalGame], f: Function, name: str) -> list[Function]:
@@ -195,13 +249,15 @@ def _inflated(mask: np.ndarray, d: int) -> np.ndarray:
 
 @dataclass
 class Level:
-    """One link of the chain: the boxes ``B`` all subsystems are in, per subsystem the set ``C_i`` it reaches and
+    """One level of the chain: the boxes ``B`` all subsystems are in, per subsystem the set ``C_i`` it reaches and
     holds, its reach layers (``layers[0] = C_i``) and the inflation ``d`` it took."""
 
     B: list[Function]
     C: list[Function]
     layers: list[list[Function]]
     inflation: list[int]
+    #: per subsystem, the one whose link it took renamed (``None``: its own game was solved)
+    shared: list[int | None]
 
 
 class ContractResult:
@@ -264,9 +320,26 @@ def _shrink(model: SymbolicModel, g: LocalGame, B: Sequence[Function], phi: Func
 
 def _level(model: SymbolicModel, games: Sequence[LocalGame], B: list[Function], phi: list[Function],
            first: bool) -> Level:
-    """Level ``k`` of the chain from the boxes ``B`` (module docstring, step 2)."""
-    links = [_shrink(model, g, B, phi[g.index], first) for g in games]
-    return Level(list(B), [c for c, _, _ in links], [lay for _, lay, _ in links], [d for _, _, d in links])
+    """Level ``k`` of the chain from the boxes ``B`` (module docstring, step 2). A game that is another's renamed,
+    in a situation that is that one's renamed (its own set, its assumption and its target), takes that one's link
+    renamed."""
+    bdd = model.bdd
+    links: list[tuple[Function, list[Function], int]] = []
+    shared: list[int | None] = []
+    for g in games:
+        if g.image_of is not None:
+            r, ren = g.image_of
+            rep = games[r]
+            if (bdd.let(ren, B[r]) == B[g.index] and bdd.let(ren, phi[r]) == phi[g.index]
+                    and bdd.let(ren, _assumption(model, rep, B)) == _assumption(model, g, B)):
+                C, layers, d = links[r]
+                links.append((bdd.let(ren, C), [bdd.let(ren, f) for f in layers], d))
+                shared.append(r)
+                continue
+        links.append(_shrink(model, g, B, phi[g.index], first))
+        shared.append(None)
+    return Level(list(B), [c for c, _, _ in links], [lay for _, lay, _ in links], [d for _, _, d in links],
+                 shared)
 
 
 def _unread_defined(cpre: ControllablePredecessor, games: Sequence[LocalGame], B: Sequence[Function]) -> None:
@@ -340,32 +413,39 @@ def _sizes(model: SymbolicModel, games: Sequence[LocalGame], sets: Sequence[Func
 
 def controller(model: SymbolicModel, result: ContractResult) -> Function:
     """The composed controller over current-state and input bits (module docstring, step 3), on the domain."""
-    m = model
-    bdd = m.bdd
+    bdd = model.bdd
     out = bdd.false
     levels = result.levels
     for k, level in enumerate(levels):
-        last = k == len(levels) - 1
         here = bdd.true
         for b in level.B:
             here &= b
-        if not last:
+        if k < len(levels) - 1:  # not yet in the next level's boxes
             above = bdd.true
             for c in level.C:
                 above &= c
             here &= ~above
-        act = here
+        local: list[Function] = []
         for g in result.games:
-            i = g.index
-            A = _assumption(m, g, level.B)
-            lay = level.layers[i]
-            local = lay[0] & _simplest(g, g.good(lay[0]), A)
-            for k2 in range(1, len(lay)):
-                local |= (lay[k2] & ~lay[k2 - 1]) & _simplest(g, g.good(lay[k2 - 1]), A)
-            act &= local
-        out |= act
+            r = level.shared[g.index]
+            if r is not None and g.image_of is not None:
+                local.append(bdd.let(g.image_of[1], local[r]))
+            else:
+                local.append(_local_controller(g, level.layers[g.index], _assumption(model, g, level.B)))
+        for f in local:
+            here &= f
+        out |= here
     for f in result.domain_factors:
         out &= f
+    return out
+
+
+def _local_controller(g: LocalGame, layers: Sequence[Function], A: Function) -> Function:
+    """One subsystem's inputs at one level: inside ``C_i = layers[0]`` those that hold it, at a cell first in layer
+    ``k`` those into layer ``k - 1`` (the progress controller of a reachability game, as SCOTS's)."""
+    out = layers[0] & _simplest(g, g.good(layers[0]), A)
+    for k in range(1, len(layers)):
+        out |= (layers[k] & ~layers[k - 1]) & _simplest(g, g.good(layers[k - 1]), A)
     return out
 
 
