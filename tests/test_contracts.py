@@ -164,3 +164,34 @@ def test_the_local_method_prepares_no_composed_cpre():
         game.predecessors(game.model.x_domain)
     with pytest.raises(ValueError, match="prepares no composed CPre"):
         game.cpre(game.model.x_domain)
+
+
+@pytest.mark.parametrize("seed", SEEDS[:30])
+def test_safety_contracts_are_invariant_in_the_exact_game(seed):
+    """Without a target, the safety contract: its domain is closed under its controller in the exact game (and so
+    inside the exact game's maximal invariant), nothing blocks."""
+    rng, net = _net(seed)
+    ex = Explicit(net)
+    game = build(net, "interleaved", "local")
+    m = game.model
+    S = _product(rng, ex, True)
+    r = contracts.solve(game, None, state_set(m, np.array(ex.states)[S]))
+    assert r.kind == "safe/contracts"
+    dom = states_vector(m, r.domain, ex)
+    assert not np.any(dom & ~ex.safe(S))
+    if dom.any():
+        C = controller_matrix(m, r.controller, ex)
+        assert np.all(C.any(axis=1)[dom])
+        adj, blocks = ex.successors(C)
+        assert not np.any(blocks[dom]) and not np.any(adj[dom][:, ~dom])
+
+
+def test_a_ring_holds_its_safety_contract():
+    net = ring_integrators(3, 9)
+    ex = Explicit(net)
+    game = build(net, "interleaved", "local")
+    states = np.array(ex.states)
+    S = np.all((states >= 2) & (states <= 6), axis=1)
+    r = contracts.solve(game, None, state_set(game.model, states[S]))
+    dom = states_vector(game.model, r.domain, ex)
+    assert np.array_equal(dom, S) and np.array_equal(dom, ex.safe(S))

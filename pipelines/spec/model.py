@@ -350,9 +350,10 @@ class OptionsSpec(_Model):
     fixed_points: list[FixedPoint] = Field(
         default_factory=_both_fixed_points, min_length=1,
         description="reach_and_stay: which fixed points to compute (co-Büchi can cost 20x Reach(Safe)); 'contracts' "
-        "(networks, box-shaped target and safe set): one small game per subsystem, chained by assume-guarantee "
-        "contracts (pipelines/synthesis/contracts.py), for networks whose exact game is too large; a sound "
-        "controller whose domain, a product of per-subsystem sets, may be smaller than the maximal one",
+        "(networks whose target and safe set are products of per-subsystem sets; reach_and_stay and safe): one "
+        "small game per subsystem, chained by assume-guarantee contracts (pipelines/synthesis/contracts.py), for "
+        "networks whose exact game is too large; a sound controller whose domain, a product of per-subsystem "
+        "sets, may be smaller than the maximal one",
     )
     initial_states: list[list[float]] = Field(
         default_factory=list, max_length=100, description="concrete initial states for closed-loop runs and figures"

@@ -160,7 +160,7 @@ def check_formula(spec: JobSpec, network: Network) -> list[str]:
 
 
 def check_contracts(spec: JobSpec, network: Network, regions: Mapping[str, AbstractRegion]) -> list[str]:
-    """``options.fixed_points: [contracts]`` (reach-and-stay only; nothing otherwise): a network of at least two
+    """``options.fixed_points: [contracts]`` (reach-and-stay and safety; nothing otherwise): a network of at least two
     subsystems, the exact game (no quotient), and a target and safe set that are products of one set per subsystem
     (:mod:`pipelines.synthesis.contracts`): a union of boxes is one exactly when it holds as many cells as the
     product of its projections.
@@ -170,7 +170,7 @@ def check_contracts(spec: JobSpec, network: Network, regions: Mapping[str, Abstr
     SpecError
         Naming the field and what to change.
     """
-    if spec.specification.kind != "reach_and_stay" or "contracts" not in spec.options.fixed_points:
+    if spec.specification.kind not in ("reach_and_stay", "safe") or "contracts" not in spec.options.fixed_points:
         return []
     if len(network.subsystems) < 2:
         raise SpecError("options.fixed_points: 'contracts' split a network into one game per subsystem, and this "

@@ -358,14 +358,15 @@ def _unread_defined(cpre: ControllablePredecessor, games: Sequence[LocalGame], B
 
 
 def chain(
-    cpre: ControllablePredecessor, target: Function, safe: Function | None = None,
+    cpre: ControllablePredecessor, target: Function | None, safe: Function | None = None,
     progress: Callable[[int, str], None] | None = None, max_levels: int = 64,
 ) -> ContractResult:
-    """``□S ∧ ◇□φ`` by a chain of contracts (module docstring, steps 1-2): the levels and the domain."""
+    """``□S ∧ ◇□φ`` by a chain of contracts (module docstring, steps 1-2): the levels and the domain. Without a
+    target, ``□S``: the safety contract alone, one level whose sets are held."""
     t0 = time.perf_counter()
     m = cpre.model
     games = local_games(cpre)
-    phi = factors(m, games, target & m.x_domain, "target")
+    phi = None if target is None else factors(m, games, target & m.x_domain, "target")
     B = factors(m, games, (m.x_domain if safe is None else safe & m.x_domain), "safe")
     rounds, changed = 0, True
     while changed:  # step 1, the safety contract
@@ -383,7 +384,9 @@ def chain(
         outcome = "no safety contract: some subsystem cannot stay safe while its neighbours roam the safe set"
     else:
         _unread_defined(cpre, games, B)
-    while outcome == "won":
+    if phi is None and outcome == "won":
+        levels.append(Level(list(B), list(B), [[b] for b in B], [0] * len(games), [None] * len(games)))
+    while outcome == "won" and phi is not None:
         level = _level(m, games, B, phi, first=not levels)
         levels.append(level)
         if progress is not None:
@@ -460,10 +463,11 @@ def _simplest(g: LocalGame, good: Function, A: Function) -> Function:
     return blind | (~served & good)
 
 
-def solve(cpre: ControllablePredecessor, target: Function, safe: Function | None = None,
+def solve(cpre: ControllablePredecessor, target: Function | None, safe: Function | None = None,
           progress: Callable[[int, str], None] | None = None) -> SynthesisResult:
-    """The ``contracts`` fixed point of a reach-and-stay specification as the synthesis reports it: the chain
-    (:func:`chain`), its composed controller (:func:`controller`) and the domain, a product of per-subsystem sets."""
+    """The ``contracts`` fixed point of a reach-and-stay (``target``) or safety (``target`` ``None``) specification as
+    the synthesis reports it: the chain (:func:`chain`), its composed controller (:func:`controller`) and the domain,
+    a product of per-subsystem sets."""
     t0 = time.perf_counter()
     m = cpre.model
     result = chain(cpre, target, safe, progress)
@@ -472,7 +476,7 @@ def solve(cpre: ControllablePredecessor, target: Function, safe: Function | None
         domain &= f
     ctrl = controller(m, result)
     return SynthesisResult(
-        kind="reach_and_stay/contracts", domain=domain, controller=ctrl, domain_states=count_states(m, domain),
+        kind="safe/contracts" if target is None else "reach_and_stay/contracts", domain=domain, controller=ctrl, domain_states=count_states(m, domain),
         iterations=result.steps, inner_iterations=result.details["safety_rounds"],
         seconds=time.perf_counter() - t0, peak_nodes=peak_live_nodes(m),
         details={"method": "contracts", "order": m.order, **result.details})

@@ -49,7 +49,8 @@ class SynthesisResult:
     Attributes
     ----------
     kind : str
-        ``safe``, ``reach``, ``reach_avoid``, ``reach_and_stay/cobuchi`` or ``reach_and_stay/reach_safe``.
+        ``safe``, ``reach``, ``reach_avoid``, ``reach_and_stay/cobuchi``, ``reach_and_stay/reach_safe``, or
+        ``reach_and_stay/contracts`` and ``safe/contracts`` (:mod:`.contracts`).
     domain : Function
         Winning states (current-state bits).
     controller : Function or None

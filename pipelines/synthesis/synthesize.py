@@ -90,7 +90,8 @@ def synthesize(
     """
     o = options if options is not None else SynthesisOptions()
     t0 = time.perf_counter()
-    local_only = specification.kind == "reach_and_stay" and set(o.reach_and_stay_methods) == {"contracts"}
+    local_only = (specification.kind == "safe" and "contracts" in o.reach_and_stay_methods) or (
+        specification.kind == "reach_and_stay" and set(o.reach_and_stay_methods) == {"contracts"})
     method = "local" if local_only and o.method == "auto" else o.method
     cpre = ControllablePredecessor.from_network(network, relations, interconnection, order=o.order,
                                                 method=method, max_memory=o.max_memory, chain_order=o.chain_order,
@@ -152,6 +153,8 @@ def _solve(cpre: ControllablePredecessor, game: ControllablePredecessor, kind: s
     specification's own); the results by name as :func:`synthesize` returns them."""
     refine = Refinement(cpre, o.refine_rounds) if o.refine_rounds and game is not cpre else None
     layered = o.controller_form == "layered" or (o.controller_form == "auto" and cpre.method in ("shared", "chained"))
+    if kind == "safe" and "contracts" in o.reach_and_stay_methods:
+        return {"contracts": contracts.solve(cpre, None, sets.get("safe"), progress)}
     if kind == "safe":
         return {"safe": safe(game, sets.get("safe"), layered=layered, progress=progress,
                              local_games=o.local_games, checkpoints=checkpoints, refine=refine)}
