@@ -195,3 +195,15 @@ def test_a_ring_holds_its_safety_contract():
     r = contracts.solve(game, None, state_set(game.model, states[S]))
     dom = states_vector(game.model, r.domain, ex)
     assert np.array_equal(dom, S) and np.array_equal(dom, ex.safe(S))
+
+
+def test_a_platoon_loses_by_contracts_and_says_why(tmp_path):
+    """A follower cannot keep its gap to a predecessor that may change speed anywhere in its box: the safety
+    contract is empty, and the warning names the follower and the exact fixed points as the way out."""
+    data = yaml.safe_load((EXAMPLES / "platoon.yaml").read_text())
+    data["options"].update({"fixed_points": ["contracts"], "controller": "contracts", "audit_transitions": 0,
+                            "closed_loop_runs": 5})
+    report = run_synthesis(run_abstraction(parse_spec(yaml.safe_dump(data)), audit=False), tmp_path)
+    assert report["domain_states"] == 0
+    why = [w for w in report["warnings"] if w.startswith("contracts:")]
+    assert len(why) == 1 and "subsystem 'follower[0]'" in why[0] and "left out of options.fixed_points" in why[0]

@@ -113,9 +113,22 @@ def run_synthesis(
                                        loop.initial_states, has_safe=spec.specification.safe is not None,
                                        quotient=opts.synthesis_quotient)
         + ([] if store is None else store.warnings)
-        + (explain_empty_domain(network, abstraction.relations, abstraction.interconnection, spec)
-           if main.domain_states == 0 and kind != "ltl" else []),
+        + _why_empty(abstraction, main_key, main),
     }
+
+
+def _why_empty(abstraction: Abstraction, main_key: str, main: Any) -> list[str]:
+    """Why the saved fixed point's domain is empty, if it is: the contracts' chain says where it stopped (box
+    assumptions lose what the exact game may keep), the others are explained on the abstraction
+    (:func:`~pipelines.verification.empty_domain.explain_empty_domain`)."""
+    spec = abstraction.spec
+    if main.domain_states or spec.specification.kind == "ltl":
+        return []
+    if main_key == "contracts":
+        return [f"contracts: {main.details.get('outcome', 'lost')}. They assume each subsystem's neighbours "
+                "anywhere in a box, never how fast they move; the exact fixed points (contracts left out of "
+                "options.fixed_points) may win where they cannot (docs/method.md §6, Contracts)"]
+    return explain_empty_domain(abstraction.network, abstraction.relations, abstraction.interconnection, spec)
 
 
 def _solve(

@@ -380,8 +380,10 @@ def chain(
     levels: list[Level] = []
     empty = [m.bdd.false] * len(games)
     outcome = "won"
-    if any(b == m.bdd.false for b in B):
-        outcome = "no safety contract: some subsystem cannot stay safe while its neighbours roam the safe set"
+    lost = [m.subsystems[i].name or str(i) for i, b in enumerate(B) if b == m.bdd.false]
+    if lost:
+        outcome = (f"no safety contract: {_named(lost)} cannot stay safe while its neighbours roam their safe "
+                   "sets")
     else:
         _unread_defined(cpre, games, B)
     if phi is None and outcome == "won":
@@ -392,8 +394,9 @@ def chain(
         if progress is not None:
             progress(rounds + len(levels), f"contracts: level {len(levels) - 1}: inflation {level.inflation} "
                      f"cells, {_sizes(m, games, level.C)}")
-        if any(layers[-1] == m.bdd.false for layers in levels[0].layers):
-            outcome = "some subsystem holds no set from any cell while its neighbours roam the safe set"
+        stuck = [m.subsystems[i].name or str(i) for i, lay in enumerate(levels[0].layers) if lay[-1] == m.bdd.false]
+        if stuck:
+            outcome = f"{_named(stuck)} reaches and holds no set smaller than its safe set from any cell"
         elif all((c & ~p) == m.bdd.false for c, p in zip(level.C, phi)):
             break
         elif all(c == b for c, b in zip(level.C, B)):
@@ -406,6 +409,10 @@ def chain(
                "inflation": [lv.inflation for lv in levels], "safety_rounds": rounds,
                "local_game_subsystems": len(games), "seconds": time.perf_counter() - t0}
     return ContractResult(games, levels if outcome == "won" else [], domain, details)
+
+
+def _named(names: Sequence[str]) -> str:
+    return f"subsystem '{names[0]}'" + (f" (and {len(names) - 1} more)" if len(names) > 1 else "")
 
 
 def _sizes(model: SymbolicModel, games: Sequence[LocalGame], sets: Sequence[Function]) -> str:
