@@ -3,10 +3,11 @@
 The command line of ``python bench/run.py`` and ``python -m bench``: the cases in order, one table, the targets, the
 JSON.
 
-    python bench/run.py                      # every case but consensus, general and synthesis
+    python bench/run.py                      # every case but consensus, general, synthesis, ltl and contracts
     python bench/run.py --quick              # small sizes, minutes (what tests/test_bench.py runs)
     python bench/run.py --cases tanks,consensus,scalability,floor,scp,workers,bdd
-    python bench/run.py --cases tanks,scp    # some cases; consensus, general, synthesis and ltl run only when named
+    python bench/run.py --cases tanks,scp    # some cases; consensus, general, synthesis, ltl and contracts run only
+                                             # when named
     python bench/run.py --json out.json      # also write the results as JSON
 
 Cases (``--cases``), each in a module of its own that says what it measures:
@@ -26,6 +27,9 @@ Cases (``--cases``), each in a module of its own that says what it measures:
     consensus synthesis in every mode, one process against Dask workers (:mod:`bench.synthesis`)
 ``ltl`` (only when named; under ``--quick`` the robot alone)
     temporal-logic tasks: the automaton, the product and its game on both back ends (:mod:`bench.ltl`)
+``contracts`` (only when named, never under ``--quick``)
+    the ring of rooms by assume-guarantee contracts up to N = 100, beside the exact fixed points under a time cap
+    and on a coarser grid (:mod:`bench.contracts`)
 
 How each child process is measured, and what the table's columns mean: :mod:`bench.harness`.
 """
@@ -42,20 +46,20 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import bdd, end_to_end, floor, general, ltl, scalability, scp, synthesis, two_workers
+from bench import bdd, contracts, end_to_end, floor, general, ltl, scalability, scp, synthesis, two_workers
 from bench.harness import ROOT, baseline_progress, child_main, fmt, jsonable, stage_line
 from service.arguments import count
 
 ALL_CASES = ("tanks", "tanks_fine", "consensus", "scalability", "floor", "scp", "workers", "bdd", "general",
-             "synthesis", "ltl")
-DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general", "synthesis", "ltl"))
+             "synthesis", "ltl", "contracts")
+DEFAULT_CASES = tuple(c for c in ALL_CASES if c not in ("consensus", "general", "synthesis", "ltl", "contracts"))
 #: Cases too large for ``--quick``.
-NOT_QUICK = ("tanks_fine", "consensus", "general", "synthesis")
+NOT_QUICK = ("tanks_fine", "consensus", "general", "synthesis", "contracts")
 #: The baselines by case name: one child per spec or worker count, a ratio each.
 BASELINES = {"floor": floor, "scp": scp, "workers": two_workers, "bdd": bdd}
 #: The child cases by kind (``--child``), from every case module.
 CHILDREN = {**end_to_end.CHILDREN, **scalability.CHILDREN, **floor.CHILDREN, **scp.CHILDREN, **two_workers.CHILDREN,
-            **bdd.CHILDREN, **general.CHILDREN, **ltl.CHILDREN}
+            **bdd.CHILDREN, **general.CHILDREN, **ltl.CHILDREN, **contracts.CHILDREN}
 #: The paper's figures, in the JSON output.
 PAPER = {**end_to_end.PAPER, "scalability": scalability.PAPER}
 
@@ -76,6 +80,8 @@ def run_case(case: str, args: Any, results: dict[str, Any]) -> None:
         results["cases"]["synthesis"] = synthesis.run(args)
     elif case == "ltl":
         results["cases"]["ltl"] = ltl.run(args)
+    elif case == "contracts":
+        results["cases"]["contracts"] = contracts.run(args)
     else:
         rec = BASELINES[case].run(args)
         results["cases"][case] = rec
@@ -102,6 +108,8 @@ def targets(results: dict) -> dict[str, tuple]:
         synthesis.targets(c["synthesis"], put)
     if "ltl" in c:
         ltl.targets(c["ltl"], put)
+    if "contracts" in c:
+        contracts.targets(c["contracts"], put)
     return out
 
 
@@ -158,6 +166,8 @@ def print_table(results: dict, out: Any = None) -> None:
         lines += general.lines(cases["general"])
     if "ltl" in cases:
         lines += ltl.lines(cases["ltl"])
+    if "contracts" in cases:
+        lines += contracts.lines(cases["contracts"])
     if "synthesis" in cases:
         s = cases["synthesis"]
         lines += synthesis.lines(s) if s.get("status") == "ok" else [f"  synthesis: {s.get('status')}"]
@@ -208,12 +218,12 @@ def meta(args: Any) -> dict:
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bench/run.py", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="small sizes (minutes); never consensus, tanks_fine, general "
-                   "or synthesis")
+    p.add_argument("--quick", action="store_true", help="small sizes (minutes); never consensus, tanks_fine, general, "
+                   "synthesis or contracts")
     p.add_argument("--json", metavar="OUT", help="write the results as JSON")
     p.add_argument("--cases", default=",".join(DEFAULT_CASES),
-                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus, general, synthesis "
-                   "and ltl)")
+                   help=f"comma-separated, of {','.join(ALL_CASES)} (default: all but consensus, general, synthesis, "
+                   "ltl and contracts)")
     p.add_argument("--consensus-timeout", type=float, default=1800.0, metavar="S")
     p.add_argument("--tanks-timeout", type=float, default=1200.0, metavar="S")
     p.add_argument("--point-timeout", type=float, default=900.0, metavar="S",
