@@ -4,7 +4,7 @@ of heated rooms, beside the exact fixed points.
 Every row is a job end to end as ``compabs run`` runs it (:func:`bench.end_to_end.child_end_to_end`:
 :func:`workers.job.run_job`, the audit beside synthesis, synthesis, closed loop, files), in a child process of its
 own, on a variant of an example that this case writes (:func:`variant`: ``parameters.N``, the fixed points and the
-controller, the example's initial state repeated to ``N`` rooms):
+controller, the example's initial state, if it has one, repeated to ``N`` rooms):
 
 1. ``examples/rooms_ring.yaml`` (spacing 0.1) by contracts at each of :data:`RING_NS`: abstract states, synthesis
    seconds, the chain's levels and inflation (``report["synthesis"]["results"]["contracts"]``, or the chain's
