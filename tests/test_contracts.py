@@ -8,6 +8,8 @@ do not guarantee shows up as a successor outside the domain or a cycle outside t
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -19,6 +21,7 @@ from pipelines.spec.validate import validate_spec
 from pipelines.symbolic.relations import state_set
 from pipelines.synthesis import contracts
 from pipelines.synthesis.fixed_points import reach_and_stay
+from service.cli import main
 from workers.control import run_synthesis
 from workers.job import run_abstraction
 
@@ -119,22 +122,29 @@ def rooms(N: int, eta: float, **options) -> str:
 
 @pytest.mark.slow
 def test_the_rooms_ring_by_contracts(tmp_path):
-    """The ring of rooms at spacing 0.1 (its exact game takes minutes per iteration at N = 3): the contracts' domain
-    is the whole safe set, the closed loops on the concrete rooms are clean, and the controller file loads back
-    with the same domain."""
-    spec = parse_spec(rooms(3, 0.1))
-    report = run_synthesis(run_abstraction(spec, audit=False), tmp_path)
+    """The ring of rooms at spacing 0.1 (its exact game takes minutes per iteration at N = 3) through `compabs run`:
+    the contracts' domain is the whole safe set, the closed loops on the concrete rooms are clean, the controller
+    file loads back with the same domain, and `compabs audit` re-checks the job (its closed loop draws inputs from a
+    permissive controller of thousands of joint inputs per state)."""
+    spec = tmp_path / "rooms.yaml"
+    spec.write_text(rooms(3, 0.1, audit_transitions=20_000))
+    out = tmp_path / "job"
+    assert main(["run", str(spec), "--out", str(out), "--quiet", "--in-process"]) == 0
+    report = json.loads((out / "report.json").read_text())
     result = report["synthesis"]["results"]["contracts"]
     assert result["outcome"] == "won" and result["levels"] >= 2
     assert report["domain_states"] == 49 ** 3  # every cell of [18, 23]^3: the exact domain can be no larger
     loop = report["closed_loop"]
     assert loop["runs"] >= 40 and loop["violations"] == 0
     assert all(rec["in_domain"] and rec["violation"] is None for rec in loop["initial_states"])
-    controller = load_controller(tmp_path)
+    controller = load_controller(out)
     grid = controller.state_grid
     cells = grid.unravel(np.arange(0, grid.size, 97))
     inside = np.all((cells >= 1) & (cells <= 49), axis=1)
     assert np.array_equal(controller.in_domain(cells), inside)
+    assert main(["audit", str(out), "--transitions", "20000", "--seed", "3"]) == 0
+    audit = json.loads((out / "audit.json").read_text())
+    assert audit["closed_loop"]["runs"] > 0 and audit["closed_loop"]["violations"] == 0
 
 
 def test_contracts_refuse_what_they_cannot_split():
