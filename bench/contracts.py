@@ -20,7 +20,6 @@ controller, the example's initial state, if it has one, repeated to ``N`` rooms)
 
 from __future__ import annotations
 
-import json
 import re
 import tempfile
 import time
@@ -140,17 +139,17 @@ def contracts_result(r: dict) -> dict:
     return (((r["details"].get("synthesis") or {}).get("results") or {}).get("contracts")) or {}
 
 
-_LEVEL = re.compile(r"contracts: level (\d+): inflation (\[[^\]]*\])")
+_LEVEL = re.compile(r"contracts: level (\d+): inflation (\d+)(?:-(\d+))? cells")
 _ITERATION = re.compile(r"(\S+) iteration (\d+)")
 
 
 def inflation_of(r: dict) -> list[list[int]] | None:
-    """Per level, each subsystem's inflation: the report's, else (lists longer than the JSON keeps) the chain's
-    progress lines."""
+    """Per level, each subsystem's inflation: the report's, else (lists longer than the JSON keeps) the smallest and
+    largest from the chain's progress lines."""
     got = contracts_result(r).get("inflation")
     if got and all(isinstance(lv, list) for lv in got):
         return got
-    levels = {int(m.group(1)): json.loads(m.group(2)) for e in r.get("iterations") or []
+    levels = {int(m.group(1)): [int(m.group(2)), int(m.group(3) or m.group(2))] for e in r.get("iterations") or []
               if (m := _LEVEL.search(e["message"]))}
     return [levels[k] for k in sorted(levels)] if levels else None
 

@@ -392,8 +392,9 @@ def chain(
         level = _level(m, games, B, phi, first=not levels)
         levels.append(level)
         if progress is not None:
-            progress(rounds + len(levels), f"contracts: level {len(levels) - 1}: inflation {level.inflation} "
-                     f"cells, {_sizes(m, games, level.C)}")
+            low, high = min(level.inflation), max(level.inflation)
+            progress(rounds + len(levels), f"contracts: level {len(levels) - 1}: inflation "
+                     f"{low if low == high else f'{low}-{high}'} cells, {_sizes(m, games, level.C)}")
         stuck = [m.subsystems[i].name or str(i) for i, lay in enumerate(levels[0].layers) if lay[-1] == m.bdd.false]
         if stuck:
             outcome = f"{_named(stuck)} reaches and holds no set smaller than its safe set from any cell"
