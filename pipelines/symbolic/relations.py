@@ -232,11 +232,14 @@ def region(model: SymbolicModel, boxes: AbstractRegion) -> Function:
     return f
 
 
-def state_set(model: SymbolicModel, x_idx: np.ndarray) -> Function:
-    """The set of composed states given by per-coordinate indices, shape (B, n) (bulk, as a tree)."""
-    x_idx = np.unique(np.asarray(x_idx, dtype=np.int64).reshape(-1, len(model.state_sizes)), axis=0)
-    return tree(model, model.x_digits(), x_idx, np.ones(x_idx.shape[0], dtype=np.int64),
-                [model.bdd.false, model.bdd.true])
+def state_set(model: SymbolicModel, x_idx: np.ndarray, digits: Sequence[str] | None = None) -> Function:
+    """The set of composed states given by per-coordinate indices, shape (B, n) (bulk, as a tree); with ``digits``
+    (some current-state digits, e.g. one subsystem's), the cells of those digits, shape (B, len(digits))."""
+    digits = model.x_digits() if digits is None else list(digits)
+    x_idx = np.unique(np.asarray(x_idx, dtype=np.int64).reshape(-1, len(digits)), axis=0)
+    if not len(x_idx):
+        return model.bdd.false
+    return tree(model, digits, x_idx, np.ones(x_idx.shape[0], dtype=np.int64), [model.bdd.false, model.bdd.true])
 
 
 def pair_set(model: SymbolicModel, x_idx: np.ndarray, u_idx: np.ndarray) -> Function:

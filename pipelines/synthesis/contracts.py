@@ -58,8 +58,8 @@ import numpy as np
 
 from pipelines.errors import CompabsError
 from pipelines.symbolic.counting import count_states, enumerate_cells
+from pipelines.symbolic.relations import state_set
 from pipelines.symbolic.symbolic_model import Function, SymbolicModel, and_exists
-from pipelines.symbolic.tree import tree
 from pipelines.synthesis.fixed_points import SynthesisResult, peak_live_nodes
 
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
@@ -100,14 +100,13 @@ class LocalGame:
         some = bdd.exist(self.u_bits, self.good(Y))
         return keep & ~and_exists(A, ~some, self.read_bits)
 
-    def invariant(self, keep: Function, A: Function) -> tuple[Function, int]:
-        """``Inv_i(keep, A)`` and its iterations."""
-        Y, k = keep, 0
+    def invariant(self, keep: Function, A: Function) -> Function:
+        """``Inv_i(keep, A)``."""
+        Y = keep
         while True:
-            k += 1
             nxt = self.pre(Y, keep, A)
             if nxt == Y:
-                return Y, k
+                return Y
             Y = nxt
 
     def reach(self, C: Function, keep: Function, A: Function) -> list[Function]:
@@ -137,10 +136,7 @@ def local_games(cpre: ControllablePredecessor) -> list[LocalGame]:
             g = games[rep]
             t_tilde, adm = bdd.let(ren, g.t_tilde), bdd.let(ren, g.admissible)
         else:
-            wb = m.bits_of([f"w{j}" for j in s.reads])
-            Mi = bdd.true
-            for j in s.reads:
-                Mi &= cpre.parts[j]
+            Mi, wb = cpre.read_part(s)
             t_tilde = and_exists(Mi, t, wb)
             adm = bdd.exist(wb, Mi) & ~and_exists(Mi, ~nb, wb) & m.domain(dg["u"])
         support = bdd.support(t_tilde) | bdd.support(adm)
@@ -200,14 +196,14 @@ def factors(model: SymbolicModel, games: Sequence[LocalGame], f: Function, name:
     out = []
     product = bdd.true
     for g in games:
-        others = [b for b in model.x_bits if b not in set(g.x_bits)]
-        p = bdd.exist(others, f)
+        own = set(g.x_bits)
+        p = bdd.exist([b for b in model.x_bits if b not in own], f)
         out.append(p)
         product &= p
     if product != f:
         raise NotAProduct(f"specification.{name}: contracts need a set that is a product of one set per subsystem "
-                          "(one box, or boxes that differ in one subsystem's coordinates only); use the exact fixed "
-                          "points (options.fixed_points: [reach_safe]) for this one")
+                          "(one box, or boxes that differ in one subsystem's coordinates only); leave contracts out "
+                          "of options.fixed_points for this one")
     return out
 
 
@@ -223,11 +219,7 @@ def _cells(model: SymbolicModel, g: LocalGame, f: Function) -> np.ndarray:
 
 def _set(model: SymbolicModel, g: LocalGame, mask: np.ndarray) -> Function:
     """The inverse of :func:`_cells`."""
-    idx = np.argwhere(mask)
-    if not len(idx):
-        return model.bdd.false
-    return tree(model, g.x_digits, idx.astype(np.int64), np.ones(len(idx), dtype=np.int64),
-                [model.bdd.false, model.bdd.true])
+    return state_set(model, np.argwhere(mask), g.x_digits)
 
 
 def _inflated(mask: np.ndarray, d: int) -> np.ndarray:
@@ -235,12 +227,10 @@ def _inflated(mask: np.ndarray, d: int) -> np.ndarray:
     out = mask.copy()
     for axis in range(mask.ndim):
         grown = out.copy()
-        for step in range(1, d + 1):
+        for step in range(1, min(d, mask.shape[axis] - 1) + 1):
             lo = [slice(None)] * mask.ndim
             hi = [slice(None)] * mask.ndim
             lo[axis], hi[axis] = slice(step, None), slice(None, -step)
-            if step >= mask.shape[axis]:
-                break
             grown[tuple(lo)] |= out[tuple(hi)]
             grown[tuple(hi)] |= out[tuple(lo)]
         out = grown
@@ -299,7 +289,7 @@ def _shrink(model: SymbolicModel, g: LocalGame, B: Sequence[Function], phi: Func
     def attempt(d: int) -> tuple[Function, list[Function]]:
         if d not in tried:
             start = _set(model, g, _inflated(phi_mask, d) & b_mask) if d < d_max else keep
-            inv, _ = g.invariant(start, A)
+            inv = g.invariant(start, A)
             tried[d] = (inv, g.reach(inv, keep, A) if inv != model.bdd.false else [inv])
         return tried[d]
 
@@ -372,7 +362,7 @@ def chain(
     while changed:  # step 1, the safety contract
         changed, rounds = False, rounds + 1
         for g in games:
-            inv, _ = g.invariant(B[g.index], _assumption(m, g, B))
+            inv = g.invariant(B[g.index], _assumption(m, g, B))
             if inv != B[g.index]:
                 B[g.index], changed = inv, True
     if progress is not None:
@@ -484,7 +474,7 @@ def solve(cpre: ControllablePredecessor, target: Function | None, safe: Function
         domain &= f
     ctrl = controller(m, result)
     return SynthesisResult(
-        kind="safe/contracts" if target is None else "reach_and_stay/contracts", domain=domain, controller=ctrl, domain_states=count_states(m, domain),
-        iterations=result.steps, inner_iterations=result.details["safety_rounds"],
+        kind="safe/contracts" if target is None else "reach_and_stay/contracts", domain=domain, controller=ctrl,
+        domain_states=count_states(m, domain), iterations=result.steps, inner_iterations=result.details["safety_rounds"],
         seconds=time.perf_counter() - t0, peak_nodes=peak_live_nodes(m),
         details={"method": "contracts", "order": m.order, **result.details})

@@ -75,6 +75,7 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.abstraction.relation import SubsystemRelation
     from pipelines.interconnection import InterconnectionAbstraction
     from pipelines.network import Network
+    from pipelines.symbolic.order import SubsystemLayout
 
 
 METHODS = ("auto", "per_subsystem", "shared", "chained", "per_reader", "local")
@@ -363,10 +364,7 @@ class ControllablePredecessor:
             self.admissible &= bdd.exist(m.bits[f"w{j}"], part)
         chain: Chain = []
         for s, t, nb in zip(m.subsystems, self.T, self.NB):
-            wb = m.bits_of([f"w{j}" for j in s.reads])
-            Mi = bdd.true
-            for j in s.reads:
-                Mi &= self.parts[j]
+            Mi, wb = self.read_part(s)
             t_tilde = and_exists(Mi, t, wb)  # T̃_i = ∃w_i. M̂_i ∧ T_i
             nb_prime = ~and_exists(Mi, ~nb, wb)  # NB'_i = ∀w_i. (M̂_i → NB_i)
             self.admissible &= nb_prime
@@ -403,10 +401,8 @@ class ControllablePredecessor:
         for j, part in self.parts.items():
             admissible &= bdd.exist(m.bits[f"w{j}"], part)
         for s, nb in zip(m.subsystems, self.NB):
-            Mi = bdd.true
-            for j in s.reads:
-                Mi &= self.parts[j]
-            admissible &= ~and_exists(Mi, ~nb, m.bits_of([f"w{j}" for j in s.reads]))
+            Mi, wb = self.read_part(s)
+            admissible &= ~and_exists(Mi, ~nb, wb)
         self.admissible = admissible
         items: list[tuple[Function, list[str]]] = [
             (t, m.bits_of(m.subsystem_digits(s)["xn"])) for s, t in zip(m.subsystems, self.T)]
@@ -414,6 +410,14 @@ class ControllablePredecessor:
         w_of = {b: j for j in readers_of for b in m.bits[f"w{j}"]}
         self.chain = schedule_joint(items, set(m.xn_bits), set(w_of), bdd, self.chain_order)
         self.M, self.w_bits = None, []  # w is quantified inside the chain
+
+    def read_part(self, s: SubsystemLayout) -> tuple[Function, list[str]]:
+        """``M̂_s``: the parts of ``M̂`` for the internal variables subsystem ``s`` reads, conjoined, and their ``w``
+        bits (``true`` and none for a subsystem that reads none)."""
+        Mi = self.bdd.true
+        for j in s.reads:
+            Mi &= self.parts[j]
+        return Mi, self.model.bits_of([f"w{j}" for j in s.reads])
 
     # ------------------------------------------------------------------ CPre
     def within(self, S: Function) -> Within:
