@@ -454,7 +454,7 @@ def _simplest(g: LocalGame, good: Function, A: Function) -> Function:
     """``good`` with the neighbours' cells left out where one input serves all of them: at a cell where some input
     is good for every neighbour cell in ``A``, those inputs alone (a function of the own cell); elsewhere ``good``
     itself. The composed controller is a conjunction around the network's cycles: inputs that read neighbours make
-    it a product over all of them (the rooms ring N = 6: 12.7 M nodes), inputs that do not keep it a product."""
+    it a product over all of them, inputs that do not keep it a product."""
     bdd = g.model.bdd
     blind = ~and_exists(A, ~good, g.read_bits)
     served = bdd.exist(g.u_bits, blind)
