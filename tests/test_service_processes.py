@@ -45,9 +45,10 @@ def small(n: int = 2, **options: Any) -> dict[str, Any]:
 
 def long_in(stage: str) -> dict[str, Any]:
     """A job that spends many seconds in ``stage``."""
-    if stage == "subsystems":
+    if stage == "subsystems":  # ~25 s here: 257 cells of 100,000 samples each, one chunk per cell
         data = small(synthesis=False, chunk_cells=1)
-        data["subsystems"][0]["samples"] = 20_000
+        data["subsystems"][0]["samples"] = 100_000
+        data["subsystems"][0]["state"]["eta"] = 0.125
     elif stage == "audit":  # in the job's process (no synthesis to run beside)
         data = small(synthesis=False, audit_transitions=30_000_000)
     elif stage == "synthesis":  # N = 4: ~50 s of CUDD, with the audit beside it in a child process
