@@ -22,6 +22,7 @@ from pipelines.errors import CompabsError
 from pipelines.grid_controller import GridController
 from pipelines.symbolic.counting import Sampler, enumerate_cells, sample, sampler
 from pipelines.symbolic.files import dump
+from pipelines.symbolic.joint_table import JointTable, contains, draw, joint_table
 from pipelines.symbolic.node_table import BDDTable, node_table
 from pipelines.symbolic.symbolic_model import Function
 from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
@@ -54,6 +55,7 @@ class Controller(GridController):
         self._domain = model.bdd.exist(model.u_bits, bdd)
         self._domain_table: BDDTable | None = None  # built on the first in_domain
         self._samplers: dict[tuple[int, ...], Sampler] = {}
+        self._joint_table: JointTable | None | bool = None
 
     @property
     def model(self):
@@ -97,14 +99,37 @@ class Controller(GridController):
         """
         idx, ok = self.cells(X)
         codes = np.zeros((len(ok), len(self._input_grids)), dtype=np.int64)
+        table = self._joint()
+        if table is not None:
+            rows = np.flatnonzero(ok)
+            codes[rows], ok[rows] = draw(table, idx[rows], rng if how == "random" else None)
+            return self._points(codes, ok)
         for r in np.flatnonzero(ok):
             code = self._sampler(idx[r]).draw(rng if how == "random" else None)
             if code is None:
                 ok[r] = False
             else:
                 codes[r] = code
+        return self._points(codes, ok)
+
+    def _points(self, codes: np.ndarray, ok: np.ndarray) -> list[np.ndarray | None]:
         points = np.concatenate([g.points(g.unravel(codes[:, s])) for s, g in enumerate(self._input_grids)], axis=1)
         return [points[r] if ok[r] else None for r in range(len(ok))]
+
+    def _joint(self) -> JointTable | None:
+        """The controller's :class:`~.symbolic.joint_table.JointTable` (built on the first draw), or ``None`` where
+        its nodes are more than :data:`JOINT_MAX_NODES` (then each cell's inputs are counted on their own)."""
+        if self._joint_table is None:
+            m = self._model
+            f = self._bdd & m.u_domain
+            self._joint_table = joint_table(m, f) if f.dag_size <= JOINT_MAX_NODES else False
+        return self._joint_table if isinstance(self._joint_table, JointTable) else None
+
+    def allows(self, idx: np.ndarray, codes: np.ndarray) -> np.ndarray | None:
+        """Whether the joint input ``codes`` (per subsystem, shape (B, N)) is allowed at each cell ``idx`` (B, n);
+        ``None`` where the controller keeps no :class:`~.symbolic.joint_table.JointTable`."""
+        table = self._joint()
+        return None if table is None else contains(table, idx, codes)
 
     def _sampler(self, idx: np.ndarray) -> Sampler:
         key = tuple(int(v) for v in idx)
@@ -162,6 +187,11 @@ class Controller(GridController):
 
 INPUT_CACHE = 100_000
 """Cells whose input sets a :class:`LayeredController` keeps (each a BDD over the input bits only)."""
+
+JOINT_MAX_NODES = 1 << 20
+"""Largest controller (BDD nodes) whose inputs :meth:`Controller.choose_many` draws from one
+:class:`~.symbolic.joint_table.JointTable`: its counts cost ``nodes × cells`` per batch, where a cell's own
+cofactor is small."""
 
 
 class LayeredController(Controller):
@@ -247,6 +277,9 @@ class LayeredController(Controller):
             if m.bdd.let(state, layer) == m.bdd.true:
                 return k
         return None  # pragma: no cover - the last layer holds it
+
+    def _joint(self) -> None:
+        return None  # no one BDD over states and inputs: each cell's inputs come from its layer's CPre
 
     def input_set(self, idx: np.ndarray):
         """As :meth:`Controller.input_set`; answers are kept per cell (at most ``INPUT_CACHE`` cells), since

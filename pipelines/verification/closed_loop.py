@@ -87,20 +87,28 @@ class Run:
 CHOOSE = ("random", "first", "steady")
 
 
+def input_codes(grids: Sequence[UniformGrid], U: np.ndarray) -> np.ndarray:
+    """Per-subsystem flat codes of concrete inputs (grid points), shape (B, m_total) or (m_total,) -> (B, N); -1
+    where an input is off its subsystem's grid."""
+    U = np.asarray(U, dtype=float).reshape(-1, sum(g.dim for g in grids))
+    out = np.empty((U.shape[0], len(grids)), dtype=np.int64)
+    col = 0
+    for s, g in enumerate(grids):
+        k = np.rint((U[:, col:col + g.dim] - np.asarray(g.origin)) / g.eta_array).astype(np.int64)
+        k -= np.asarray(g.k_lo, dtype=np.int64)
+        on = g.on_grid(k)
+        out[:, s] = np.where(on, g.ravel(np.where(on[:, None], k, 0)), -1)
+        col += g.dim
+    return out
+
+
 def admits(controller: Any, x: np.ndarray, u: np.ndarray) -> bool:
     """Whether the concrete input ``u`` (grid points, shape (m_total,)) is admissible at the state ``x`` under a
     controller: its cell's input set (one BDD conjunction per subsystem), or its listed inputs."""
     idx = controller.cell(np.asarray(x, dtype=float))
-    if idx is None:
+    codes = input_codes(controller.input_grids, u)[0].tolist()
+    if idx is None or min(codes) < 0:
         return False
-    codes, col = [], 0
-    for g in controller.input_grids:
-        k = np.rint((np.asarray(u[col:col + g.dim], dtype=float) - np.asarray(g.origin)) / g.eta_array)
-        k = k.astype(np.int64) - np.asarray(g.k_lo, dtype=np.int64)
-        if not g.on_grid(k[None])[0]:
-            return False
-        codes.append(int(g.ravel(k[None])[0]))
-        col += g.dim
     model = getattr(controller, "model", None)
     if model is not None and hasattr(controller, "input_set"):  # a BDD controller: no listing of its inputs
         f = controller.input_set(idx)
@@ -113,12 +121,32 @@ def admits(controller: Any, x: np.ndarray, u: np.ndarray) -> bool:
 def _steady(policy: Any, X: np.ndarray, previous: list[np.ndarray | None], rng: np.random.Generator
             ) -> list[np.ndarray | None]:
     """``choose="steady"``: the previous input at each row of ``X`` where it is still admissible, else the first."""
-    chosen = [u if u is not None and admits(policy, x, u) else None for x, u in zip(X, previous)]
+    kept = _still_allowed(policy, X, previous)
+    chosen = [u if kept[k] else None for k, u in enumerate(previous)]
     redo = [k for k, u in enumerate(chosen) if u is None]
     if redo:
         for k, u in zip(redo, policy.choose_many(X[redo], rng, "first")):
             chosen[k] = u
     return chosen
+
+
+def _still_allowed(policy: Any, X: np.ndarray, previous: list[np.ndarray | None]) -> np.ndarray:
+    """Whether each row's previous input (``None``: none) is admissible at its state, shape (B,): for all rows at
+    once where the controller answers for many (:meth:`~pipelines.controller.Controller.allows`), else row by row."""
+    rows = [k for k, u in enumerate(previous) if u is not None]
+    out = np.zeros(len(previous), dtype=bool)
+    allows = getattr(policy, "allows", None)
+    if rows and allows is not None:
+        idx, on_grid = policy.cells(X[rows])
+        codes = input_codes(policy.input_grids, np.array([previous[k] for k in rows]))
+        fits = on_grid & (codes >= 0).all(axis=1)
+        answer = allows(idx, np.maximum(codes, 0))
+        if answer is not None:
+            out[rows] = fits & answer
+            return out
+    for k in rows:
+        out[k] = admits(policy, X[k], np.asarray(previous[k]))
+    return out
 
 
 def _cells_in(grid: UniformGrid, region: AbstractRegion | None, x: np.ndarray) -> np.ndarray:
