@@ -36,11 +36,10 @@ def measure(directory: Path, runs: int, steps: int) -> dict[str, Any]:
     spec, network = arts.spec, arts.network
     checked = closed_loop_regions(spec, network, spec_regions(spec, network))
     row: dict[str, Any] = {"job": str(directory), "nodes": controller.nodes}
+    table = controller._joint
     for mode in ("per_cell", "joint_table"):
-        if mode == "per_cell":
-            controller._joint_table = False  # what Controller._joint keeps for a controller past JOINT_MAX_NODES
-        else:
-            controller._joint_table = None
+        # the per-cell samplers are what a LayeredController draws with: no table
+        controller._joint = (lambda: None) if mode == "per_cell" else table  # type: ignore[method-assign]
         t0 = time.perf_counter()
         loop = run_closed_loop(network, controller, [], runs, steps, np.random.default_rng(spec.options.seed + 1),
                                spec.specification.kind, checked["target"], checked["avoid"], safe=checked["safe"])

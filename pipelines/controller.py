@@ -55,7 +55,7 @@ class Controller(GridController):
         self._domain = model.bdd.exist(model.u_bits, bdd)
         self._domain_table: BDDTable | None = None  # built on the first in_domain
         self._samplers: dict[tuple[int, ...], Sampler] = {}
-        self._joint_table: JointTable | None | bool = None
+        self._joint_table: JointTable | None = None
 
     @property
     def model(self):
@@ -93,9 +93,10 @@ class Controller(GridController):
 
     def choose_many(self, X: np.ndarray, rng: np.random.Generator, how: str = "random") -> list[np.ndarray | None]:
         """:meth:`choose` at each row of ``X``, shape (B, n), drawing from ``rng`` in row order (so the draws
-        are those of :meth:`choose` row by row). Cells and input points are computed for all rows at once, and
-        the model counts of a cell's input set are kept per cell (at most ``INPUT_CACHE`` cells): the 100 tank
-        runs of 98 steps visit 6,161 distinct cells in 9,800 draws.
+        are those of :meth:`choose` row by row). Cells and input points are computed for all rows at once, the
+        inputs drawn from the controller's node table (:mod:`~.symbolic.joint_table`, compiled, about a cell's
+        cofactor per cell); a :class:`LayeredController`, which has no one BDD to tabulate, keeps the model counts
+        of a cell's input set per cell (at most ``INPUT_CACHE`` cells).
         """
         idx, ok = self.cells(X)
         codes = np.zeros((len(ok), len(self._input_grids)), dtype=np.int64)
@@ -117,13 +118,11 @@ class Controller(GridController):
         return [points[r] if ok[r] else None for r in range(len(ok))]
 
     def _joint(self) -> JointTable | None:
-        """The controller's :class:`~.symbolic.joint_table.JointTable` (built on the first draw), or ``None`` where
-        its nodes are more than :data:`JOINT_MAX_NODES` (then each cell's inputs are counted on their own)."""
+        """The controller's :class:`~.symbolic.joint_table.JointTable`, built on the first draw (``None``: each
+        cell's inputs are counted on their own, as a :class:`LayeredController`'s)."""
         if self._joint_table is None:
-            m = self._model
-            f = self._bdd & m.u_domain
-            self._joint_table = joint_table(m, f) if f.dag_size <= JOINT_MAX_NODES else False
-        return self._joint_table if isinstance(self._joint_table, JointTable) else None
+            self._joint_table = joint_table(self._model, self._bdd & self._model.u_domain)
+        return self._joint_table
 
     def allows(self, idx: np.ndarray, codes: np.ndarray) -> np.ndarray | None:
         """Whether the joint input ``codes`` (per subsystem, shape (B, N)) is allowed at each cell ``idx`` (B, n);
@@ -187,11 +186,6 @@ class Controller(GridController):
 
 INPUT_CACHE = 100_000
 """Cells whose input sets a :class:`LayeredController` keeps (each a BDD over the input bits only)."""
-
-JOINT_MAX_NODES = 1 << 20
-"""Largest controller (BDD nodes) whose inputs :meth:`Controller.choose_many` draws from one
-:class:`~.symbolic.joint_table.JointTable`: its counts cost ``nodes × cells`` per batch, where a cell's own
-cofactor is small."""
 
 
 class LayeredController(Controller):

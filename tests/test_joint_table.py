@@ -64,7 +64,7 @@ def test_random_inputs_are_allowed_uniform_and_drawn_as_row_by_row(seed):
     expected = 6000 / allowed.sum()
     assert (hist[~allowed] == 0).all() and (hist[allowed] > 0).all()
     assert np.abs(hist[allowed] - expected).max() < 6 * math.sqrt(expected)
-    # one call on many cells draws what one call per cell draws, cells without inputs drawing nothing
+    # one call on many cells draws what one call per cell draws
     together, ok = draw(t, cells, np.random.default_rng(seed))
     rng = np.random.default_rng(seed)
     alone = [draw(t, c[None], rng) for c in cells]

@@ -4,13 +4,16 @@ Closed loops draw an admissible input at every run's cell in every step. Per cel
 of the cofactor (:class:`~.counting.Sampler`) cost milliseconds of Python each: on a ring of 100 rooms, ten
 milliseconds a cell and two thirds of the job's time. Here one table of the controller's nodes (CUDD's, complement
 edges included; node 0 the constant TRUE, an edge ``(node << 1) | complemented``, as in :mod:`.node_table`) serves
-every cell. For a batch of cells, :func:`draw` computes bottom-up, with array operations over the cells, the
-model count of every node over the input bits at and below its level, the state bits fixed by each cell; then it
-walks down once per cell, taking each input bit's branch with its share of the models and a level the node does
-not test with probability 1/2. That is :class:`~.counting.Sampler`'s uniform distribution over the cell's
-admissible joint inputs; the counts are kept as base-2 logarithms (a network of a thousand subsystems has more
-than 2**1024 joint inputs), so the shares are exact up to float rounding, and a branch without models (log count
-``-inf``) is never taken.
+every cell, in compiled loops. Per cell, :func:`draw` computes, children first, the share of the assignments of
+the input bits at and below each node's level that satisfy the node's function, for the nodes the cell reaches
+(one child at a state level, the cell's bit; both at an input level: about the cell's cofactor). A share does not
+depend on the levels an edge skips, so a node's is the mean of its children's at an input level and the picked
+child's at a state level. Then one walk from the root takes each input bit's branch with its share, and a level
+the node does not test with probability 1/2: :class:`~.counting.Sampler`'s uniform distribution over the cell's
+admissible joint inputs. Shares are kept as base-2 logarithms, of the function and of its negation (never
+``1 - share``, which rounds a share of ``2**-60`` away; a network of a thousand subsystems has shares below
+float64's range), so the draw is uniform up to float rounding and a branch without models (log share ``-inf``)
+is never taken.
 """
 
 from __future__ import annotations
@@ -19,9 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-#: Node-by-cell entries of the count arrays :func:`draw` holds at once (two float64 arrays of this size).
-COUNT_BLOCK = 1 << 22
+from numba import njit
 
 
 @dataclass(frozen=True)
@@ -101,88 +102,110 @@ def joint_table(model: Any, f: Any) -> JointTable:
                       np.asarray(shift, dtype=np.int64), var, low, high, edge(f), len(model.u_digits()))
 
 
-def _densities(t: JointTable, idx: np.ndarray) -> np.ndarray:
-    """Per edge and cell (shape (2 (K + 1), B), an edge ``e`` at row ``e``): the share of the assignments of the input
-    bits at and below the edge's node's level that satisfy the edge's function, the state bits set by the cells
-    ``idx``.
+@njit(cache=True, nogil=True)
+def _value(e: np.int64, L1: np.ndarray, L0: np.ndarray) -> tuple[float, float]:
+    """log2 shares of the edge ``e`` and of its negation (the constant TRUE: 0 and -inf)."""
+    node = e >> 1
+    a, b = (0.0, -np.inf) if node == 0 else (L1[node], L0[node])
+    return (b, a) if e & 1 else (a, b)
 
-    A share does not depend on the levels an edge skips, so a node's is the mean of its children's at an input
-    level and the child's the cell picks at a state level. Both polarities are computed, never ``1 - share``, so a
-    share of ``2**-60`` is not lost to rounding; the smallest non-zero share is ``2**-(input bits)``, inside float64
-    up to 1,000 input bits and inside ``longdouble`` (x86's 80 bits) past them."""
-    dtype = np.float64 if int(t.is_input.sum()) <= 1000 else np.longdouble
-    B, K = idx.shape[0], t.var.size
-    D = np.zeros((2 * K, B), dtype=dtype)
-    D[0] = 1.0  # TRUE; D[1], FALSE, stays 0
-    by_level = np.argsort(-t.var[1:], kind="stable") + 1
-    for nodes in np.split(by_level, np.flatnonzero(np.diff(t.var[by_level])) + 1):
-        v = int(t.var[nodes[0]])
-        lo, hi = t.low[nodes], t.high[nodes]
-        if t.is_input[v]:
-            D[2 * nodes] = (D[lo] + D[hi]) * 0.5
-            D[2 * nodes + 1] = (D[lo ^ 1] + D[hi ^ 1]) * 0.5
+
+@njit(cache=True, nogil=True)
+def _mean(a: float, b: float) -> float:
+    """log2((2**a + 2**b) / 2), exact at -inf."""
+    if a == -np.inf:
+        return b - 1.0
+    if b == -np.inf:
+        return a - 1.0
+    hi, lo = max(a, b), min(a, b)
+    return hi + np.log2(1.0 + np.exp2(lo - hi)) - 1.0
+
+
+@njit(cache=True, nogil=True)
+def _shares(c: int, is_input: np.ndarray, digit: np.ndarray, shift: np.ndarray, var: np.ndarray, low: np.ndarray,
+            high: np.ndarray, root: np.int64, idx: np.ndarray, stamp: np.ndarray, L1: np.ndarray, L0: np.ndarray,
+            stack: np.ndarray) -> None:
+    """The log2 shares (``L1``, ``L0``) of the nodes cell ``c`` reaches from the root (stamped ``c``), children
+    first: one child at a state level (the cell's bit), both at an input level."""
+    sp = 1
+    stack[0] = root >> 1
+    while sp > 0:
+        n = stack[sp - 1]
+        if n == 0 or stamp[n] == c:
+            sp -= 1
+            continue
+        v = var[n]
+        if is_input[v]:
+            lo, hi = low[n] >> 1, high[n] >> 1
+            pushed = False
+            for child in (lo, hi):
+                if child != 0 and stamp[child] != c:
+                    stack[sp] = child
+                    sp += 1
+                    pushed = True
+            if pushed:
+                continue
+            a1, a0 = _value(low[n], L1, L0)
+            b1, b0 = _value(high[n], L1, L0)
+            L1[n], L0[n] = _mean(a1, b1), _mean(a0, b0)
         else:
-            bit = ((idx[:, t.digit[v]] >> t.shift[v]) & 1).astype(bool)
-            child = np.where(bit[None, :], hi[:, None], lo[:, None])
-            cells = np.arange(B)[None, :]
-            D[2 * nodes] = D[child, cells]
-            D[2 * nodes + 1] = D[child ^ 1, cells]
-    return D
+            e = high[n] if (idx[c, digit[v]] >> shift[v]) & 1 else low[n]
+            child = e >> 1
+            if child != 0 and stamp[child] != c:
+                stack[sp] = child
+                sp += 1
+                continue
+            L1[n], L0[n] = _value(e, L1, L0)
+        stamp[n] = c
+        sp -= 1
 
 
-def _block(t: JointTable, idx: np.ndarray, rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`draw` on one block of cells."""
-    D = _densities(t, idx)
-    B, V = idx.shape[0], t.levels
-    ok = D[t.root] > 0
-    inputs = np.flatnonzero(t.is_input)
-    U = np.ones((B, inputs.size))
-    if rng is not None:
-        U[ok] = rng.random((int(ok.sum()), inputs.size))
-    # every input bit drawn free (1/2, or 0 for the first); the walk overwrites the bits its nodes test
-    bits = np.zeros((B, V), dtype=np.int64)
-    if rng is not None:
-        bits[:, inputs] = U < 0.5
-    column = np.cumsum(t.is_input) - 1
-    walking = np.flatnonzero(ok)
-    e = np.full(walking.size, t.root, dtype=np.int64)
-    level = np.full(walking.size, int(t.var[t.root >> 1]), dtype=np.int64)
-    while walking.size:
-        v = int(level.min())
-        if v >= V:
-            break
-        at = np.flatnonzero(level == v)
-        rows, node, neg = walking[at], e[at] >> 1, e[at] & 1
-        lo, hi = t.low[node] ^ neg, t.high[node] ^ neg
-        if t.is_input[v]:
-            d_lo = D[lo, rows]
-            if rng is None:
-                take = d_lo == 0  # the first: low wherever it has a model
-            else:
-                d_hi = D[hi, rows]
-                take = U[rows, column[v]] * (d_lo + d_hi) < d_hi
-        else:
-            take = ((idx[rows, t.digit[v]] >> t.shift[v]) & 1).astype(bool)
-        bits[rows, v] = take
-        e[at] = np.where(take, hi, lo)
-        level[at] = t.var[e[at] >> 1]
-    codes = np.zeros((B, t.inputs), dtype=np.int64)
-    for v in inputs.tolist():
-        codes[:, t.digit[v]] |= bits[:, v] << t.shift[v]
-    return codes, ok
+@njit(cache=True, nogil=True)
+def _draw(is_input: np.ndarray, digit: np.ndarray, shift: np.ndarray, var: np.ndarray, low: np.ndarray,
+          high: np.ndarray, root: np.int64, idx: np.ndarray, U: np.ndarray, first: bool, codes: np.ndarray,
+          ok: np.ndarray) -> None:
+    """:func:`draw`'s loop: per cell its shares, then one walk from the root (``U``: a uniform per input level)."""
+    K, V = var.size, is_input.size
+    stamp = np.full(K, -1, dtype=np.int64)
+    L1, L0 = np.empty(K), np.empty(K)
+    stack = np.empty(2 * V + 4, dtype=np.int64)
+    for c in range(idx.shape[0]):
+        _shares(c, is_input, digit, shift, var, low, high, root, idx, stamp, L1, L0, stack)
+        ok[c] = _value(root, L1, L0)[0] > -np.inf
+        if not ok[c]:
+            continue
+        e, col = root, 0
+        for v in range(V):
+            n = e >> 1
+            if var[n] == v:
+                if is_input[v]:
+                    lo, hi = low[n] ^ (e & 1), high[n] ^ (e & 1)
+                    l_lo, l_hi = _value(lo, L1, L0)[0], _value(hi, L1, L0)[0]
+                    take = l_lo == -np.inf if first else U[c, col] * (1.0 + np.exp2(l_lo - l_hi)) < 1.0
+                    e = hi if take else lo
+                else:
+                    take = (idx[c, digit[v]] >> shift[v]) & 1 == 1
+                    e = high[n] ^ (e & 1) if take else low[n] ^ (e & 1)
+            else:  # a level the node does not test: either value
+                take = not first and U[c, col] < 0.5 if is_input[v] else False
+            if is_input[v]:
+                if take:
+                    codes[c, digit[v]] |= np.int64(1) << shift[v]
+                col += 1
 
 
 def draw(t: JointTable, idx: np.ndarray, rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
     """An admissible joint input at each cell: codes per subsystem, shape (B, inputs), and whether the cell has
     any (shape (B,); its codes are meaningless where not). Uniform over the cell's inputs with ``rng``, drawing
-    ``rng.random(input bits)`` per cell that has inputs, in row order (so one call on many cells draws what calls on
-    one cell each would); else the first in the variable order (low branches first, skipped bits 0)."""
-    idx = np.asarray(idx, dtype=np.int64).reshape(-1, idx.shape[-1] if np.ndim(idx) else 1)
-    per = max(1, COUNT_BLOCK // int(t.var.size))
-    parts = [_block(t, idx[s:s + per], rng) for s in range(0, idx.shape[0], per)]
-    if not parts:
-        return np.zeros((0, t.inputs), dtype=np.int64), np.zeros(0, dtype=bool)
-    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    ``rng.random(input bits)`` per cell in row order (so one call on many cells draws what calls on one cell each
+    would); else the first in the variable order (low branches first, skipped bits 0)."""
+    idx = np.ascontiguousarray(idx, dtype=np.int64).reshape(-1, idx.shape[-1] if np.ndim(idx) else 1)
+    n_in = int(t.is_input.sum())
+    U = rng.random((idx.shape[0], n_in)) if rng is not None else np.zeros((idx.shape[0], n_in))
+    codes = np.zeros((idx.shape[0], t.inputs), dtype=np.int64)
+    ok = np.zeros(idx.shape[0], dtype=bool)
+    _draw(t.is_input, t.digit, t.shift, t.var, t.low, t.high, np.int64(t.root), idx, U, rng is None, codes, ok)
+    return codes, ok
 
 
 def contains(t: JointTable, idx: np.ndarray, codes: np.ndarray) -> np.ndarray:
