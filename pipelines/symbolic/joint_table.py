@@ -53,14 +53,6 @@ class JointTable:
     root: int
     inputs: int
 
-    @property
-    def levels(self) -> int:
-        return int(self.is_input.size)
-
-    def free_below(self) -> np.ndarray:
-        """Input levels at or below each level, shape (V + 1,) (0 at the constant's level ``V``)."""
-        return np.concatenate([np.cumsum(self.is_input[::-1])[::-1], [0]]).astype(np.int64)
-
 
 def joint_table(model: Any, f: Any) -> JointTable:
     """The :class:`JointTable` of ``f``, a BDD over the current-state and input bits of ``model`` (a
@@ -208,18 +200,22 @@ def draw(t: JointTable, idx: np.ndarray, rng: np.random.Generator | None) -> tup
     return codes, ok
 
 
+@njit(cache=True, nogil=True)
+def _contains(is_input: np.ndarray, digit: np.ndarray, shift: np.ndarray, var: np.ndarray, low: np.ndarray,
+              high: np.ndarray, root: np.int64, idx: np.ndarray, codes: np.ndarray, out: np.ndarray) -> None:
+    for c in range(idx.shape[0]):
+        e = root
+        while e >> 1 != 0:
+            n = e >> 1
+            v = var[n]
+            code = codes[c, digit[v]] if is_input[v] else idx[c, digit[v]]
+            e = (high[n] if (code >> shift[v]) & 1 else low[n]) ^ (e & 1)
+        out[c] = e & 1 == 0
+
+
 def contains(t: JointTable, idx: np.ndarray, codes: np.ndarray) -> np.ndarray:
     """Whether the controller allows the joint input ``codes`` (shape (B, inputs)) at the cells ``idx`` (B, n)."""
-    idx, codes = np.asarray(idx, dtype=np.int64), np.asarray(codes, dtype=np.int64)
-    e = np.full(idx.shape[0], t.root, dtype=np.int64)
-    level = np.full(idx.shape[0], int(t.var[t.root >> 1]), dtype=np.int64)
-    for v in range(t.levels):
-        here = np.flatnonzero(level == v)
-        if here.size == 0:
-            continue
-        source = codes if t.is_input[v] else idx
-        bit = (source[here, t.digit[v]] >> t.shift[v]) & 1
-        node, neg = e[here] >> 1, e[here] & 1
-        e[here] = np.where(bit == 1, t.high[node], t.low[node]) ^ neg
-        level[here] = t.var[e[here] >> 1]
-    return (e & 1) == 0
+    idx, codes = np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(codes, dtype=np.int64)
+    out = np.zeros(idx.shape[0], dtype=bool)
+    _contains(t.is_input, t.digit, t.shift, t.var, t.low, t.high, np.int64(t.root), idx, codes, out)
+    return out
