@@ -8,12 +8,21 @@ from functools import reduce
 
 import numpy as np
 import pytest
+import yaml
 
+from pipelines.controller import Controller
+from pipelines.controller_loading import load_controller
+from pipelines.spec.model import parse_spec
 from pipelines.symbolic.counting import sampler
 from pipelines.symbolic.joint_table import contains, draw, joint_table
 from pipelines.symbolic.order import SubsystemLayout
 from pipelines.symbolic.relations import state_set
 from pipelines.symbolic.symbolic_model import SymbolicModel
+from pipelines.verification.closed_loop import _still_allowed, admits
+from workers.executors import Execution
+from workers.job import run_job
+
+from .conftest import EXAMPLES
 
 
 def random_controller(seed: int, p: float = 0.3):
@@ -97,3 +106,23 @@ def test_a_share_of_two_to_the_minus_62_is_drawn_exactly():
     assert contains(t, np.concatenate([zeros, ones]), np.full((2, 31), 3)).tolist() == [True, False]
     first, ok = draw(t, ones, None)
     assert ok[0] and first[0].tolist() == [0] * 31
+
+
+def test_a_bdd_controller_draws_and_checks_inputs_as_its_bdd_says(tmp_path):
+    """The platoon's controller is one BDD over states and inputs: its drawn inputs are admissible (the BDD path of
+    ``admits``), and the steady choice's check of previous inputs for all rows at once is ``admits`` row by row."""
+    data = yaml.safe_load((EXAMPLES / "platoon.yaml").read_text())
+    data["options"].update(audit_transitions=0, closed_loop_runs=2, initial_states=[])
+    run_job(parse_spec(data), tmp_path / "job", execution=Execution(in_process=True))
+    c = load_controller(tmp_path / "job")
+    assert type(c) is Controller
+    rng = np.random.default_rng(3)
+    X = c.state_grid.points(c.sample_cells(40, rng))
+    U = c.choose_many(X, rng)
+    assert all(u is not None and admits(c, x, u) for x, u in zip(X, U))
+    previous: list[np.ndarray | None] = [U[(7 * k) % 40] for k in range(40)]  # others' inputs: some not allowed
+    previous[0] = np.asarray(previous[0]) + 1000.0  # off the input grid
+    previous[1] = None
+    expected = [u is not None and admits(c, x, u) for x, u in zip(X, previous)]
+    assert _still_allowed(c, X, previous).tolist() == expected
+    assert 0 < sum(expected) < 38
