@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from pipelines.errors import CompabsError, SpecError
 
@@ -43,6 +44,28 @@ _INDEX_LIMIT = float(2**62)
 def _index(r: np.ndarray) -> np.ndarray:
     """``r`` (whole numbers, possibly ±inf) as int64 indices, clamped to ``±2^62``."""
     return np.clip(r, -_INDEX_LIMIT, _INDEX_LIMIT).astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _cell_of(x: np.ndarray, origin: np.ndarray, eta: np.ndarray, k_lo: np.ndarray, upper: bool,
+             idx: np.ndarray) -> None:
+    """:meth:`UniformGrid.cell_of`'s indices in one pass: ``(x - origin) / eta + 0.5`` snapped as :func:`_snap`,
+    floored (the upper cell at a tie) or ceiled less one (the lower), clamped as :func:`_index`; NaN goes to the
+    lower clamp (off every grid). One fused loop: as numpy expressions, 2·10^6 rows of 100 coordinates made
+    the temporaries most of an audit."""
+    B, d = x.shape
+    for b in range(B):
+        for j in range(d):
+            r = (x[b, j] - origin[j]) / eta[j] + 0.5
+            nearest = np.rint(r)
+            if abs(r - nearest) <= SNAP_RTOL * max(1.0, abs(r)):
+                r = nearest
+            k = np.floor(r) if upper else np.ceil(r) - 1.0
+            if not k >= -_INDEX_LIMIT:  # NaN too
+                k = -_INDEX_LIMIT
+            elif k > _INDEX_LIMIT:
+                k = _INDEX_LIMIT
+            idx[b, j] = np.int64(k) - k_lo[j]
 
 
 def _as_vector(value: Values, dim: int, name: str) -> np.ndarray:
@@ -231,10 +254,12 @@ class UniformGrid:
         inside : ndarray of bool, shape (B,)
             Whether the cell is on this grid.
         """
-        with np.errstate(over="ignore", invalid="ignore"):  # a far point is an infinite index, clamped by _index
-            r = _snap((np.asarray(x, dtype=float) - np.asarray(self.origin)) / self.eta_array + 0.5)
-        k = _index(np.floor(r) if tie == "upper" else np.ceil(r) - 1)
-        idx = k - np.asarray(self.k_lo, dtype=np.int64)
+        x = np.asarray(x, dtype=float)
+        flat = np.ascontiguousarray(x.reshape(-1, self.dim))
+        idx = np.empty(flat.shape, dtype=np.int64)
+        _cell_of(flat, np.asarray(self.origin, dtype=float), self.eta_array.astype(float),
+                 np.asarray(self.k_lo, dtype=np.int64), tie == "upper", idx)
+        idx = idx.reshape(x.shape)
         return idx, self.on_grid(idx)
 
     def cells_touching(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -128,3 +128,29 @@ def test_boxes_beyond_every_index_are_clamped_not_wrapped():
         assert lo[0, 0] < 0 and hi[0, 0] > 10  # reaches out of the grid on both sides
         idx, inside = g.cell_of(np.array([[1e308], [-np.inf]]))
         assert idx[0, 0] > 10 and idx[1, 0] < 0 and not inside.any()
+
+
+@pytest.mark.parametrize("tie", ["upper", "lower"])
+def test_cell_of_equals_its_numpy_expression(tie):
+    """The compiled cell_of against the expression it fuses (snap, floor or ceil, clamp) on random points, cell
+    boundaries within rounding, far and infinite points; NaN is off the grid."""
+    from pipelines.grid import _index, _snap
+
+    rng = np.random.default_rng(4)
+    g = UniformGrid.covering([-3.0, 0.1, 1e6], [5.0, 2.2, 1e6 + 40], [0.25, 0.3, 1.5])
+    edges = np.asarray(g.origin) + (np.arange(-2, 40)[:, None] - 0.5) * g.eta_array
+    x = np.concatenate([
+        rng.uniform(g.lb, g.ub, (500, 3)),
+        edges, edges * (1 + 1e-12), edges * (1 - 1e-12), edges + 1e-7,
+        [[1e308, -1e308, 0.0], [np.inf, -np.inf, 1e6], [-1e300, 2.0, np.inf]],
+    ])
+    idx, inside = g.cell_of(x, tie)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r = _snap((x - np.asarray(g.origin)) / g.eta_array + 0.5)
+    expect = _index(np.floor(r) if tie == "upper" else np.ceil(r) - 1) - np.asarray(g.k_lo, dtype=np.int64)
+    np.testing.assert_array_equal(idx, expect)
+    np.testing.assert_array_equal(inside, g.on_grid(expect))
+    assert 0 < inside.sum() < len(x)
+    nan_idx, nan_inside = g.cell_of(np.array([[np.nan, 1.0, 1e6 + 1]]), tie)
+    assert not nan_inside[0] and nan_idx.shape == (1, 3)
+    assert g.cell_of(x[0], tie)[0].shape == (3,)

@@ -526,3 +526,26 @@ def test_an_output_evaluated_alone_is_checked_like_the_whole_map():
         evaluate(np.array([[3.0, 3.0], [4.0, 289.0]]))
     with pytest.raises(BlackBoxError, match=r"output w1.*not finite"):
         evaluate(np.array([[3.0], [-1.0]]))
+
+
+@pytest.mark.parametrize("case", ["consensus", "tanks_direct"])
+def test_contains_agrees_with_allowed_cells(case, request):
+    """``contains`` compares ranges directly where every node reads states only (the tanks), and reads the masks of
+    the MDec tree otherwise (consensus): the same answer as ``allowed_cells``, off-grid ``ŵ`` never contained."""
+    net, ia = request.getfixturevalue(case)
+    assert any(not i.startswith("x") for n in ia.nodes for i in n.inputs) == (case == "consensus")
+    rng = np.random.default_rng(8)
+    x_idx = np.column_stack([rng.integers(0, k, 400) for k in net.composed_state_grid().shape])
+    masks = ia.allowed_cells(x_idx)
+    sizes = [m.shape[1] for m in masks]
+    # an allowed cell of each ŵ_j (its highest), then in about half of the rows one ŵ_j anywhere, off the grid too
+    w_idx = np.column_stack([m.shape[1] - 1 - np.argmax(m[:, ::-1], axis=1) for m in masks])
+    moved = np.flatnonzero(rng.random(400) < 0.5)
+    cols = rng.integers(0, len(sizes), moved.size)
+    w_idx[moved, cols] = [rng.integers(-1, sizes[c] + 1) for c in cols]
+    expect = np.ones(400, dtype=bool)
+    for j, m in enumerate(masks):
+        w = w_idx[:, j]
+        expect &= (w >= 0) & (w < sizes[j]) & m[np.arange(400), np.clip(w, 0, sizes[j] - 1)]
+    assert 0 < expect.sum() < 400
+    np.testing.assert_array_equal(ia.contains(x_idx, w_idx), expect)

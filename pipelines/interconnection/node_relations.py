@@ -209,6 +209,15 @@ class InterconnectionAbstraction:
             raise ValueError(f"w_idx has shape {w_idx.shape}, expected ({x_idx.shape[0]}, {self.p})")
         B = x_idx.shape[0]
         result = np.ones(B, dtype=bool)
+        if all(n.output.startswith("w") and all(i.startswith("x") for i in n.inputs) for n in self.nodes):
+            # every node reads states only (no MDec tree): ŵ_j's cells are one range per row, compared directly
+            # (the masks of _masks cost 24 of 105 s of auditing a ring of 100 rooms)
+            for node in self.nodes:
+                at = tuple(x_idx[:, int(name[1:])] for name in node.inputs)
+                w = w_idx[:, int(node.output[1:])]
+                lo, hi = np.broadcast_to(node.lo[at], (B,)), np.broadcast_to(node.hi[at], (B,))
+                result &= (w >= 0) & (w < node.output_grid.size) & (lo <= w) & (w <= hi)
+            return result
         for start in range(0, B, CONTAINS_ROWS):
             stop = min(B, start + CONTAINS_ROWS)
             masks = self._masks(x_idx[start:stop])
