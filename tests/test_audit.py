@@ -209,3 +209,23 @@ def test_either_cell_chooses_per_coordinate_and_stays_on_the_grid():
     assert set(idx[100:200, 0]) == {2}  # the edge of the box: only the cell that holds it
     pairs = {tuple(r) for r in idx[:100]}
     assert len(pairs) == 4  # the coordinates are chosen independently
+
+
+def test_either_cell_is_its_numpy_expression_on_the_same_draws():
+    """The compiled choice against the expression it fuses (both cells, a uniform per coordinate, the other cell
+    where the pick is off the grid), from the same generator state: boundaries, box edges and points outside."""
+    from pipelines.grid import UniformGrid
+    from pipelines.verification.audit import _either_cell
+
+    grid = UniformGrid.covering([0.0, -1.0, 5.0], [4.0, 1.0, 9.0], [0.5, 0.25, 1.0])
+    rng = np.random.default_rng(12)
+    x = rng.uniform([-1.0, -2.0, 4.0], [5.0, 2.0, 10.0], (3000, 3))
+    edges = np.asarray(grid.origin) + (rng.integers(-2, 20, (3000, 3)) - 0.5) * grid.eta_array
+    x = np.where(rng.random((3000, 3)) < 0.5, edges, x)
+    got = _either_cell(grid, x, np.random.default_rng(7))
+    up, low = grid.cell_of(x, "upper")[0], grid.cell_of(x, "lower")[0]
+    pick_up = np.random.default_rng(7).random(x.shape) < 0.5
+    idx = np.where(pick_up, up, low)
+    off = (idx < 0) | (idx >= np.asarray(grid.shape))
+    np.testing.assert_array_equal(got, np.where(off, np.where(pick_up, low, up), idx))
+    assert (up != low).any()

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from pipelines.abstraction.relation import SubsystemRelation
-from pipelines.grid import UniformGrid
+from pipelines.grid import UniformGrid, cell_index
 from pipelines.network import Network, Subsystem
 
 #: Points per batch of black-box evaluations.
@@ -66,13 +67,26 @@ def _either_cell(grid: UniformGrid, x: np.ndarray, rng: np.random.Generator) -> 
     edge the outer cell of that coordinate may be off the grid, and the other one, which holds the point, is
     taken for that coordinate alone.
     """
-    up = grid.cell_of(x, "upper")[0]
-    low = grid.cell_of(x, "lower")[0]
-    top = np.asarray(grid.shape, dtype=np.int64)
-    pick_up = rng.random(up.shape) < 0.5
-    idx = np.where(pick_up, up, low)
-    off = (idx < 0) | (idx >= top)
-    return np.where(off, np.where(pick_up, low, up), idx)
+    x = np.ascontiguousarray(x, dtype=float)
+    U = rng.random(x.shape)
+    idx = np.empty(x.shape, dtype=np.int64)
+    _either(x, U, np.asarray(grid.origin, dtype=float), grid.eta_array.astype(float),
+            np.asarray(grid.k_lo, dtype=np.int64), np.asarray(grid.shape, dtype=np.int64), idx)
+    return idx
+
+
+@njit(cache=True, nogil=True)
+def _either(x: np.ndarray, U: np.ndarray, origin: np.ndarray, eta: np.ndarray, k_lo: np.ndarray, top: np.ndarray,
+            idx: np.ndarray) -> None:
+    """:func:`_either_cell`'s loop: per coordinate the upper cell where ``U < 1/2``, else the lower, and the other
+    where the pick is off the grid."""
+    B, d = x.shape
+    for b in range(B):
+        for j in range(d):
+            up = cell_index(x[b, j], origin[j], eta[j], k_lo[j], True)
+            low = cell_index(x[b, j], origin[j], eta[j], k_lo[j], False)
+            first, other = (up, low) if U[b, j] < 0.5 else (low, up)
+            idx[b, j] = other if first < 0 or first >= top[j] else first
 
 
 def _batches(count: int) -> Iterator[int]:
