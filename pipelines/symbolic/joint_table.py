@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from pipelines.symbolic.node_table import bit_positions, node_arrays
+
 
 @dataclass(frozen=True)
 class JointTable:
@@ -56,42 +58,14 @@ class JointTable:
 
 def joint_table(model: Any, f: Any) -> JointTable:
     """The :class:`JointTable` of ``f``, a BDD over the current-state and input bits of ``model`` (a
-    :class:`~.symbolic_model.SymbolicModel`); one walk of its nodes, Python work proportional to the BDD."""
+    :class:`~.symbolic_model.SymbolicModel`); one walk of its nodes (:func:`~.node_table.node_arrays`)."""
     bdd = model.bdd
     bits = sorted([*model.x_bits, *model.u_bits], key=bdd.level_of_var)
-    level_of = {bdd.level_of_var(b): k for k, b in enumerate(bits)}
-    is_input, digit, shift = [], [], []
-    for b in bits:
-        name, pos = b.split("_")
-        is_input.append(name[0] == "u")
-        digit.append(int(name[1:]))
-        shift.append(len(model.bits[name]) - 1 - int(pos))
-    ids: dict[int, int] = {int(bdd.true): 0}
-    order: list[Any] = []
-    stack = [~f if f.negated else f]
-    while stack:
-        g = stack.pop()
-        if int(g) in ids:
-            continue
-        ids[int(g)] = len(ids)
-        order.append(g)
-        for child in (g.high, g.low):
-            reg = ~child if child.negated else child
-            if int(reg) not in ids:
-                stack.append(reg)
-
-    def edge(g: Any) -> int:
-        reg = ~g if g.negated else g
-        return (ids[int(reg)] << 1) | int(g.negated)
-
-    K = len(order) + 1
-    var = np.full(K, len(bits), dtype=np.int64)
-    low, high = np.zeros(K, dtype=np.int64), np.zeros(K, dtype=np.int64)
-    for g in order:
-        k = ids[int(g)]
-        var[k], low[k], high[k] = level_of[g.level], edge(g.low), edge(g.high)
-    return JointTable(np.asarray(is_input, dtype=bool), np.asarray(digit, dtype=np.int64),
-                      np.asarray(shift, dtype=np.int64), var, low, high, edge(f), len(model.u_digits()))
+    var, low, high, root = node_arrays(bdd, [f], {bdd.level_of_var(b): k for k, b in enumerate(bits)})
+    var[0] = len(bits)  # the constant: below every level
+    positions = bit_positions(model, bits)
+    return JointTable(np.asarray([b[0] == "u" for b in bits], dtype=bool), positions[:, 0], positions[:, 1],
+                      var, low, high, int(root[0]), len(model.u_digits()))
 
 
 @njit(cache=True, nogil=True)

@@ -89,24 +89,23 @@ def _edge(ids: dict[int, int], g: Any) -> int:
     return (ids[int(reg)] << 1) | int(g.negated)
 
 
-def node_table(model: Any, domain: Any, outputs: Sequence[Any] = ()) -> BDDTable:
-    """The :class:`BDDTable` of ``domain`` and ``outputs``, BDDs over the current-state bits of ``model`` (a
-    :class:`~pipelines.symbolic.symbolic_model.SymbolicModel`), sharing their nodes.
-
-    The walk visits every node once (Python work proportional to the BDDs, never to the states); what the table
-    gives per cell is then one vectorised walk (:meth:`BDDTable.evaluate`).
-    """
-    bdd = model.bdd
-    x_bits = sorted(model.x_bits, key=bdd.level_of_var)
-    var_of = {bdd.level_of_var(b): k for k, b in enumerate(x_bits)}
-    bits = []
-    for b in x_bits:
+def bit_positions(model: Any, bits: Sequence[str]) -> np.ndarray:
+    """Per bit (``x3_1``, ``u0_2``, ...): its digit's number and its shift in the digit's code (``code >> shift
+    & 1``, most significant bit first), shape (len(bits), 2)."""
+    out = []
+    for b in bits:
         digit, pos = b.split("_")
-        width = len(model.bits[digit])
-        bits.append((int(digit[1:]), width - 1 - int(pos)))
+        out.append((int(digit[1:]), len(model.bits[digit]) - 1 - int(pos)))
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
+def node_arrays(bdd: Any, roots: Sequence[Any], var_of: dict[int, int]) -> tuple[np.ndarray, ...]:
+    """The nodes below ``roots`` as arrays ``(var, low, high, root edges)``: node 0 the constant TRUE (its entries
+    0), every other node numbered in one walk (Python work proportional to the BDDs), ``var`` its CUDD level mapped
+    through ``var_of``, its children and the roots as edges ``(node << 1) | complemented``."""
     ids: dict[int, int] = {int(bdd.true): 0}
     order: list[Any] = []
-    stack = [~g if g.negated else g for g in (domain, *outputs)]
+    stack = [~g if g.negated else g for g in roots]
     while stack:  # preorder: a node gets its id before its children
         g = stack.pop()
         if int(g) in ids:
@@ -125,6 +124,17 @@ def node_table(model: Any, domain: Any, outputs: Sequence[Any] = ()) -> BDDTable
         k = ids[int(g)]
         var[k] = var_of[g.level]
         low[k], high[k] = _edge(ids, g.low), _edge(ids, g.high)
-    bits_arr = np.asarray(bits, dtype=np.int64).reshape(-1, 2)
-    return BDDTable(bits_arr, var, low, high, _edge(ids, domain),
-                    np.asarray([_edge(ids, f) for f in outputs], dtype=np.int64))
+    return var, low, high, np.asarray([_edge(ids, g) for g in roots], dtype=np.int64)
+
+
+def node_table(model: Any, domain: Any, outputs: Sequence[Any] = ()) -> BDDTable:
+    """The :class:`BDDTable` of ``domain`` and ``outputs``, BDDs over the current-state bits of ``model`` (a
+    :class:`~pipelines.symbolic.symbolic_model.SymbolicModel`), sharing their nodes.
+
+    The walk visits every node once (Python work proportional to the BDDs, never to the states); what the table
+    gives per cell is then one vectorised walk (:meth:`BDDTable.evaluate`).
+    """
+    bdd = model.bdd
+    x_bits = sorted(model.x_bits, key=bdd.level_of_var)
+    var, low, high, roots = node_arrays(bdd, [domain, *outputs], {bdd.level_of_var(b): k for k, b in enumerate(x_bits)})
+    return BDDTable(bit_positions(model, x_bits), var, low, high, int(roots[0]), roots[1:])
