@@ -4,7 +4,8 @@ Dask workers.
 Consensus (``examples/consensus.yaml``, shared ``w``, Reach(Safe)) is abstracted once in this process, then its
 synthesis runs in every mode on the same abstraction: in one process (the baseline), in helper processes of this
 machine (:mod:`workers.processes.partitioned_cpre`), and on an embedded Dask cluster of 1, 2, 4, ... workers up to
-the cores present (:mod:`workers.dask_cpre`). Each row gives the wall seconds, the speed-up over one process, the
+the cores present (:mod:`workers.dask_cpre`), and on oxidd's threads in this process, one and one per core
+(:mod:`pipelines.synthesis.engine_cpre`; ``--no-oxidd`` leaves them out). Each row gives the wall seconds, the speed-up over one process, the
 parts' summed seconds of the largest call against that call in one process (what cutting costs), and whether the
 domain is the one process's (it must be: every mode is exact).
 
@@ -49,6 +50,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 #: Issue 24's targets: 2 workers against one process on a 2-core machine; 16 workers on a 16-core one.
 TARGETS = {2: 1.8, 16: 8.0}
+#: Issue 49's: oxidd on the machine's cores against the fastest CUDD mode before it, two Dask workers.
+ENGINE_TARGET = 2.0
 
 
 def default_workers(cores: int) -> list[int]:
@@ -91,12 +94,27 @@ def machine_times() -> dict[str, float]:
             "idle": idle, "steal": steal}
 
 
+def engine_speedups(rec: dict[str, Any]) -> list[float]:
+    """Each round's speed-up of oxidd on the machine's cores over that round's two-worker cluster (its best parts
+    per worker), in round order."""
+    out = []
+    for rnd in sorted({r.get("round", 0) for r in rec["rows"]}):
+        mine = [r for r in rec["rows"] if r.get("round", 0) == rnd]
+        two = [r["wall"] for r in mine if r.get("workers") == 2 and "compare_cut" not in r]
+        ox = [r["wall"] for r in mine if r.get("threads") == rec["cores"]]
+        if two and ox:
+            out.append(round(min(two) / ox[0], 2))
+    return out
+
+
 def measure(N: int, workers: list[int], per_worker: int | list[int], processes: int, quiet: bool = False,
             no_symmetry: bool = False, compare_cuts: int = 0, parallel_after: float = 1.0,
-            rounds: int = 1) -> dict[str, Any]:
+            rounds: int = 1, oxidd: bool = True) -> dict[str, Any]:
     import yaml
 
     from pipelines.spec.model import parse_spec
+    from pipelines.symbolic.oxidd_mirror import oxidd_available
+    from pipelines.synthesis.engine_cpre import OnOxidd
     from pipelines.synthesis.options import SynthesisOptions
     from pipelines.synthesis.synthesize import synthesize
     from workers.cluster import connect
@@ -173,6 +191,11 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
                         rows[-1]["compare_cut"] = cut
             finally:
                 conn.close()
+        cores = os.cpu_count() or 1
+        threads = ([1] if first and cores > 1 else []) + [cores]  # one thread in the first round only
+        for t in threads if oxidd and oxidd_available() else []:
+            rows.append(run(f"oxidd, {t} thread{'s' if t > 1 else ''}{tag}", partitioned=OnOxidd(t)))
+            rows[-1]["threads"] = t
         base = rows[start]  # each round against its own one process
         base["baseline"] = True
         for r in rows[start:]:
@@ -269,6 +292,12 @@ def lines(rec: dict[str, Any]) -> list[str]:
                     if len(got) > 1 else "")
             out.append(f"    target: {k} workers >= {target}x one process: {value:.2f}x{each}{how} "
                        f"({'met' if met else 'NOT met'})")
+    got = engine_speedups(rec)
+    if got:
+        value = statistics.median(got)
+        each = f" (the median of the rounds' {', '.join(f'{v:.2f}' for v in got)})" if len(got) > 1 else ""
+        out.append(f"    target: oxidd on {rec['cores']} threads >= {ENGINE_TARGET}x two Dask workers: {value:.2f}x{each} "
+                   f"({'met' if value >= ENGINE_TARGET else 'NOT met'})")
     return out
 
 
@@ -322,13 +351,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-symmetry", action="store_true", help="also run one process and the largest cluster without the symmetry")
     p.add_argument("--compare-cuts", type=count(0), default=0, metavar="P",
                    help="also run the largest cluster with P parts per worker, windows and split cut (0: not)")
+    p.add_argument("--no-oxidd", action="store_true", help="leave out the oxidd rows (1 thread, and one per core)")
     p.add_argument("--rounds", type=count(1), default=1,
                    help="run one process and each cluster this many times, alternating; targets on the median")
     args = p.parse_args(argv)
     cores = os.cpu_count() or 1
     workers = args.workers or default_workers(cores)
     rec = measure(args.N, workers, args.per_worker, args.processes, no_symmetry=args.no_symmetry,
-                  compare_cuts=args.compare_cuts, parallel_after=args.parallel_after, rounds=args.rounds)
+                  compare_cuts=args.compare_cuts, parallel_after=args.parallel_after, rounds=args.rounds,
+                  oxidd=not args.no_oxidd)
     from workers.cluster import worker_environ
 
     rec["allocator"] = {k: os.environ.get(k) for k in worker_environ()}  # this process's: the one process's
@@ -381,6 +412,11 @@ def targets(rec: dict[str, Any], put: Any) -> None:
         v = target_speedup(rec, int(k))
         if v is not None:
             put(f"consensus synthesis, {k} Dask workers / one process", v, f">= {target}", v >= target)
+    got = engine_speedups(rec)
+    if got:
+        v = round(statistics.median(got), 2)
+        put(f"consensus synthesis, oxidd on {rec['cores']} threads / two Dask workers", v, f">= {ENGINE_TARGET}",
+            v >= ENGINE_TARGET)
     same = [r["same_domain"] for r in rec["rows"]]
     put("synthesis modes give the one process's domain", all(same), "all", bool(same) and all(same))
 

@@ -244,7 +244,7 @@ def test_a_job_synthesizes_on_its_cluster(tmp_path, client):
     """``run_job`` on a cluster keeps it for synthesis: the report says the parts ran there, and the domain is the
     one process's."""
     spec = parse_spec(_consensus(4, synthesis_parallel_after=0.0, fixed_points=["reach_safe"],
-                                 controller="reach_safe"))
+                                 controller="reach_safe", synthesis_engine="cudd"))
     report = run_job(spec, tmp_path / "job", execution=Execution(client=client))
     assert report["domain_states"] == 191_493
     assert report["synthesis"]["parallel"]["on"] == "cluster"
@@ -253,7 +253,8 @@ def test_a_job_synthesizes_on_its_cluster(tmp_path, client):
 
 
 def test_where_synthesis_runs_follows_the_options(client):
-    spec = parse_spec(_consensus(3))
+    """With CUDD (the oxidd default: tests/test_engine_cpre.py)."""
+    spec = parse_spec(_consensus(3, synthesis_engine="cudd"))
     assert partitioning(spec.options)["partitioned"] is PartitionedPredecessors
     on = partitioning(spec.options, client)
     assert on["auto_parts"] == parts_for(client) == 2 and on["partitioned"] is not PartitionedPredecessors

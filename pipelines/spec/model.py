@@ -390,6 +390,12 @@ class OptionsSpec(_Model):
         "job has one. With the cluster, synthesis_processes 'auto' is one part per worker thread and an int the "
         "number of parts. Results are identical. Not part of the spec's hash",
     )
+    synthesis_engine: Literal["auto", "cudd", "oxidd"] = Field(
+        default="auto",
+        description="the BDD engine of the synthesis's predecessor steps: 'oxidd' = in the job's process on one thread "
+        "per core (synthesis_on must be 'auto'), 'cudd' = CUDD, split as synthesis_on says, 'auto' = oxidd where "
+        "installed unless synthesis_on is set. Results are identical. Not part of the spec's hash",
+    )
     synthesis_parallel_after: float = Field(
         default=1.0, ge=0, le=1e6,
         description="seconds one fixed-point step must take in one process before the parts start (starting them "
@@ -580,13 +586,10 @@ def spec_hash(spec: JobSpec) -> str:
     """A stable hash of everything that determines the abstraction (used to refuse stale stores)."""
     import hashlib
 
-    # task_timeout and synthesis_processes change how long the job takes, not what it computes: a job that
-    # timed out must resume.
-    # synthesis_quotient and synthesis_refine change the synthesis only: the stored abstraction is reused.
+    # Timing (a job that timed out must resume) and synthesis-only options: the stored abstraction is reused.
     timing_only = {"options": {"task_timeout", "time_limit", "memory_limit", "synthesis_processes", "synthesis_on",
-                               "synthesis_parallel_after",
-                               "synthesis_quotient", "synthesis_refine", "synthesis_backend",
-                               "max_automaton_states"}}
+                               "synthesis_engine", "synthesis_parallel_after", "synthesis_quotient",
+                               "synthesis_refine", "synthesis_backend", "max_automaton_states"}}
     canonical = json.dumps(spec.model_dump(mode="json", exclude=timing_only), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 

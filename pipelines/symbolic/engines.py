@@ -7,8 +7,11 @@ the few operations a fixed point of :mod:`pipelines.synthesis.fixed_points` is m
 functions (``&``, ``|``, ``~``, ``==``), the relational product :meth:`Engine.and_exists`, the renaming
 :meth:`Engine.to_next` and an exact :meth:`Engine.count` of a set of states. Sets go from one engine to the other as
 DDDMP (:meth:`Engine.write`, :meth:`Engine.read`), so two engines' results can be compared as sets: from CUDD to
-oxidd, never back (CUDD's reader trusts its input, and a plain BDD of oxidd's has a false terminal CUDD's files
-never hold).
+oxidd (back only through :func:`~.oxidd_mirror.cudd_dddmp`, for BDDs with complement edges: CUDD's reader trusts its
+input, and a plain BDD of oxidd's has a false terminal CUDD's files never hold).
+
+The synthesis itself runs its ``∃u.CPre`` on oxidd through :class:`~.oxidd_mirror.OxiddMirror`
+(:mod:`pipelines.synthesis.engine_cpre`); this module is the bench's (``bench/engines.py``).
 
 :class:`CuddEngine` is the model the synthesis uses today (:func:`~.files.load_all`: the same CUDD settings).
 :class:`OxiddEngine` is ``oxidd`` (Rust, PyPI; optional: :func:`oxidd_available`), plain BDDs (``bdd``) or BDDs
@@ -25,24 +28,9 @@ from typing import Any, Protocol
 from pipelines.controller_integrity import read_header, verify_header
 from pipelines.symbolic.counting import count_states
 from pipelines.symbolic.files import check_dddmp, load_all, read_root, write_root
+from pipelines.symbolic.oxidd_mirror import OXIDD_CACHE, OXIDD_NODES, OxiddManager, oxidd_available
 
 __all__ = ["CuddEngine", "Engine", "OxiddEngine", "engine", "oxidd_available", "peak_rss_mb"]
-
-#: Largest node count an oxidd manager may reach (its index-based manager's limit for complement edges is 2^31).
-#: Reserved, not allocated: the pages are touched as nodes are made.
-OXIDD_NODES = 1 << 28
-#: Entries of oxidd's apply cache, allocated at once (about 20 bytes each). CUDD grows its cache up to 2^25 entries
-#: (:data:`~.symbolic_model.MAX_CACHE_ENTRIES`) while its hit rate is high; oxidd's is fixed.
-OXIDD_CACHE = 1 << 22
-
-
-def oxidd_available() -> bool:
-    """Whether ``oxidd`` can be imported (an optional dependency)."""
-    try:
-        import oxidd  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def peak_rss_mb() -> float:
@@ -128,89 +116,27 @@ class CuddEngine:
         return read_root(self.model, path)
 
 
-class OxiddEngine:
-    """``oxidd``'s BDDs (``kind='bdd'``) or BDDs with complement edges (``'bcdd'``), apply on ``threads`` threads.
-
-    The variables are declared in the header's level order and never reordered; a DDDMP file's support variables
-    are matched by name, so a file CUDD wrote (complemented edges included) reads into either kind.
+class OxiddEngine(OxiddManager):
+    """``oxidd``'s BDDs (``kind='bdd'``) or BDDs with complement edges (``'bcdd'``), apply on ``threads`` threads:
+    an :class:`~.oxidd_mirror.OxiddManager` over the problem header's variables, in its level order, never
+    reordered; a DDDMP file's support variables are matched by name, so a file CUDD wrote (complemented edges
+    included) reads into either kind.
     """
 
     def __init__(self, path: str | Path, kind: str = "bcdd", threads: int = 1, nodes: int = OXIDD_NODES,
                  cache: int = OXIDD_CACHE) -> None:
-        manager: Any  # the two kinds share their interface, not a base class
-        if kind == "bdd":
-            from oxidd.bdd import BDDManager
-
-            manager = BDDManager
-        elif kind == "bcdd":
-            from oxidd.bcdd import BCDDManager
-
-            manager = BCDDManager
-        else:
-            raise ValueError(f"oxidd kind must be 'bdd' or 'bcdd', got {kind!r}")
-        self.name = f"oxidd.{kind}, {threads} thread{'s' if threads > 1 else ''}"
-        self.kind, self.threads = kind, int(threads)
         head_path = Path(str(path) + ".json")
         head = read_header(head_path)
         verify_header(head, head_path, head["roots"], None)
-        self.variables: list[str] = list(head["variables"])
         self.meta = dict(head.get("meta") or {})
-        self.manager = manager(int(nodes), int(cache), int(threads))
-        self.manager.add_named_vars(self.variables)
-        self.false = self.manager.false()
-        self._cubes: dict[tuple[str, ...], Any] = {}
-        x_bits, xn_bits = self.meta["x_bits"], self.meta["xn_bits"]
-        self._next = self.manager.true().make_substitution(
-            (self._index(x), self.manager.var(xn)) for x, xn in zip(x_bits, xn_bits))
-        self._spare_bits = len(self.variables) - len(x_bits)
+        super().__init__(head["variables"], self.meta["x_bits"], self.meta["xn_bits"], kind, threads, nodes, cache)
+        self.name = f"oxidd.{kind}, {threads} thread{'s' if threads > 1 else ''}"
+        self._spare_bits = len(self.variables) - len(self.meta["x_bits"])
         self.roots = _named([self.read(head_path.with_name(name)) for name in head["roots"]], self.meta)
-
-    def _index(self, name: str) -> int:
-        """The manager's number of the variable ``name``."""
-        v = self.manager.name_to_var(name)
-        if v is None:
-            raise ValueError(f"no variable {name!r} in the problem's header")
-        return int(v)
-
-    def cube(self, bits: Sequence[str]) -> Any:
-        """The conjunction of ``bits``' variables (how oxidd names a set of variables to quantify), made once."""
-        key = tuple(bits)
-        c = self._cubes.get(key)
-        if c is None:
-            c = self.manager.true()
-            for b in reversed(key):
-                c &= self.manager.var(b)
-            self._cubes[key] = c
-        return c
-
-    def and_exists(self, f: Any, g: Any, bits: Sequence[str]) -> Any:
-        from oxidd.util import BooleanOperator
-
-        return f.apply_exists(BooleanOperator.AND, g, self.cube(bits))
-
-    def to_next(self, f: Any) -> Any:
-        return f.substitute(self._next)
 
     def count(self, f: Any) -> int:
         # every model of f over all variables is a state times each value of the bits f does not read
         return int(f.sat_count(len(self.variables))) >> self._spare_bits
-
-    def nodes(self, f: Any) -> int:
-        return int(f.node_count())
-
-    def write(self, f: Any, path: str | Path) -> None:
-        self.manager.export_dddmp_with_names(str(path), [(f, "root")], ascii=True)
-
-    def read(self, path: str | Path) -> Any:
-        from oxidd.util import DDDMPFile
-
-        with DDDMPFile(str(path)) as file:
-            names = file.var_names
-            if names is None:
-                raise ValueError(f"{path}: the DDDMP file names no variables")
-            support = [self._index(names[i]) for i in file.support_vars]
-            (root,) = self.manager.import_dddmp(file, support)
-        return root
 
 
 def engine(path: str | Path, name: str, threads: int = 1, **oxidd_options: int) -> Engine:

@@ -30,7 +30,7 @@ import contextlib
 import os
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from dd import cudd
 from dd.cudd import Function, and_exists  # re-exported: the synthesis reaches CUDD through this package only
@@ -52,9 +52,20 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.interconnection import InterconnectionAbstraction
     from pipelines.network import Network
 
-__all__ = ["BDDMemoryError", "Function", "SymbolicModel", "and_exists", "bit_width", "default_max_memory"]
+__all__ = ["BDDMemoryError", "Function", "Relational", "SymbolicModel", "and_exists", "bit_width",
+           "default_max_memory"]
 # Function: a BDD of the manager. and_exists(f, g, bits) = ∃bits. f ∧ g in one CUDD call (Cudd_bddAndAbstract),
 # the relational product.
+
+
+class Relational(Protocol):
+    """What the controllable predecessor's products need of a BDD manager (:func:`pipelines.synthesis.cpre.bad_inputs`):
+    a :class:`SymbolicModel` (CUDD) or an :class:`~.oxidd_mirror.OxiddMirror` (oxidd, on several threads)."""
+
+    def to_next(self, f: Function) -> Function: ...
+
+    def and_exists(self, f: Function, g: Function, bits: Sequence[str]) -> Function: ...
+
 
 #: Fraction of physical memory CUDD may use by default (ENGINEERING: set max_memory below the budget).
 DEFAULT_MEMORY_FRACTION = 0.75
@@ -341,6 +352,11 @@ class SymbolicModel:
     @property
     def u_domain(self) -> Function:
         return self.domain(self.u_digits())
+
+    @staticmethod
+    def and_exists(f: Function, g: Function, bits: Sequence[str]) -> Function:
+        """``∃bits. f ∧ g`` (:func:`and_exists`; the :class:`Relational` method)."""
+        return and_exists(f, g, list(bits))
 
     # ------------------------------------------------------------------ renaming and assignments
     def to_next(self, f: Function) -> Function:

@@ -43,13 +43,12 @@ refuses.
 
 The fixed points (:mod:`.fixed_points`) that need the controller only at convergence use
 :meth:`ControllablePredecessor.predecessors` (``∃u.CPre`` in one ``and_exists``, never materialising ``CPre``).
-That call may run in parts at once (:mod:`.partitioned`) through a ``partitioned`` factory the caller injects
-(the transports, helper processes and Dask workers, live in ``workers``, not here); :class:`PartitionFailed` is
-the failure after which the object goes on in one process.
-
-The ingredients of ``CPre`` (the chain, the admissible pairs, the shared ``M̂``) are also what the free functions
-:func:`bad_inputs`, :func:`predecessors_of` and :func:`~.at_state.cpre_at_state` take: the parts run them on their
-own copies (:mod:`.parts`), and a layered controller read back from its files evaluates them at one state.
+That call may run elsewhere through a ``partitioned`` factory the caller injects: in parts at once
+(:mod:`.partitioned`; helper processes and Dask workers live in ``workers``) or on oxidd's threads
+(:mod:`.engine_cpre`); :class:`PartitionFailed` is the failure after which the object goes on in one process.
+The free functions :func:`bad_inputs`, :func:`predecessors_of` and :func:`~.at_state.cpre_at_state` take the
+ingredients (the chain, the admissible pairs, the shared ``M̂``): the parts and oxidd run them on their own copies,
+and a layered controller read back from its files evaluates them at one state.
 """
 
 from __future__ import annotations
@@ -63,7 +62,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, TypedDict
 from pipelines.errors import CompabsError
 from pipelines.symbolic.order import default_order
 from pipelines.symbolic.relations import interconnection_parts, subsystem_relations
-from pipelines.symbolic.symbolic_model import Function, SymbolicModel, and_exists
+from pipelines.symbolic.symbolic_model import Function, Relational, SymbolicModel, and_exists
 from pipelines.symbolic.tree import Say
 from pipelines.synthesis.at_state import ChainAtStates, cpre_at_state
 from pipelines.synthesis.schedule import Chain, schedule, schedule_joint
@@ -152,7 +151,7 @@ def resolve_processes(processes: int | str) -> int:
 
 # ====================================================================================== CPre of the ingredients
 def bad_inputs(
-    model: SymbolicModel, chain: Chain, M: Function | None, w_bits: Sequence[str], Z: Function,
+    model: Relational, chain: Chain, M: Function | None, w_bits: Sequence[str], Z: Function,
     outside: Function | None = None, part: Function | None = None,
 ) -> Function:
     """State-input pairs with a successor outside ``Z``: ``part ∧ ∃w.[M̂ ∧ outside ∧ ∃x'.(∧_i R_i ∧ ¬Z')]``.
@@ -169,19 +168,19 @@ def bad_inputs(
     if part is not None:
         acc &= part
     for rel, xn_bits in chain:
-        acc = and_exists(acc, rel, xn_bits)
+        acc = model.and_exists(acc, rel, xn_bits)
     if M is not None:
         # the part first: a range of ŵ (a cluster's part) cuts M̂ down to its cells before the larger product with
         # ``outside`` (16 parts of consensus N = 6, a Reach(Safe): the other way costs the parts 10x the CPU)
         care = M if part is None else M & part
         if outside is not None:
             care &= outside
-        acc = and_exists(care, acc, list(w_bits))
+        acc = model.and_exists(care, acc, list(w_bits))
     return acc
 
 
 def predecessors_of(
-    model: SymbolicModel, chain: Chain, admissible: Function, M: Function | None, w_bits: Sequence[str],
+    model: Relational, chain: Chain, admissible: Function, M: Function | None, w_bits: Sequence[str],
     u_bits: Sequence[str], Z: Function, outside: Function | None = None, part: Function | None = None,
     states: Function | None = None,
 ) -> Function:
@@ -199,7 +198,7 @@ def predecessors_of(
     if part is not None:
         admissible = admissible & part
     bad = bad_inputs(model, chain, M, w_bits, Z, outside, part)
-    return and_exists(admissible, ~bad, list(u_bits))
+    return model.and_exists(admissible, ~bad, list(u_bits))
 
 
 # ====================================================================================== the object
@@ -496,9 +495,10 @@ class ControllablePredecessor:
         self._composed()
         if states is not None and part is None:  # a whole call finds its own symmetry
             raise ValueError("predecessors: states are taken with a part only")
-        if (part is None and self._pool is None and self.parallel_after <= 0 and self.processes > 1
-                and self.partitioned is not None):  # the parts from the first call on
-            self._pool = self.partitioned(self, self.processes)
+        if part is None and self._pool is None and self.partitioned is not None and (
+                getattr(self.partitioned, "from_first_call", False)  # another engine (.engine_cpre)
+                or (self.parallel_after <= 0 and self.processes > 1)):  # the parts from the first call on
+            self._start_pool()
         sym = self._symmetry_for(Z, outside, within) if part is None else None
         result = self._predecessors(Z, outside, within, part, whole=part is None, symmetry=sym, states=states)
         if sym is not None:
@@ -532,8 +532,15 @@ class ControllablePredecessor:
                 result = symmetry.close(result)
         if (whole and self.processes > 1 and self.partitioned is not None
                 and time.perf_counter() - t0 >= self.parallel_after):
-            self._pool = self.partitioned(self, self.processes)
+            self._start_pool()
         return result
+
+    def _start_pool(self) -> None:
+        try:
+            self._pool = self.partitioned(self, self.processes)  # type: ignore[misc]
+        except PartitionFailed as exc:  # e.g. the other engine could not take the CPre: this process goes on
+            self._pool_error, self.partitioned = str(exc), None
+            log.warning("partitioned CPre not started (%s); going on in one process", exc)
 
     # ------------------------------------------------------------------ symmetry
     @property
@@ -577,7 +584,7 @@ class ControllablePredecessor:
         """Forget the (closed) parts, keeping them for :attr:`parallel`; ``one_process``: start none again."""
         self._last_pool, self._pool = self._pool, None
         if one_process:
-            self.processes = 1
+            self.processes, self.partitioned = 1, None
 
     @property
     def parallel(self) -> dict[str, Any]:

@@ -77,6 +77,9 @@ class Symmetry:
             n = len(c) - 1  # this set's adjacent swaps are state_swaps[first : first + n]
             self._word += [self.state_swaps[first + j] for top in range(n, 0, -1) for j in range(top)]
             first += n
+        #: The same word as pairs of exchanged state bits, for another engine's substitution (:mod:`.engine_cpre`).
+        self.word_pairs: list[list[tuple[str, str]]] = [
+            [(a, str(v.var)) for a, v in swap.items() if a < str(v.var)] for swap in self._word]
         R = bdd.true
         for c in self.classes:
             digits = [state_digit(model, i) for i in c]
