@@ -39,8 +39,8 @@ def _same(plain, game):
 
 
 def _on_oxidd(game, threads: int = 2):
-    """``game`` with every whole ``∃u.CPre`` call on oxidd (as a job's engine sets it)."""
-    game.partitioned = OnOxidd(threads, cache=1 << 16)
+    """``game`` with every whole ``∃u.CPre`` call on oxidd (as a job's engine sets it), from the first on."""
+    game.partitioned, game.parallel_after = OnOxidd(threads, cache=1 << 16), 0.0
     return game
 
 
@@ -104,6 +104,24 @@ def test_predecessors_on_oxidd_are_cudds(seed, kind):
     finally:
         game.close()
         plain.close()
+
+
+def test_oxidd_takes_the_shared_cpre_at_once_and_the_others_after_a_long_call():
+    rng = np.random.default_rng(3)
+    for shared, method in ((True, "shared"), (False, "per_subsystem")):
+        game = build(random_net(rng, shared), "shared_top")
+        game.partitioned = OnOxidd(1, cache=1 << 16)
+        assert game.method == method
+        try:
+            game.predecessors(game.model.x_domain)
+            assert (game._pool is not None) == shared  # the per-subsystem call took far less than parallel_after
+            game.parallel_after = 0.0
+            game.predecessors(game.model.x_domain)
+            assert isinstance(game._pool, OxiddPredecessors)
+        finally:
+            game.close()
+    game.parallel_after = 1.0
+    assert OnOxidd.starts(game, 1.0) and not OnOxidd.starts(game, 0.5) and not OnOxidd.starts(game, None)
 
 
 def test_fixed_points_with_the_symmetry_on_oxidd_are_cudds():

@@ -22,6 +22,9 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numba
+import numpy as np
+
 if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.symbolic.symbolic_model import Function, SymbolicModel
 
@@ -200,12 +203,65 @@ def cudd_dddmp(data: bytes) -> bytes:
         elif line.startswith(b".suppvarnames "):
             names = line.split()[1:]
         lines.append(line)
-    if names is None:
+    if not names:
         raise ValueError("not a DDDMP text file of named variables: no .suppvarnames")
-    tokens = body.split()
-    if len(tokens) % 4:
-        raise ValueError("the node lines are not 'id index then else'")
-    rows = [tokens[k:k + 4] for k in range(0, len(tokens), 4)]
-    out = [b"%s T 1 0 0" % r[0] if r[1] == b"T" else b"%s %s %s %s %s" % (r[0], names[int(r[1])], r[1], r[2], r[3])
-           for r in rows]
-    return b"\n".join(lines) + b"\n.nodes\n" + b"\n".join(out) + b"\n.end\n"
+    lengths = np.array([len(n) for n in names], dtype=np.int64)
+    offsets = np.concatenate(([0], np.cumsum(lengths)))
+    nodes = _named_node_lines(np.frombuffer(body, dtype=np.uint8), np.frombuffer(b"".join(names), dtype=np.uint8),
+                              offsets)
+    if nodes is None:
+        raise ValueError("the node lines are not 'id index then else' over the support's variables")
+    return b"\n".join(lines) + b"\n.nodes\n" + nodes.tobytes() + b".end\n"
+
+
+@numba.njit(cache=True)
+def _named_node_lines(body: np.ndarray, names: np.ndarray, offsets: np.ndarray) -> np.ndarray | None:
+    """Each line ``id index then else`` of ``body`` as ``id name index then else`` (``names[offsets[i]:offsets[i+1]]``
+    the name of support index ``i``), ``id T ...`` as ``id T 1 0 0``; ``None`` where a line is neither."""
+    n, longest = body.size, 0
+    for i in range(offsets.size - 1):
+        longest = max(longest, offsets[i + 1] - offsets[i])
+    lines = 0
+    for i in range(n):
+        lines += body[i] == 10
+    out = np.empty(n + (lines + 1) * (longest + 8), dtype=np.uint8)
+    k, s = 0, 0
+    while s < n:
+        e = s
+        while e < n and body[e] != 10:
+            e += 1
+        if e == s:  # an empty line
+            s = e + 1
+            continue
+        p = s
+        while p < e and body[p] != 32:
+            p += 1
+        if p == s or p + 1 >= e:
+            return None
+        out[k:k + p - s] = body[s:p]
+        k += p - s
+        if body[p + 1] == 84:  # "T": the terminal
+            for c in b" T 1 0 0\n":
+                out[k] = c
+                k += 1
+            s = e + 1
+            continue
+        idx, q = 0, p + 1
+        while q < e and body[q] != 32:
+            if body[q] < 48 or body[q] > 57:
+                return None
+            idx = 10 * idx + body[q] - 48
+            q += 1
+        if q == p + 1 or q >= e or idx >= offsets.size - 1:
+            return None
+        out[k] = 32
+        k += 1
+        a, b = offsets[idx], offsets[idx + 1]
+        out[k:k + b - a] = names[a:b]
+        k += b - a
+        out[k:k + e - p] = body[p:e]  # " index then else"
+        k += e - p
+        out[k] = 10
+        k += 1
+        s = e + 1
+    return out[:k]

@@ -485,20 +485,15 @@ class ControllablePredecessor:
 
         Without ``part``, when the network has interchangeable subsystems (:attr:`symmetry`) and ``Z``,
         ``outside`` and ``within`` are invariant under them, the call is computed on one state per orbit and closed
-        (:mod:`.symmetry`): the same result. Running parts do the same on their states when they take the
-        symmetry (helper processes, the cluster's window and state cuts), else the call is the plain one.
-
-        With ``processes > 1`` and a ``partitioned`` factory, a call without a ``part`` runs in parts at once
-        once a call here took ``parallel_after`` seconds (0: from the first). If a part fails
+        (:mod:`.symmetry`): the same result, also in the parts and on oxidd when they take the symmetry. A
+        ``partitioned`` factory takes the calls without ``part`` when :meth:`_start_pool` says. If it fails
         (:class:`PartitionFailed`), this call and the later ones run here (:attr:`parallel` ``["stopped"]`` says
         why); any other error (CUDD out of memory in a part: a BDDMemoryError) is raised, as it would be here."""
         self._composed()
         if states is not None and part is None:  # a whole call finds its own symmetry
             raise ValueError("predecessors: states are taken with a part only")
-        if part is None and self._pool is None and self.partitioned is not None and (
-                getattr(self.partitioned, "from_first_call", False)  # another engine (.engine_cpre)
-                or (self.parallel_after <= 0 and self.processes > 1)):  # the parts from the first call on
-            self._start_pool()
+        if part is None and self._pool is None:
+            self._start_pool(None)
         sym = self._symmetry_for(Z, outside, within) if part is None else None
         result = self._predecessors(Z, outside, within, part, whole=part is None, symmetry=sym, states=states)
         if sym is not None:
@@ -530,14 +525,19 @@ class ControllablePredecessor:
                                      part, symmetry.representatives if symmetry is not None else states)
             if symmetry is not None:
                 result = symmetry.close(result)
-        if (whole and self.processes > 1 and self.partitioned is not None
-                and time.perf_counter() - t0 >= self.parallel_after):
-            self._start_pool()
+        if whole:
+            self._start_pool(time.perf_counter() - t0)
         return result
 
-    def _start_pool(self) -> None:
+    def _start_pool(self, seconds: float | None) -> None:
+        """Start ``partitioned`` before a whole call (``seconds`` None) or after one that took ``seconds`` here, if
+        it says so (another engine: ``starts``, :mod:`.engine_cpre`) or, for parts, from ``parallel_after``."""
+        p = self.partitioned
+        if p is None or not (p.starts(self, seconds) if hasattr(p, "starts") else self.processes > 1 and (
+                self.parallel_after <= 0 if seconds is None else seconds >= self.parallel_after)):
+            return
         try:
-            self._pool = self.partitioned(self, self.processes)  # type: ignore[misc]
+            self._pool = p(self, self.processes)
         except PartitionFailed as exc:  # e.g. the other engine could not take the CPre: this process goes on
             self._pool_error, self.partitioned = str(exc), None
             log.warning("partitioned CPre not started (%s); going on in one process", exc)

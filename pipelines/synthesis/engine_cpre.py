@@ -65,16 +65,25 @@ def resolve_engine(engine: str) -> str:
 class OnOxidd:
     """A ``partitioned`` factory of :class:`~.cpre.ControllablePredecessor` giving :class:`OxiddPredecessors` on
     ``threads`` threads (default :func:`engine_threads`) with an apply cache of ``cache`` entries (default
-    :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE`); ``from_first_call``: it starts with the first whole
-    call, whatever the CPre's ``processes`` say."""
-
-    from_first_call = True
+    :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE`). It starts (:meth:`starts`) with the first whole call
+    of the shared CPre, whose calls are nearly all of a synthesis, and for the other methods once a call in CUDD took
+    the CPre's ``parallel_after`` seconds: their calls are short and many (the tanks: 23 of 0.03-0.24 s), and the
+    hand-overs and the manager (0.5 s) would cost more than oxidd saves.
+    """
 
     def __init__(self, threads: int | None = None, cache: int | None = None) -> None:
         self.threads = engine_threads() if threads is None else int(threads)
         if self.threads < 1:
             raise ValueError(f"oxidd needs at least one thread, got {threads}")
         self.cache = cache
+
+    @staticmethod
+    def starts(cpre: ControllablePredecessor, seconds: float | None) -> bool:
+        """Whether to take ``cpre``'s calls now: before a whole call (``seconds`` None) or after one that took
+        ``seconds`` in CUDD."""
+        if seconds is None:
+            return cpre.method == "shared" or cpre.parallel_after <= 0
+        return seconds >= cpre.parallel_after
 
     def __call__(self, cpre: ControllablePredecessor, processes: int) -> OxiddPredecessors:
         return OxiddPredecessors(cpre, self.threads, self.cache)
