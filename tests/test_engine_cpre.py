@@ -106,15 +106,21 @@ def test_predecessors_on_oxidd_are_cudds(seed, kind):
         plain.close()
 
 
-def test_oxidd_takes_the_shared_cpre_at_once_and_the_others_after_a_long_call():
+@pytest.mark.parametrize("at_once_bits", [1, 64])
+def test_oxidd_takes_a_large_shared_cpre_at_once_and_the_others_after_a_long_call(at_once_bits, monkeypatch):
+    """At once: a shared CPre of at least 2^AT_ONCE_BITS state codes (here every one, or none); the rest after a
+    call took parallel_after seconds in CUDD (0 here after the first call)."""
+    from pipelines.synthesis import engine_cpre
+
+    monkeypatch.setattr(engine_cpre, "AT_ONCE_BITS", at_once_bits)
     rng = np.random.default_rng(3)
     for shared, method in ((True, "shared"), (False, "per_subsystem")):
         game = build(random_net(rng, shared), "shared_top")
         game.partitioned = OnOxidd(1, cache=1 << 16)
         assert game.method == method
         try:
-            game.predecessors(game.model.x_domain)
-            assert (game._pool is not None) == shared  # the per-subsystem call took far less than parallel_after
+            game.predecessors(game.model.x_domain)  # a short call: far less than parallel_after
+            assert (game._pool is not None) == (shared and at_once_bits == 1)
             game.parallel_after = 0.0
             game.predecessors(game.model.x_domain)
             assert isinstance(game._pool, OxiddPredecessors)
@@ -198,7 +204,8 @@ def test_the_jobs_options_choose_the_engine():
 
 
 def test_a_job_on_oxidd_reports_it_and_wins_cudds_domain(tmp_path):
-    """Consensus N = 3 end to end in process: the engine the report names, and CUDD's domain."""
+    """Consensus N = 3 end to end in process (on oxidd from the first call: its calls are short): the engine the
+    report names, and CUDD's domain."""
     from workers.job import run_job
 
     def spec(**options):
@@ -208,7 +215,7 @@ def test_a_job_on_oxidd_reports_it_and_wins_cudds_domain(tmp_path):
                                 "initial_states": [], "audit_transitions": 1000, **options})
         return parse_spec(yaml.safe_dump(data))
 
-    ox = run_job(spec(), tmp_path / "oxidd")
+    ox = run_job(spec(synthesis_parallel_after=0.0), tmp_path / "oxidd")
     cu = run_job(spec(synthesis_engine="cudd", synthesis_processes=1), tmp_path / "cudd")
     assert ox["synthesis"]["parallel"]["on"].startswith("oxidd")
     assert ox["domain_states"] == cu["domain_states"] > 0

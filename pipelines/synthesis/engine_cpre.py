@@ -31,6 +31,9 @@ if TYPE_CHECKING:  # pragma: no cover - imports for type hints only
     from pipelines.synthesis.cpre import ControllablePredecessor, Within
     from pipelines.synthesis.symmetry import Symmetry
 
+#: A shared CPre with this many current-state bits or more goes to oxidd from its first call (consensus N = 5 on).
+AT_ONCE_BITS = 30
+
 ENGINES = ("auto", "cudd", "oxidd")
 """The BDD engines of ``∃u.CPre`` (``options.synthesis_engine``): ``auto`` is ``oxidd`` where it is installed."""
 
@@ -66,9 +69,10 @@ class OnOxidd:
     """A ``partitioned`` factory of :class:`~.cpre.ControllablePredecessor` giving :class:`OxiddPredecessors` on
     ``threads`` threads (default :func:`engine_threads`) with an apply cache of ``cache`` entries (default
     :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE`). It starts (:meth:`starts`) with the first whole call
-    of the shared CPre, whose calls are nearly all of a synthesis, and for the other methods once a call in CUDD took
-    the CPre's ``parallel_after`` seconds: their calls are short and many (the tanks: 23 of 0.03-0.24 s), and the
-    hand-overs and the manager (0.5 s) would cost more than oxidd saves.
+    of a shared CPre over at least 2^:data:`AT_ONCE_BITS` state codes, whose calls are nearly all of its synthesis,
+    and otherwise once a call in CUDD took the CPre's ``parallel_after`` seconds: short calls (the tanks: 23 of
+    0.03-0.24 s; consensus N = 4) would pay more for the manager (0.9 s and 320 MB for its apply cache) and the
+    hand-overs than oxidd saves.
     """
 
     def __init__(self, threads: int | None = None, cache: int | None = None) -> None:
@@ -82,7 +86,7 @@ class OnOxidd:
         """Whether to take ``cpre``'s calls now: before a whole call (``seconds`` None) or after one that took
         ``seconds`` in CUDD."""
         if seconds is None:
-            return cpre.method == "shared" or cpre.parallel_after <= 0
+            return cpre.parallel_after <= 0 or (cpre.method == "shared" and len(cpre.model.x_bits) >= AT_ONCE_BITS)
         return seconds >= cpre.parallel_after
 
     def __call__(self, cpre: ControllablePredecessor, processes: int) -> OxiddPredecessors:
