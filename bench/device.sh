@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Issue 24's measurement on a lent 16-core machine in one device call (docs/benchmarks.md, "On 16 cores"):
-# consensus synthesis in one process against Dask with 16 and 2 workers, the same domain, each call's parts timed
-# (parallel.per_call says when the last part of a call began and why a call waited).
+# Issues 24's and 49's measurement on a lent 16-core machine in one device call (docs/benchmarks.md, "On 16 cores"):
+# consensus synthesis in one CUDD process against Dask with 16 and 2 workers and oxidd on 1 and 16 threads, the same
+# domain, each call's parts timed (parallel.per_call says when the last part of a call began and why a call waited).
 #
 #   here, once:      bash bench/device.sh prepare
 #                    fills .whl/ with ../shared/tools/device-wheels.sh and keeps what bench/synthesis.py needs
