@@ -179,6 +179,26 @@ def test_a_failing_engine_leaves_the_calls_to_cudd(monkeypatch):
         plain.close()
 
 
+@pytest.mark.parametrize("nodes", [64, 300])
+def test_oxidd_out_of_nodes_leaves_the_calls_to_cudd(nodes):
+    """A real fault: oxidd with room for too few nodes runs out of memory, when it starts (64: the chain does not
+    fit) or in the second call (300); CUDD answers every call, and the report says why."""
+    rng = np.random.default_rng(11)
+    net = random_net(rng, True)
+    ex = Explicit(net)
+    plain, game = build(net, "shared_top"), build(net, "shared_top")
+    game.partitioned, game.parallel_after = OnOxidd(1, cache=1 << 10, nodes=nodes), 0.0
+    same = _same(plain, game)
+    try:
+        for p in (0.6, 0.3, 0.8):
+            Zp, Z = _states((plain, game), ex, rng, p)
+            same(game.predecessors(Z), plain.predecessors(Zp))
+        assert game.partitioned is None and "out of memory" in game.parallel["stopped"]
+    finally:
+        game.close()
+        plain.close()
+
+
 def _consensus_options(**options):
     data = yaml.safe_load((EXAMPLES / "consensus.yaml").read_text())
     data["parameters"]["N"] = 3

@@ -589,12 +589,10 @@ class ControllablePredecessor:
     @property
     def parallel(self) -> dict[str, Any]:
         """How the partitioned ``∃u.CPre`` ran (empty if it never started): :meth:`Partitioned.report` (where, calls,
-        the digits it cuts along, the cuts, seconds per part, ...), and ``stopped`` (why) if a part failed and the
-        CPre went on in one process."""
+        the digits it cuts along, the cuts, seconds per part, ...), and ``stopped`` (why) if it failed, even to start,
+        and the CPre went on in one process."""
         p = self._pool if self._pool is not None else self._last_pool
-        if p is None:
-            return {}
-        out = p.report()
+        out = {} if p is None else p.report()
         if self._pool_error is not None:
             out["stopped"] = f"{self._pool_error}; the later calls ran in one process"
         return out

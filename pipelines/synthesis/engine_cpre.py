@@ -67,19 +67,19 @@ def resolve_engine(engine: str) -> str:
 
 class OnOxidd:
     """A ``partitioned`` factory of :class:`~.cpre.ControllablePredecessor` giving :class:`OxiddPredecessors` on
-    ``threads`` threads (default :func:`engine_threads`) with an apply cache of ``cache`` entries (default
-    :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE`). It starts (:meth:`starts`) with the first whole call
+    ``threads`` threads (default :func:`engine_threads`), an apply cache of ``cache`` entries and room for ``nodes``
+    nodes (defaults :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE` and ``OXIDD_NODES``). It starts (:meth:`starts`) with the first whole call
     of a shared CPre over at least 2^:data:`AT_ONCE_BITS` state codes, whose calls are nearly all of its synthesis,
     and otherwise once a call in CUDD took the CPre's ``parallel_after`` seconds: short calls (the tanks: 23 of
     0.03-0.24 s; consensus N = 4) would pay more for the manager (0.9 s and 320 MB for its apply cache) and the
     hand-overs than oxidd saves.
     """
 
-    def __init__(self, threads: int | None = None, cache: int | None = None) -> None:
+    def __init__(self, threads: int | None = None, cache: int | None = None, nodes: int | None = None) -> None:
         self.threads = engine_threads() if threads is None else int(threads)
         if self.threads < 1:
             raise ValueError(f"oxidd needs at least one thread, got {threads}")
-        self.cache = cache
+        self.cache, self.nodes = cache, nodes
 
     @staticmethod
     def starts(cpre: ControllablePredecessor, seconds: float | None) -> bool:
@@ -90,7 +90,7 @@ class OnOxidd:
         return seconds >= cpre.parallel_after
 
     def __call__(self, cpre: ControllablePredecessor, processes: int) -> OxiddPredecessors:
-        return OxiddPredecessors(cpre, self.threads, self.cache)
+        return OxiddPredecessors(cpre, self.threads, self.cache, self.nodes)
 
 
 class OxiddPredecessors:
@@ -99,12 +99,14 @@ class OxiddPredecessors:
 
     takes_symmetry = True
 
-    def __init__(self, cpre: ControllablePredecessor, threads: int, cache: int | None = None) -> None:
-        from pipelines.symbolic.oxidd_mirror import OXIDD_CACHE, OxiddMirror
+    def __init__(self, cpre: ControllablePredecessor, threads: int, cache: int | None = None,
+                 nodes: int | None = None) -> None:
+        from pipelines.symbolic.oxidd_mirror import OXIDD_CACHE, OXIDD_NODES, OxiddMirror
 
         t0 = time.perf_counter()
         try:
-            self.mirror = OxiddMirror(cpre.model, threads, cache=OXIDD_CACHE if cache is None else int(cache))
+            self.mirror = OxiddMirror(cpre.model, threads, nodes=OXIDD_NODES if nodes is None else int(nodes),
+                                      cache=OXIDD_CACHE if cache is None else int(cache))
             put = self.mirror.put
             self._whole = ([(put(rel), list(bits)) for rel, bits in cpre.chain], put(cpre.admissible))
             self._M = None if cpre.M is None else put(cpre.M)
