@@ -149,8 +149,8 @@ def test_fixed_points_with_the_symmetry_on_oxidd_are_cudds():
 
 
 def test_a_failing_engine_leaves_the_calls_to_cudd(monkeypatch):
-    """An error inside oxidd (here: its relational product raising) is a PartitionFailed; the call and the later
-    ones run in CUDD with the same answers, and the report says why."""
+    """An error inside oxidd (here: its relational product raising) is a PartitionFailed that closes it; the call
+    and the later ones run in CUDD with the same answers, and the report says why."""
     rng = np.random.default_rng(5)
     net = random_net(rng, True)
     ex = Explicit(net)
@@ -166,10 +166,11 @@ def test_a_failing_engine_leaves_the_calls_to_cudd(monkeypatch):
 
     try:
         monkeypatch.setattr(pool.mirror, "and_exists", broken)
-        with pytest.raises(PartitionFailed, match="out of nodes"):
-            pool(Z)
-        same(game.predecessors(Z), plain.predecessors(Zp))
+        same(game.predecessors(Z), plain.predecessors(Zp))  # the failed call, answered by CUDD
         assert game._pool is None and game.partitioned is None
+        assert not hasattr(pool, "mirror")  # closed: oxidd's nodes are freed while the job goes on
+        with pytest.raises(PartitionFailed, match="oxidd failed in a CPre"):
+            pool(Z)
         assert "out of nodes" in game.parallel["stopped"]
         Zp, Z = _states((plain, game), ex, rng, 0.4)
         same(game.predecessors(Z), plain.predecessors(Zp))

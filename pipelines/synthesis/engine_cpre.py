@@ -10,12 +10,12 @@ and per call hands ``Z`` over, computes :func:`~.cpre.predecessors_of` there (th
 substitution and hands it back (:mod:`pipelines.symbolic.oxidd_mirror`: a few milliseconds per 10^4 nodes).
 
 The results are the same sets (BDDs are canonical; the tests compare them). The fixed points, the controllers and
-everything else stay in CUDD. Through :class:`~.cpre.ControllablePredecessor`'s ``partitioned`` seam it starts with
-the first call, and any error in it (oxidd out of nodes, a failed transfer) is a :class:`~.cpre.PartitionFailed`:
-the call and the later ones then run in CUDD, with the same answer.
+everything else stay in CUDD. It comes in through :class:`~.cpre.ControllablePredecessor`'s ``partitioned`` seam
+when :meth:`OnOxidd.starts` says, and any error in it (oxidd out of nodes, a failed transfer) is a
+:class:`~.cpre.PartitionFailed`: the call and the later ones then run in CUDD, with the same answer.
 
-On this 2-core machine, consensus N = 8's Reach(Safe): 155.8 s in one CUDD process, 67.9 s in oxidd on one
-thread and 41.6 s on two (``python bench/synthesis.py``, docs/benchmarks.md).
+On a 2-core machine, consensus N = 8's Reach(Safe): 153 s in one CUDD process, 96-104 s on two Dask workers, 71 s
+in oxidd on one thread and 45 s on two (``python bench/synthesis.py``, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -68,11 +68,12 @@ def resolve_engine(engine: str) -> str:
 class OnOxidd:
     """A ``partitioned`` factory of :class:`~.cpre.ControllablePredecessor` giving :class:`OxiddPredecessors` on
     ``threads`` threads (default :func:`engine_threads`), an apply cache of ``cache`` entries and room for ``nodes``
-    nodes (defaults :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE` and ``OXIDD_NODES``). It starts (:meth:`starts`) with the first whole call
-    of a shared CPre over at least 2^:data:`AT_ONCE_BITS` state codes, whose calls are nearly all of its synthesis,
-    and otherwise once a call in CUDD took the CPre's ``parallel_after`` seconds: short calls (the tanks: 23 of
-    0.03-0.24 s; consensus N = 4) would pay more for the manager (0.9 s and 320 MB for its apply cache) and the
-    hand-overs than oxidd saves.
+    nodes (defaults :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE` and ``OXIDD_NODES``).
+
+    It starts (:meth:`starts`) with the first whole call of a shared CPre over at least 2^:data:`AT_ONCE_BITS` state
+    codes, whose calls are nearly all of its synthesis, and otherwise once a call in CUDD took the CPre's
+    ``parallel_after`` seconds: short calls (the tanks: 23 of 0.03-0.24 s; consensus N = 4) would pay more for the
+    manager (0.9 s and 320 MB for its apply cache) and the hand-overs than oxidd saves.
     """
 
     def __init__(self, threads: int | None = None, cache: int | None = None, nodes: int | None = None) -> None:
@@ -125,6 +126,7 @@ class OxiddPredecessors:
         try:
             result = self._call(Z, outside, within, symmetry)
         except Exception as exc:  # noqa: BLE001 - as above
+            self.close()  # the CPre goes on in CUDD: oxidd's nodes are not needed again
             raise PartitionFailed(f"oxidd failed in a CPre ({type(exc).__name__}: {exc})") from exc
         self.calls += 1
         self.per_call.append(round(time.perf_counter() - t0, 3))
@@ -169,9 +171,12 @@ class OxiddPredecessors:
         return kept[1], kept[2]
 
     def close(self) -> None:
-        """Drop the mirrored functions and the manager (idempotent)."""
-        self._within, self._symmetry = {}, {}
-        self.mirror.close()
+        """Drop the mirrored functions and the manager with its nodes (idempotent; :meth:`report` stays): the CPre
+        keeps a closed object for its report while the job goes on to its controllers and closed loops."""
+        self._whole, self._M, self._within, self._symmetry = ([], None), None, {}, {}
+        mirror = self.__dict__.pop("mirror", None)
+        if mirror is not None:
+            mirror.close()
 
     def report(self) -> dict[str, Any]:
         """Where the calls ran (``ControllablePredecessor.parallel``)."""
