@@ -1,5 +1,5 @@
 """The symbolic layer: the abstraction as BDDs (Algorithm 5, Section 4.3; docs/method.md §5). The only package that
-imports ``dd``.
+imports ``dd`` and ``oxidd``.
 
 Modules, by the paper's concepts:
 
@@ -13,4 +13,6 @@ Modules, by the paper's concepts:
 * :mod:`.counting` — exact counts, uniform sampling and listing of the cells of a BDD.
 * :mod:`.node_table` — a BDD over the state bits as a node table, evaluated on many cells at once.
 * :mod:`.files` — DDDMP files with a JSON header (controllers, helper-process transport).
+* :mod:`.oxidd_mirror` — oxidd beside CUDD over the same variables, for the synthesis's ``∃u.CPre`` on several
+  threads; :mod:`.engines` — both engines on problems read from files (``bench/engines.py``).
 """
