@@ -309,9 +309,10 @@ def partitioning(options: Any, client: Any = None) -> dict[str, Any]:
     ``partitioned``, :class:`~pipelines.synthesis.options.SynthesisOptions`'s ``auto_parts`` and the ``engine``,
     from the job's options and its client.
 
-    ``synthesis_engine``: ``oxidd`` (``auto`` where it is installed and ``synthesis_on`` is ``auto``) runs every
-    call in the job's process on oxidd's threads, one per core (:mod:`pipelines.synthesis.engine_cpre`: on one
-    machine threads beat parts, consensus N = 8 2.1x faster than two Dask workers). ``cudd`` splits the calls:
+    ``synthesis_engine``: ``oxidd`` (``auto`` where it is installed and ``synthesis_on`` is ``auto``) runs the
+    calls in the job's process on oxidd's threads, one per core, from when
+    :meth:`~pipelines.synthesis.engine_cpre.OnOxidd.starts` says (on one machine threads beat parts: consensus N = 8
+    about 2.2x two Dask workers). ``cudd`` splits the calls:
     ``synthesis_on: cluster`` needs a client (a job run in process has none: a :class:`SpecError` says so); ``auto``
     uses the client when there is one. On the cluster ``synthesis_processes: 'auto'`` is one part per worker
     thread (:func:`workers.dask_cpre.parts_for`), an int that many parts, and ``1`` one process.

@@ -54,7 +54,6 @@ and a layered controller read back from its files evaluates them at one state.
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, TypedDict
@@ -139,11 +138,9 @@ class Options(TypedDict, total=False):
 def resolve_processes(processes: int | str) -> int:
     """``'auto'``: the CPUs this process may use, at most 4 (each part adds ~5-15 % work); else the int itself."""
     if processes == "auto":
-        try:
-            cpus = len(os.sched_getaffinity(0))
-        except AttributeError:  # pragma: no cover - not Linux
-            cpus = os.cpu_count() or 1
-        return max(1, min(cpus, 4))
+        from pipelines.spec.validate import usable_cpus
+
+        return min(usable_cpus(), 4)
     if isinstance(processes, bool) or not isinstance(processes, int) or processes < 1:
         raise ValueError(f"processes must be 'auto' or a positive int, got {processes!r}")
     return processes
@@ -533,8 +530,12 @@ class ControllablePredecessor:
         """Start ``partitioned`` before a whole call (``seconds`` None) or after one that took ``seconds`` here, if
         it says so (another engine: ``starts``, :mod:`.engine_cpre`) or, for parts, from ``parallel_after``."""
         p = self.partitioned
-        if p is None or not (p.starts(self, seconds) if hasattr(p, "starts") else self.processes > 1 and (
-                self.parallel_after <= 0 if seconds is None else seconds >= self.parallel_after)):
+        if p is not None and hasattr(p, "starts"):
+            wanted = p.starts(self, seconds)
+        else:
+            late_enough = self.parallel_after <= 0 if seconds is None else seconds >= self.parallel_after
+            wanted = self.processes > 1 and late_enough
+        if p is None or not wanted:
             return
         try:
             self._pool = p(self, self.processes)

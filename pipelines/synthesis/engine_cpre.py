@@ -20,7 +20,6 @@ in oxidd on one thread and 45 s on two (``python bench/synthesis.py``, docs/benc
 
 from __future__ import annotations
 
-import os
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -36,14 +35,6 @@ AT_ONCE_BITS = 30
 
 ENGINES = ("auto", "cudd", "oxidd")
 """The BDD engines of ``∃u.CPre`` (``options.synthesis_engine``): ``auto`` is ``oxidd`` where it is installed."""
-
-
-def engine_threads() -> int:
-    """The CPUs this process may use: oxidd's threads."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def resolve_engine(engine: str) -> str:
@@ -67,7 +58,7 @@ def resolve_engine(engine: str) -> str:
 
 class OnOxidd:
     """A ``partitioned`` factory of :class:`~.cpre.ControllablePredecessor` giving :class:`OxiddPredecessors` on
-    ``threads`` threads (default :func:`engine_threads`), an apply cache of ``cache`` entries and room for ``nodes``
+    ``threads`` threads (default :func:`~pipelines.spec.validate.usable_cpus`), an apply cache of ``cache`` entries and room for ``nodes``
     nodes (defaults :data:`~pipelines.symbolic.oxidd_mirror.OXIDD_CACHE` and ``OXIDD_NODES``).
 
     It starts (:meth:`starts`) with the first whole call of a shared CPre over at least 2^:data:`AT_ONCE_BITS` state
@@ -77,7 +68,9 @@ class OnOxidd:
     """
 
     def __init__(self, threads: int | None = None, cache: int | None = None, nodes: int | None = None) -> None:
-        self.threads = engine_threads() if threads is None else int(threads)
+        from pipelines.spec.validate import usable_cpus
+
+        self.threads = usable_cpus() if threads is None else int(threads)
         if self.threads < 1:
             raise ValueError(f"oxidd needs at least one thread, got {threads}")
         self.cache, self.nodes = cache, nodes
