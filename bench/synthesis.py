@@ -4,10 +4,10 @@ Dask workers.
 Consensus (``examples/consensus.yaml``, shared ``w``, Reach(Safe)) is abstracted once in this process, then its
 synthesis runs in every mode on the same abstraction: in one process (the baseline), in helper processes of this
 machine (:mod:`workers.processes.partitioned_cpre`), and on an embedded Dask cluster of 1, 2, 4, ... workers up to
-the cores present (:mod:`workers.dask_cpre`), and on oxidd's threads in this process, one and one per core
-(:mod:`pipelines.synthesis.engine_cpre`; ``--no-oxidd`` leaves them out). Each row gives the wall seconds, the speed-up over one process, the
-parts' summed seconds of the largest call against that call in one process (what cutting costs), and whether the
-domain is the one process's (it must be: every mode is exact).
+the cores present (:mod:`workers.dask_cpre`), and on oxidd's threads in this process, one and one per core, from
+the first call whatever N (:mod:`pipelines.synthesis.engine_cpre`; ``--no-oxidd`` leaves them out). Each row gives
+the wall seconds, the speed-up over one process, the parts' summed seconds of the largest call against that call in
+one process (what cutting costs), and whether the domain is the one process's (it must be: every mode is exact).
 
     python bench/synthesis.py [--N 8] [--workers 1,2] [--per-worker 1[,2,...]] [--no-symmetry] [--compare-cuts P]
                               [--rounds R] [--json OUT]          # or: python -m bench.synthesis ...
@@ -194,7 +194,8 @@ def measure(N: int, workers: list[int], per_worker: int | list[int], processes: 
         cores = os.cpu_count() or 1
         threads = ([1] if first and cores > 1 else []) + [cores]  # one thread in the first round only
         for t in threads if oxidd and oxidd_available() else []:
-            rows.append(run(f"oxidd, {t} thread{'s' if t > 1 else ''}{tag}", partitioned=OnOxidd(t)))
+            # from the first call: a job does so from N = 5 on (engine_cpre.AT_ONCE_BITS), later below
+            rows.append(run(f"oxidd, {t} thread{'s' if t > 1 else ''}{tag}", partitioned=OnOxidd(t), parallel_after=0.0))
             rows[-1]["threads"] = t
         base = rows[start]  # each round against its own one process
         base["baseline"] = True

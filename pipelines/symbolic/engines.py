@@ -14,7 +14,7 @@ The synthesis itself runs its ``∃u.CPre`` on oxidd through :class:`~.oxidd_mir
 (:mod:`pipelines.synthesis.engine_cpre`); this module is the bench's (``bench/engines.py``).
 
 :class:`CuddEngine` is the model the synthesis uses today (:func:`~.files.load_all`: the same CUDD settings).
-:class:`OxiddEngine` is ``oxidd`` (Rust, PyPI; optional: :func:`oxidd_available`), plain BDDs (``bdd``) or BDDs
+:class:`OxiddEngine` is ``oxidd`` (Rust, PyPI; :func:`oxidd_available`), plain BDDs (``bdd``) or BDDs
 with complement edges (``bcdd``, as CUDD's), its apply run on ``threads`` threads.
 """
 

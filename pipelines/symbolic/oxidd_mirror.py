@@ -41,7 +41,7 @@ OXIDD_CACHE = 1 << 24
 
 
 def oxidd_available() -> bool:
-    """Whether ``oxidd`` can be imported (an optional dependency)."""
+    """Whether ``oxidd`` can be imported (a dependency; without it every call runs in CUDD)."""
     try:
         import oxidd  # noqa: F401
     except ImportError:
