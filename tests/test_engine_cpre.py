@@ -219,6 +219,8 @@ def test_the_jobs_options_choose_the_engine():
         assert got["engine"] == "cudd" and got["partitioned"] is PartitionedPredecessors
     with pytest.raises(SpecError, match="synthesis_engine 'oxidd' runs the synthesis in the job's process"):
         partitioning(_consensus_options(synthesis_engine="oxidd", synthesis_on="processes"))
+    with pytest.raises(SpecError, match="synthesis_engine"):
+        _consensus_options(synthesis_engine="sylvan")
     assert resolve_engine("auto") == "oxidd" and resolve_engine("cudd") == "cudd"
     with pytest.raises(ValueError, match="must be one of"):
         resolve_engine("sylvan")
